@@ -1,0 +1,3 @@
+from dtoc.cli.main import run
+
+run()

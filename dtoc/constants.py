@@ -1,0 +1,32 @@
+"""Physical constants and defaults, written once (see docs/conventions.md)."""
+
+import math
+
+#: Proton gyromagnetic ratio / (2 pi), Hz/T.
+GAMMA_HZ_PER_T: float = 42.577478e6
+#: Proton gyromagnetic ratio, rad/s/T.  k [rad/m] = GAMMA_RAD_PER_S_PER_T * integral(G [T/m] dt [s]).
+GAMMA_RAD_PER_S_PER_T: float = 2.0 * math.pi * GAMMA_HZ_PER_T
+#: Same, for gradients in mT/m: k [rad/m] = GAMMA_RAD_PER_S_PER_MT * integral(G [mT/m] dt [s]).
+GAMMA_RAD_PER_S_PER_MT: float = GAMMA_RAD_PER_S_PER_T * 1e-3
+
+#: Default gradient raster (Siemens), s.
+DEFAULT_GRAD_RASTER_S: float = 10e-6
+#: Default block raster, s.
+DEFAULT_BLOCK_RASTER_S: float = 10e-6
+#: Default RF raster, s.
+DEFAULT_RF_RASTER_S: float = 1e-6
+#: Default ADC raster, s.
+DEFAULT_ADC_RASTER_S: float = 100e-9
+
+#: Axis names in the order used by every (3, ...) array.
+AXES = ("x", "y", "z")
+
+
+def hz_per_m_from_mT_per_m(g_mT_per_m):
+    """Convert a gradient from mT/m to Pulseq's Hz/m."""
+    return g_mT_per_m * 1e-3 * GAMMA_HZ_PER_T
+
+
+def mT_per_m_from_hz_per_m(g_hz_per_m):
+    """Convert a gradient from Pulseq's Hz/m to mT/m."""
+    return g_hz_per_m / GAMMA_HZ_PER_T * 1e3

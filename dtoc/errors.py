@@ -1,0 +1,29 @@
+"""One exception type for every user-facing failure.
+
+Library code raises :class:`DtocError` (or a subclass) with a one-line message that names the
+problem (the file, the key, the expected shape or unit).  The CLI prints ``dtoc: error: <message>``
+to stderr and exits with :attr:`DtocError.exit_code`; it never shows a traceback for these.
+"""
+
+
+class DtocError(Exception):
+    """A user-facing error: bad input, impossible request, failed validation."""
+
+    exit_code: int = 2
+
+    def __init__(self, message: str):
+        super().__init__(" ".join(str(message).split()))  # always one line
+
+
+class InputError(DtocError):
+    """A file or argument given by the user is missing, malformed or out of range."""
+
+
+class LimitError(DtocError):
+    """A hardware limit is violated or cannot be met."""
+
+
+class ValidationFailed(DtocError):
+    """`dtoc check` / `dtoc diff` style failure (exit 1)."""
+
+    exit_code = 1
