@@ -1,7 +1,150 @@
-"""CLI commands of the `dtoc.seq` stage (registered by :mod:`dtoc.cli.main`)."""
+"""CLI commands of the `dtoc.seq` stage: ``build``, ``check``, ``diff`` (registered by :mod:`dtoc.cli.main`)."""
+
+from __future__ import annotations
+
+import json
+import sys
+import warnings
+from pathlib import Path
+from typing import Optional
 
 import typer
 
 
+def _console():
+    from rich.console import Console
+
+    return Console(stderr=True)
+
+
+def build_cmd(
+    spec: Path = typer.Argument(..., help="spec YAML (sequences/*.yaml)"),
+    out: Path = typer.Option(..., "-o", "--out", help="output .seq"),
+    force: bool = typer.Option(False, "--force", help="overwrite an existing output"),
+):
+    """Build a base sequence from a spec and write a signed Pulseq 1.5 .seq (deterministic)."""
+    from dtoc.seq.build import SpecLimitWarning, build_to_file
+    from dtoc.seq.spec import load_spec
+
+    s = load_spec(spec)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", SpecLimitWarning)
+        p = build_to_file(s, out, force=force)
+    for w in caught:
+        if issubclass(w.category, SpecLimitWarning):
+            sys.stderr.write(f"dtoc: warning: {w.message}\n")
+    sys.stderr.write(f"wrote {p}\n")
+
+
+def check_cmd(
+    seq: Path = typer.Argument(..., help=".seq file to validate"),
+    system: Optional[Path] = typer.Option(None, "--system", help="SystemSpec YAML (limits, rasters, dead times)"),
+    gmax: Optional[float] = typer.Option(None, "--gmax", help="per-axis gradient limit, mT/m (overrides)"),
+    smax: Optional[float] = typer.Option(None, "--smax", help="per-axis slew limit, T/m/s (overrides)"),
+    as_json: bool = typer.Option(False, "--json", help="print the result as JSON on stdout"),
+    max_rows: int = typer.Option(20, "--max-rows", help="rows shown in the table"),
+):
+    """Validate a .seq before upload; exit 1 on any violation, 0 when clean.
+
+    Limits: --gmax/--smax override --system, which overrides the limits a dtoc-built file records;
+    otherwise SystemSpec defaults (Siemens rasters, 72 mT/m, 180 T/m/s).
+    """
+    from dtoc.seq.check import check_file, system_from_definitions
+    from dtoc.seq.seqtext import parse_seq_text
+    from dtoc.seq.system import SystemSpec, load_system
+
+    sysspec = load_system(system) if system else None
+    if gmax is not None or smax is not None:
+        if gmax is not None and gmax <= 0 or smax is not None and smax <= 0:
+            from dtoc.errors import InputError
+
+            raise InputError("--gmax and --smax must be > 0")
+        if sysspec is None:
+            st = parse_seq_text(seq)
+            defs = {k: (v.split()[0] if v.split() else v) for k, v in st.definitions().items()}
+            sysspec = system_from_definitions(defs) or SystemSpec()
+        upd = {}
+        if gmax is not None:
+            upd["max_grad_mT_per_m"] = gmax
+        if smax is not None:
+            upd["max_slew_T_per_m_per_s"] = smax
+        sysspec = sysspec.model_copy(update=upd)
+    res = check_file(seq, sysspec)
+    if system:
+        res.limits_source = f"--system {system}"
+    if gmax is not None or smax is not None:
+        res.limits_source += " + command line"
+    if as_json:
+        sys.stdout.write(json.dumps(res.to_dict(), indent=2) + "\n")
+    else:
+        _print_check(res, max_rows)
+    if not res.ok:
+        raise typer.Exit(1)
+
+
+def _print_check(res, max_rows: int) -> None:
+    from rich.table import Table
+
+    con = _console()
+    s = res.system
+    con.print(
+        f"{res.path}: limits from {res.limits_source}: {s.max_grad_mT_per_m:g} mT/m, {s.max_slew_T_per_m_per_s:g} T/m/s"
+    )
+    if res.ok:
+        con.print("[green]OK[/green]: no violations")
+        return
+    t = Table(title=f"{len(res.violations)} violation(s)")
+    for c in ("rule", "block", "axis", "value", "limit", "detail"):
+        t.add_column(c)
+    for v in res.violations[:max_rows]:
+        t.add_row(v.rule, "" if v.block is None else str(v.block), v.axis or "",
+                  "" if v.value is None else f"{v.value:.5g} {v.unit}", "" if v.limit is None else f"{v.limit:.5g} {v.unit}",
+                  v.message)
+    con.print(t)
+    if len(res.violations) > max_rows:
+        con.print(f"... {len(res.violations) - max_rows} more (use --json for all)")
+    worst = {}
+    for v in res.violations:
+        worst.setdefault(v.rule, v)
+        if v.value is not None and v.limit and worst[v.rule].value is not None and v.value / v.limit > worst[v.rule].value / worst[v.rule].limit:
+            worst[v.rule] = v
+    con.print("[red]FAILED[/red]: " + "; ".join(
+        f"{r} (worst {w.value:.4g} {w.unit} vs {w.limit:.4g})" if w.value is not None and w.limit is not None else r
+        for r, w in sorted(worst.items())))
+
+
+def diff_cmd(
+    a: Path = typer.Argument(..., help="first .seq"),
+    b: Path = typer.Argument(..., help="second .seq"),
+    rtol: float = typer.Option(1e-6, "--rtol", help="relative tolerance"),
+    atol: float = typer.Option(1e-9, "--atol", help="absolute tolerance (mT/m, s, rad, Hz)"),
+    as_json: bool = typer.Option(False, "--json", help="print the result as JSON on stdout"),
+):
+    """Semantic comparison of two .seq files; exit 0 same, 1 different."""
+    from dtoc.seq.diff import diff_files
+
+    res = diff_files(a, b, rtol=rtol, atol=atol)
+    if as_json:
+        sys.stdout.write(json.dumps(res.to_dict(), indent=2) + "\n")
+    else:
+        from rich.table import Table
+
+        con = _console()
+        if res.same:
+            con.print(f"[green]same[/green] within rtol {rtol:g}, atol {atol:g}")
+        else:
+            t = Table(title=f"{len(res.differences)} difference(s)")
+            for c in ("what", "where", "A", "B"):
+                t.add_column(c)
+            for d in res.differences:
+                t.add_row(d["what"], d["where"], str(d["a"]), str(d["b"]))
+            con.print(t)
+    if not res.same:
+        raise typer.Exit(1)
+
+
 def register(app: typer.Typer) -> None:
     """Add this stage's commands to app."""
+    app.command("build")(build_cmd)
+    app.command("check")(check_cmd)
+    app.command("diff")(diff_cmd)

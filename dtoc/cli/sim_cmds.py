@@ -1,7 +1,105 @@
-"""CLI commands of the `dtoc.sim` stage (registered by :mod:`dtoc.cli.main`)."""
+"""CLI commands of the `dtoc.sim` stage (registered by :mod:`dtoc.cli.main`): ``dtoc simulate``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
 
 import typer
 
 
+def _round(x):
+    """Floats to 10 significant digits (stable JSON across BLAS thread counts); recursive."""
+    if isinstance(x, float):
+        return float(f"{x:.10g}")
+    if isinstance(x, dict):
+        return {k: _round(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_round(v) for v in x]
+    return x
+
+
+def simulate_cmd(
+    seq: Path = typer.Argument(..., help="Base sequence: .seq file or spec .yaml."),
+    girf: Optional[Path] = typer.Option(None, "--girf", help="GIRF .npz (hardware model = this GIRF)."),
+    model: Optional[Path] = typer.Option(None, "--model", help="Hardware model file (.json)."),
+    phantom: Optional[str] = typer.Option(None, "--phantom", help="Phantom .npz, or 'brain' / 'brain:N' (built-in; default: brain at the image matrix)."),
+    field_T: float = typer.Option(3.0, "--field", help="Field strength of the built-in phantom's tissue values, T (3 or 7)."),
+    b0_map: bool = typer.Option(False, "--b0-map", help="Built-in phantom: add its smooth B0 map."),
+    b1_map: bool = typer.Option(False, "--b1-map", help="Built-in phantom: add its smooth B1 map."),
+    dummies: int = typer.Option(0, "--dummies", min=0, help="Dummy repetitions before the sequence (steady state; the paper's GRE uses 300)."),
+    json_out: Optional[str] = typer.Option(None, "--json", help="Write metrics JSON here ('-' = stdout)."),
+    png_out: Optional[Path] = typer.Option(None, "--png", help="Write the figure (ideal, realized, difference, k-space) here."),
+    device: str = typer.Option("cpu", "--device", help="cpu or cuda."),
+    dtype: str = typer.Option("float64", "--dtype", help="float32 or float64."),
+    force: bool = typer.Option(False, "--force", help="Overwrite existing outputs."),
+):
+    """Simulate ideal versus realized images of SEQ on a phantom; NRMSE, EPI ghost ratio, k-space error."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from dtoc import __version__
+    from dtoc.errors import InputError
+    from dtoc.sim.comparison import check_device, compare_ideal_realized, plot_comparison, torch_dtype
+    from dtoc.sim.phantom import resolve_phantom
+    from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_output_path, sha256_file
+
+    err = Console(stderr=True)
+    tdtype = torch_dtype(dtype)
+    dev = check_device(device)
+    for out in (png_out, None if json_out in (None, "-") else Path(json_out)):
+        if out is not None:
+            check_output_path(out, force)
+    from dtoc.hardware.model import resolve_model
+    from dtoc.seq.read import load_sequence
+
+    with err.status("reading sequence and hardware model"):
+        ir = load_sequence(seq)
+        hw = resolve_model(girf=girf, model=model)
+    if ir.fov_m is None or ir.matrix is None:
+        raise InputError(f"{seq}: the sequence declares no FOV/matrix; simulate needs a Cartesian base sequence")
+    ro = ir.readout_axis if ir.readout_axis is not None else 0
+    n = [0, 0]
+    n[ro], n[1 - ro] = int(ir.matrix[0]), int(ir.matrix[1])
+    ph = resolve_phantom(phantom, matrix=(n[1], n[0]), fov_m=(ir.fov_m[0], ir.fov_m[1]), field_T=field_T, b0=b0_map, b1=b1_map)
+    with err.status("simulating") as status:
+        res = compare_ideal_realized(ir, ph, hw, n_dummies=dummies, dtype=tdtype, device=dev, step=lambda s: status.update(f"simulating: {s}"))
+    m = res.metrics
+    report = {
+        "dtoc_version": __version__,
+        "sequence": {"path": str(seq), "sha256": sha256_file(seq), "kind": ir.kind, "n_adc_samples": m["n_adc_samples"], "matrix": m["matrix"]},
+        "hardware": {"girf": str(girf) if girf else None, "model": str(model) if model else None, "identity": res.identity_hardware},
+        "phantom": {"source": phantom or "brain", "shape": list(ph.shape), "fov_m": list(ph.fov_m), "field_T": field_T if not (phantom and phantom.endswith(".npz")) else None},
+        "simulation": {"dtype": dtype, "dummies": dummies},
+        "nrmse": m["nrmse"],
+        "ghost_ratio": m["ghost_ratio"],
+        "ghost_ratio_ideal": m["ghost_ratio_ideal"],
+        "kspace_rmse_rad_per_m": m["kspace_rmse_rad_per_m"],
+        "kspace_max_err_rad_per_m": m["kspace_max_err_rad_per_m"],
+        "kspace_max_err_dk": m["kspace_max_err_dk"],
+    }
+    report = _round(report)
+    text = json.dumps(report, indent=2, sort_keys=True) + "\n"
+    if png_out is not None:
+        atomic_write_bytes(png_out, plot_comparison(res, title=f"{Path(seq).name}: ideal vs realized"), force=force)
+    if json_out == "-":
+        typer.echo(text, nl=False)
+    elif json_out is not None:
+        atomic_write_text(json_out, text, force=force)
+    t = Table(title=f"dtoc simulate {Path(seq).name}")
+    t.add_column("metric")
+    t.add_column("value", justify="right")
+    t.add_row("NRMSE", f"{100 * m['nrmse']:.4g} %")
+    if m["ghost_ratio"] is not None:
+        t.add_row("ghost ratio (ideal)", f"{100 * m['ghost_ratio']:.4g} % ({100 * m['ghost_ratio_ideal']:.3g} %)")
+    t.add_row("k-space RMSE", f"{m['kspace_rmse_rad_per_m']:.4g} rad/m")
+    if m["kspace_max_err_dk"] is not None:
+        t.add_row("k-space max error", f"{m['kspace_max_err_dk']:.4g} dk")
+    t.add_row("hardware", "ideal (identity)" if res.identity_hardware else str(girf or model))
+    err.print(t)
+
+
 def register(app: typer.Typer) -> None:
     """Add this stage's commands to app."""
+    app.command("simulate")(simulate_cmd)

@@ -1,0 +1,408 @@
+"""Effects of the hardware twin: each maps (demanded-so-far gradient, accumulated B0) to new ones.
+
+Every effect is a :class:`torch.nn.Module` with
+
+    forward(g_mT_per_m: (B, 3, T), b0_uT: (B, T), dt_s: float) -> (G_mT_per_m (B, 3, T), b0_uT (B, T))
+
+It receives the gradient produced by the previous effect of the chain (the demanded waveform for the
+first) and the B0 offset accumulated so far, and returns the new gradient and B0 with its own contribution.
+Samples are at ``t_n = n * dt_s``; the waveform is piecewise linear between samples and **zero outside**
+``[0, (T-1) dt]`` (so a non-zero first sample is a jump at t = 0).  Parameters are float64
+:class:`torch.nn.Parameter` s (cast to the waveform's dtype/device on use), so identification can fit
+them; every effect is differentiable w.r.t. the waveform and its parameters (``slew_limit`` and
+``delay`` almost everywhere).  Axes: ``axis`` is the output axis ('x'|'y'|'z'; None = all three with
+the same parameters), ``input_axis`` the source axis of cross and B0 terms.
+
+Units: gradient mT/m, B0 uT, time s, slew T/m/s.  Kinds and parameter names follow BRIEF §2.3.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from dtoc.constants import AXES
+from dtoc.errors import InputError
+from dtoc.hardware.convolution import fft_convolve, resample_kernel
+from dtoc.hardware.recursion import exp_response
+
+
+def axis_index(name: str | None, what: str = "axis") -> int | None:
+    """'x'|'y'|'z'|None -> 0|1|2|None (InputError otherwise)."""
+    if name is None:
+        return None
+    if name not in AXES:
+        raise InputError(f"{what} must be one of 'x', 'y', 'z' or null, got {name!r}")
+    return AXES.index(name)
+
+
+def _to_param(name: str, value: Any, kind: str, positive: bool = False, vector: bool = False) -> nn.Parameter:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"effect {kind!r}: parameter {name!r} must be a number, got {value!r}") from None
+    if arr.ndim > (1 if vector else 0) or arr.size == 0:
+        raise InputError(f"effect {kind!r}: parameter {name!r} must be a {'number or list' if vector else 'number'}, got {value!r}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"effect {kind!r}: parameter {name!r} must be finite, got {value!r}")
+    if positive and np.any(arr <= 0):
+        raise InputError(f"effect {kind!r}: parameter {name!r} must be > 0, got {value!r}")
+    return nn.Parameter(torch.as_tensor(arr, dtype=torch.float64))
+
+
+def _jsonable(p: torch.Tensor) -> Any:
+    v = p.detach().cpu().double().numpy()
+    return float(v) if v.ndim == 0 else v.tolist()
+
+
+class Effect(nn.Module):
+    """Base class: stores kind, axes and the names of its parameters."""
+
+    kind: str = ""
+    param_names: tuple[str, ...] = ()
+
+    def __init__(self, axis: str | None = None, input_axis: str | None = None):
+        super().__init__()
+        self.axis = axis
+        self.input_axis = input_axis
+        self._ax = axis_index(axis, "axis")
+        self._in = axis_index(input_axis, "input_axis")
+
+    def params_dict(self) -> dict[str, Any]:
+        """JSON-serialisable parameter values (floats or lists)."""
+        return {n: _jsonable(getattr(self, n)) for n in self.param_names}
+
+    def spec(self) -> dict[str, Any]:
+        """The model-file entry of this effect."""
+        return {"kind": self.kind, "axis": self.axis, "input_axis": self.input_axis, "params": self.params_dict()}
+
+    def _p(self, name: str, like: torch.Tensor) -> torch.Tensor:
+        return getattr(self, name).to(dtype=like.dtype, device=like.device)
+
+    def _replace_axes(self, g: torch.Tensor, new_sel: torch.Tensor) -> torch.Tensor:
+        """Put ``new_sel`` (B, A, T) back into the selected axes of ``g`` (A = 3 when axis is None)."""
+        if self._ax is None:
+            return new_sel
+        parts = [g[:, i:i + 1] if i != self._ax else new_sel for i in range(3)]
+        return torch.cat(parts, dim=1)
+
+    def _sel(self, g: torch.Tensor) -> torch.Tensor:
+        return g if self._ax is None else g[:, self._ax:self._ax + 1]
+
+    def extra_repr(self) -> str:
+        return f"axis={self.axis}, input_axis={self.input_axis}, params={self.params_dict()}"
+
+
+class Gain(Effect):
+    """``gain`` {factor}: ``G[a] = factor * g[a]`` (dimensionless) on ``axis`` (None: all axes)."""
+
+    kind = "gain"
+    param_names = ("factor",)
+
+    def __init__(self, factor: float, axis: str | None = None):
+        super().__init__(axis)
+        self.factor = _to_param("factor", factor, self.kind)
+
+    def forward(self, g, b0, dt_s):
+        return self._replace_axes(g, self._sel(g) * self._p("factor", g)), b0
+
+
+class Offset(Effect):
+    """``offset`` {mT_per_m}: ``G[a] = g[a] + mT_per_m`` (a constant field gradient, mT/m, at every sample)."""
+
+    kind = "offset"
+    param_names = ("mT_per_m",)
+
+    def __init__(self, mT_per_m: float, axis: str | None = None):
+        super().__init__(axis)
+        self.mT_per_m = _to_param("mT_per_m", mT_per_m, self.kind)
+
+    def forward(self, g, b0, dt_s):
+        return self._replace_axes(g, self._sel(g) + self._p("mT_per_m", g)), b0
+
+
+class Delay(Effect):
+    """``delay`` {seconds}: ``G[a](t) = g[a](t - seconds)`` (positive = late), any real delay.
+
+    The demanded waveform is piecewise linear between samples, so its delayed copy at the sample times is
+    the linear interpolation ``(1-f) g[n-m] + f g[n-m-1]`` with ``seconds/dt = m + f`` (0 <= f < 1): exact
+    for the played (PWL) waveform at every sample, no ringing, no circular wrap.  Edges: the waveform is
+    zero before t = 0 and after its last sample (zero padding).  Differentiable in ``seconds`` except at
+    multiples of dt (where the one-sided derivative of the segment to the left is used).
+    """
+
+    kind = "delay"
+    param_names = ("seconds",)
+
+    def __init__(self, seconds: float, axis: str | None = None):
+        super().__init__(axis)
+        self.seconds = _to_param("seconds", seconds, self.kind)
+
+    @staticmethod
+    def _shift(x: torch.Tensor, m: int) -> torch.Tensor:
+        """y[n] = x[n - m], zero-filled."""
+        T = x.shape[-1]
+        if m == 0:
+            return x
+        if abs(m) >= T:
+            return torch.zeros_like(x)
+        if m > 0:
+            return torch.nn.functional.pad(x[..., :T - m], (m, 0))
+        return torch.nn.functional.pad(x[..., -m:], (0, -m))
+
+    def forward(self, g, b0, dt_s):
+        d = self._p("seconds", g) / dt_s
+        m = math.floor(float(d.detach()))
+        f = d - m
+        x = self._sel(g)
+        out = (1 - f) * self._shift(x, m) + f * self._shift(x, m + 1)
+        return self._replace_axes(g, out), b0
+
+
+class _ExpBase(Effect):
+    """Shared exponential machinery: ``alpha`` and ``tau_s`` are numbers or equal-length lists."""
+
+    alpha_name = "alpha"
+    param_names = ("alpha", "tau_s")
+
+    def __init__(self, alpha, tau_s, axis=None, input_axis=None):
+        super().__init__(axis, input_axis)
+        a = _to_param(self.alpha_name, alpha, self.kind, vector=True)
+        t = _to_param("tau_s", tau_s, self.kind, positive=True, vector=True)
+        if a.shape != t.shape:
+            raise InputError(f"effect {self.kind!r}: {self.alpha_name!r} and 'tau_s' must have the same length")
+        setattr(self, self.alpha_name, a)
+        self.tau_s = t
+
+    def _eddy(self, src: torch.Tensor, dt_s: float) -> torch.Tensor:
+        """sum_n alpha_n (dsrc/dt conv exp(-t/tau_n)); src (B, A, T) -> (B, A, T)."""
+        alpha = self._p(self.alpha_name, src).reshape(-1, 1)
+        tau = self._p("tau_s", src).reshape(-1, 1)
+        e = exp_response(src.unsqueeze(-2), dt_s, tau)  # (B, A, K, T)
+        return (alpha * e).sum(-2)
+
+
+class ExpEddy(_ExpBase):
+    """``exp_eddy`` {alpha, tau_s} (self term, paper Eq. 1), on ``axis`` (None: all three axes).
+
+    ``G(t) = g(t) - sum_n alpha_n * (dg/dt conv H(t) exp(-t/tau_n))(t)``; alpha dimensionless (> 0 lowers
+    the realized gradient after a ramp-up), tau in s; several time constants as lists.  Exact for the PWL
+    waveform by the recursive update of :mod:`dtoc.hardware.recursion`; a step of height g from t = 0
+    gives ``g (1 - alpha exp(-t/tau))``.
+    """
+
+    kind = "exp_eddy"
+
+    def __init__(self, alpha, tau_s, axis: str | None = None):
+        super().__init__(alpha, tau_s, axis)
+
+    def forward(self, g, b0, dt_s):
+        x = self._sel(g)
+        return self._replace_axes(g, x - self._eddy(x, dt_s)), b0
+
+
+class CrossEddy(_ExpBase):
+    """``cross_eddy`` {alpha, tau_s}: ``G[axis] -= sum_n alpha_n (dg[input_axis]/dt conv H(t) exp(-t/tau_n))``.
+
+    Same sign convention as ``exp_eddy``; alpha dimensionless ((mT/m) on ``axis`` per (mT/m) on
+    ``input_axis``), tau in s.  ``axis`` and ``input_axis`` are required.
+    """
+
+    kind = "cross_eddy"
+
+    def __init__(self, alpha, tau_s, axis: str, input_axis: str):
+        if axis is None or input_axis is None:
+            raise InputError("effect 'cross_eddy' needs both 'axis' and 'input_axis'")
+        super().__init__(alpha, tau_s, axis, input_axis)
+
+    def forward(self, g, b0, dt_s):
+        src = g[:, self._in:self._in + 1]
+        tgt = g[:, self._ax:self._ax + 1]
+        return self._replace_axes(g, tgt - self._eddy(src, dt_s)), b0
+
+
+class B0Eddy(_ExpBase):
+    """``b0_eddy`` {alpha_uT_per_mT_per_m, tau_s}: ``b0 -= sum_n alpha_n (dg[input_axis]/dt conv H(t) exp(-t/tau_n))``.
+
+    A spatially uniform field (uT) driven by the gradient on ``input_axis``; alpha in uT per (mT/m),
+    tau in s; same sign convention as ``exp_eddy``.  ``axis`` must be None.
+    """
+
+    kind = "b0_eddy"
+    alpha_name = "alpha_uT_per_mT_per_m"
+    param_names = ("alpha_uT_per_mT_per_m", "tau_s")
+
+    def __init__(self, alpha_uT_per_mT_per_m, tau_s, input_axis: str, axis: str | None = None):
+        if input_axis is None or axis is not None:
+            raise InputError("effect 'b0_eddy' needs 'input_axis' and no 'axis'")
+        super().__init__(alpha_uT_per_mT_per_m, tau_s, None, input_axis)
+
+    def forward(self, g, b0, dt_s):
+        src = g[:, self._in:self._in + 1]
+        return g, b0 - self._eddy(src, dt_s)[:, 0]
+
+
+class SlewLimit(Effect):
+    """``slew_limit`` {max_slew_T_per_m_per_s}: the amplifier cannot slew faster than the limit (non-linear).
+
+    Recursive clamp of the increment, per axis (``axis`` None: each axis separately):
+    ``G[0] = g[0]``, ``G[n+1] = G[n] + clip(g[n+1] - G[n], -s, s)`` with ``s = max_slew * 1e3 * dt``
+    (mT/m per sample; 1 T/m/s = 1e3 mT/m/s).  While limited, the output ramps at the maximum slew and
+    catches up with the demand when it can.  Implementation: the (non-differentiable) switching pattern
+    is found in numpy (Python loop only over limited stretches); the output is then written as
+    ``G[n] = g[m(n)] + c(n) * s`` (m(n): last sample where G followed g, c(n): net signed count of
+    limited steps) and evaluated in torch, which gives the exact derivative of the recursion w.r.t. the
+    waveform and the limit almost everywhere.
+    """
+
+    kind = "slew_limit"
+    param_names = ("max_slew_T_per_m_per_s",)
+
+    def __init__(self, max_slew_T_per_m_per_s: float, axis: str | None = None):
+        super().__init__(axis)
+        self.max_slew_T_per_m_per_s = _to_param("max_slew_T_per_m_per_s", max_slew_T_per_m_per_s, self.kind, positive=True)
+
+    @staticmethod
+    def _pattern(g: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Anchor indices and signed step counts, g (C, T)."""
+        C, T = g.shape
+        anchor = np.broadcast_to(np.arange(T), (C, T)).copy()
+        count = np.zeros((C, T), dtype=np.float64)
+        tol = s * (1 + 1e-9)
+        for c in range(C):
+            x = g[c]
+            viol = np.flatnonzero(np.abs(np.diff(x)) > tol)
+            n = 0
+            vi = 0
+            while vi < len(viol):
+                p = int(viol[vi])
+                if p < n:
+                    vi += 1
+                    continue
+                G_prev = x[p]
+                k = p + 1
+                cnt = 0
+                while k < T:
+                    d = x[k] - G_prev
+                    if abs(d) <= tol:
+                        break
+                    cnt += 1 if d > 0 else -1
+                    G_prev = x[p] + cnt * s
+                    anchor[c, k] = p
+                    count[c, k] = cnt
+                    k += 1
+                n = k
+                vi += 1
+        return anchor, count
+
+    def forward(self, g, b0, dt_s):
+        x = self._sel(g)
+        B, A, T = x.shape
+        s = self._p("max_slew_T_per_m_per_s", x) * 1e3 * dt_s
+        flat = x.reshape(B * A, T)
+        anchor, count = self._pattern(flat.detach().cpu().double().numpy(), float(s.detach()))
+        idx = torch.as_tensor(anchor, device=x.device)
+        cnt = torch.as_tensor(count, dtype=x.dtype, device=x.device)
+        out = flat.gather(-1, idx) + cnt * s
+        return self._replace_axes(g, out.reshape(B, A, T)), b0
+
+
+class Girf(Effect):
+    """``girf``: measured linear response, 3x3 with optional B0 row (BRIEF §2.2).
+
+    ``G[o](t) = sum_i (h[o, i] * g[i])(t)``, ``b0(t) += sum_i (h0[i] * g[i])(t)``, where ``h[o, i, l]`` is the
+    per-sample response on output axis o to input axis i at time ``t0_s + l*dt_s`` after the impulse
+    (``h[o, o].sum()`` = DC gain, ~1) and ``h0[i, l]`` is in uT per (mT/m) per sample.  The kernel is
+    resampled onto the waveform grid when ``dt`` differs or ``t0`` is not a multiple of it (see
+    :mod:`dtoc.hardware.convolution`) and applied by zero-padded FFT convolution (the waveform is zero
+    outside its samples).  ``h`` and ``h0`` are parameters (identification may refine them).
+    ``file`` remembers where the kernel came from (model files reference it).
+    """
+
+    kind = "girf"
+    param_names = ()
+
+    def __init__(self, h, dt_s: float, t0_s: float = 0.0, h0=None, file: str | None = None):
+        super().__init__(None, None)
+        h = np.asarray(h, dtype=np.float64)
+        if h.ndim != 3 or h.shape[:2] != (3, 3) or h.shape[2] < 1:
+            raise InputError(f"girf: h must have shape (3, 3, L), got {h.shape}")
+        if not (np.isfinite(dt_s) and dt_s > 0):
+            raise InputError(f"girf: dt must be > 0, got {dt_s}")
+        self.h = nn.Parameter(torch.as_tensor(h))
+        if h0 is not None:
+            h0 = np.asarray(h0, dtype=np.float64)
+            if h0.shape != (3, h.shape[2]):
+                raise InputError(f"girf: h0 must have shape (3, {h.shape[2]}), got {h0.shape}")
+            self.h0 = nn.Parameter(torch.as_tensor(h0))
+        else:
+            self.h0 = None
+        self.dt_s = float(dt_s)
+        self.t0_s = float(t0_s)
+        self.file = file
+
+    def kernels(self, dt_s: float, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, int]:
+        """(h (3,3,L2), h0 (1,3,L2) or None, shift) on the grid dt_s, dtype/device of ``like``."""
+        hs = self.h if self.h0 is None else torch.cat([self.h, self.h0.unsqueeze(0)], dim=0)  # (3|4, 3, L)
+        hs = hs.to(dtype=like.dtype, device=like.device)
+        hr, shift = resample_kernel(hs, self.dt_s, self.t0_s, dt_s)
+        return hr[:3], (hr[3:] if self.h0 is not None else None), shift
+
+    def forward(self, g, b0, dt_s):
+        h, h0, shift = self.kernels(dt_s, g)
+        full = h if h0 is None else torch.cat([h, h0], dim=0)
+        out = fft_convolve(g, full, shift)
+        if h0 is None:
+            return out, b0
+        return out[:, :3], b0 + out[:, 3]
+
+    def spec(self) -> dict[str, Any]:
+        return {"kind": self.kind, "axis": None, "input_axis": None, "params": {}, "file": self.file}
+
+    def extra_repr(self) -> str:
+        return f"L={self.h.shape[-1]}, dt_s={self.dt_s}, t0_s={self.t0_s}, h0={self.h0 is not None}, file={self.file}"
+
+
+class Lti(Effect):
+    """``lti`` {taps, dt_s, t0_s}: non-parametric linear correction filter, additive, per axis.
+
+    ``G[a] = g[a] + (taps[a] * g[a])`` with ``taps[a, l]`` the per-sample correction at time
+    ``t0_s + l*dt_s`` (dimensionless; zero taps = identity).  ``axis`` None: taps (3, L), one filter per
+    axis; ``axis`` given: taps (L,).  Resampled and applied like ``girf`` (zero-padded FFT).
+    """
+
+    kind = "lti"
+    param_names = ("taps",)
+
+    def __init__(self, taps, dt_s: float, t0_s: float = 0.0, axis: str | None = None):
+        super().__init__(axis)
+        t = np.asarray(taps, dtype=np.float64)
+        want = 2 if axis is None else 1
+        if t.ndim != want or (axis is None and t.shape[0] != 3) or t.shape[-1] < 1 or not np.all(np.isfinite(t)):
+            raise InputError(f"effect 'lti': taps must be finite with shape {'(3, L)' if axis is None else '(L,)'}, got {t.shape}")
+        if not (np.isfinite(dt_s) and dt_s > 0):
+            raise InputError(f"effect 'lti': dt_s must be > 0, got {dt_s}")
+        self.taps = nn.Parameter(torch.as_tensor(t))
+        self.dt_s = float(dt_s)
+        self.t0_s = float(t0_s)
+
+    def params_dict(self) -> dict[str, Any]:
+        return {"taps": _jsonable(self.taps), "dt_s": self.dt_s, "t0_s": self.t0_s}
+
+    def forward(self, g, b0, dt_s):
+        x = self._sel(g)  # (B, A, T)
+        taps = self.taps.to(dtype=g.dtype, device=g.device).reshape(-1, self.taps.shape[-1])  # (A, L)
+        tr, shift = resample_kernel(taps, self.dt_s, self.t0_s, dt_s)
+        A = tr.shape[0]
+        h = torch.diag_embed(tr.transpose(0, 1)).permute(1, 2, 0) if A > 1 else tr.reshape(1, 1, -1)
+        return self._replace_axes(g, x + fft_convolve(x, h, shift)), b0
+
+
+#: kind -> class; the model file's "kind" picks one.
+EFFECTS: dict[str, type[Effect]] = {
+    c.kind: c for c in (Delay, Gain, Offset, ExpEddy, CrossEddy, B0Eddy, Girf, Lti, SlewLimit)
+}

@@ -1,0 +1,374 @@
+"""The library of candidate effects and their linearised, cross-validated screening.
+
+Every candidate is an effect appended to the current model (declared chain + effects found so far), acting
+on that model's output P (realized gradient, mT/m; ``slew_limit`` acts on the demanded input instead).
+Screening fits the candidate's parameters to the current residual in the cheapest exact or linearised form
+and scores it on held-out units (:func:`dtoc.identify.workspace.cross_validate`):
+
+| kind | change of the prediction | screening |
+|---|---|---|
+| ``delay`` {seconds} | P(t - tau) - P(t) (PWL shift), one axis or all | grid of exact shifts around the linearised estimate |
+| ``gain`` {factor} | (factor - 1) * P_a | linear |
+| ``offset`` {mT_per_m} | constant on axis a | linear |
+| ``exp_eddy`` {alpha, tau_s} | -alpha * (dP_a/dt conv exp(-t/tau)) | linear in alpha on a log grid of tau, refined |
+| ``cross_eddy`` {alpha, tau_s} | -alpha * (dP_i/dt conv exp(-t/tau)) on axis o | as exp_eddy |
+| ``b0_eddy`` {alpha_uT_per_mT_per_m, tau_s} | B0 -= alpha * (dP_i/dt conv exp(-t/tau)) | as exp_eddy (needs measured b0) |
+| ``lti`` {taps} | sum_j c_j P_a(t - (j + j0) dt) (FIR correction) | linear in the taps |
+| ``slew_limit`` {max_slew_T_per_m_per_s} | model(limit(g)) - model(g) | grid of limits |
+
+The score is a held-out information criterion: the decrease of the cross-validated chi-square (each fold
+fitted on the others) minus ``n_params * ln(n)`` (BIC penalty, n = measured samples).  Positive scores mean
+the data support the effect; the search adds one only when the score exceeds a threshold (default 10,
+"very strong" evidence on the Kass-Raftery scale).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from dtoc.constants import AXES
+from dtoc.identify.workspace import Workspace, cross_validate
+
+
+@dataclass
+class Proposal:
+    """A screened candidate: initial parameters and its held-out score."""
+
+    kind: str
+    axis: str | None
+    input_axis: str | None
+    params: dict
+    n_params: int
+    cv_chi2: float
+    full_chi2: float
+    score: float
+    position: str = "post"  # "post": after the current chain; "pre": on the demanded input
+    notes: dict = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        s = self.kind
+        if self.axis is not None:
+            s += f"[{self.axis}]"
+        if self.input_axis is not None:
+            s += f"<-{self.input_axis}"
+        return s
+
+
+@dataclass
+class Context:
+    """What candidates need besides the residual: the demanded input, the current output, the chain."""
+
+    dt_s: float
+    g: np.ndarray  # (M, 3, N) demanded, mT/m
+    P: np.ndarray  # (M, 3, N) current prediction of the realized gradient, mT/m
+    P_b0: np.ndarray | None = None  # (M, N) current prediction of B0, uT
+    chain: object = None  # callable(g (M,3,N) ndarray) -> Prediction, the current full model
+    slew_limit: object = None  # callable(g ndarray, max_slew) -> limited g ndarray
+    shift: object = None  # callable(x (..., N) ndarray, tau_s) -> x(t - tau)
+    cache: dict = field(default_factory=dict)  # per-round cache of exp columns on the coarse tau grid
+
+
+def pwl_shift(x: np.ndarray, tau_s: float, dt_s: float) -> np.ndarray:
+    """x(t - tau) at the sample times of a piecewise-linear waveform that is zero outside its samples
+    (the convention of :class:`dtoc.hardware.effects.Delay`): linear interpolation, either sign of tau.
+
+    Args:
+        x: (..., N) samples.
+        tau_s: delay, s (positive = late).
+    """
+    s = tau_s / dt_s
+    i = math.floor(s)
+    f = s - i
+    N = x.shape[-1]
+
+    def take(shift):  # out[n] = x[n - shift], zero-filled
+        out = np.zeros_like(x)
+        if 0 <= shift < N:
+            out[..., shift:] = x[..., : N - shift]
+        elif -N < shift < 0:
+            out[..., : N + shift] = x[..., -shift:]
+        return out
+
+    return (1.0 - f) * take(i) + f * take(i + 1) if f > 0 else take(i)
+
+
+def exp_columns(P_src: np.ndarray, dt_s: float, taus_s: np.ndarray) -> np.ndarray:
+    """E_tau[P] = dP/dt conv H(t) exp(-t/tau) (exact for PWL P, zero before t = 0) for several tau.
+
+    The same exact recursion as :func:`dtoc.hardware.recursion.exp_response` (e[0] = P[0];
+    e[n+1] = a e[n] + b (P[n+1] - P[n]), a = exp(-dt/tau), b = (tau/dt)(1 - a)), evaluated as an IIR filter
+    (scipy.signal.lfilter) for speed; tests check the two agree.
+
+    Args:
+        P_src: (..., N) source waveform(s).
+        taus_s: (K,) time constants, s.
+    Returns:
+        (K, ..., N) responses, in the unit of P.
+    """
+    from scipy.signal import lfilter
+
+    P = np.asarray(P_src, dtype=np.float64)
+    d = np.diff(P, axis=-1)
+    out = np.empty((len(taus_s),) + P.shape)
+    for i, tau in enumerate(np.asarray(taus_s, dtype=np.float64)):
+        r = dt_s / tau
+        a = math.exp(-r)
+        bb = -math.expm1(-r) / r
+        u = np.concatenate([P[..., :1], bb * d], axis=-1)
+        out[i] = lfilter([1.0], [1.0, -a], u, axis=-1)
+    return out
+
+
+def _penalty(n_params: int, n: int) -> float:
+    return n_params * math.log(max(n, 2))
+
+
+def _finish(ws: Workspace, kind, axis, input_axis, params, n_params, res, position="post", notes=None) -> Proposal:
+    c0 = float(ws.c_units.sum())
+    score = (c0 - res.cv_chi2) - _penalty(n_params, ws.n_samples)
+    return Proposal(kind, axis, input_axis, params, n_params, res.cv_chi2, res.full_chi2, float(score), position, notes or {})
+
+
+def _axis_index(axis):
+    return AXES.index(axis)
+
+
+# -- parametric linear candidates ---------------------------------------------------------------------
+def screen_gain(ws: Workspace, ctx: Context, axis: str) -> Proposal:
+    a = _axis_index(axis)
+
+    def make(ms):
+        return {a: ctx.P[ms, a][None]}, None
+
+    A, b = ws.unit_stats(make, 1)
+    res = cross_validate(A, b, ws.c_units, ws.folds, [[0]], free=True)
+    return _finish(ws, "gain", axis, None, {"factor": 1.0 + float(res.theta[0])}, 1, res)
+
+
+def screen_offset(ws: Workspace, ctx: Context, axis: str) -> Proposal:
+    a = _axis_index(axis)
+
+    def make(ms):
+        return {a: np.ones((1, len(ms), ws.data.N))}, None
+
+    A, b = ws.unit_stats(make, 1)
+    res = cross_validate(A, b, ws.c_units, ws.folds, [[0]], free=True)
+    return _finish(ws, "offset", axis, None, {"mT_per_m": float(res.theta[0])}, 1, res)
+
+
+def _tau_grid(ws: Workspace) -> np.ndarray:
+    T = ws.data.N * ws.data.dt_s
+    lo, hi = 0.5 * ws.data.dt_s, max(2.0 * T, ws.data.dt_s * 4)
+    return np.geomspace(lo, hi, 28)
+
+
+def _screen_exp_family(ws: Workspace, ctx: Context, out_axis: int | None, in_axis: int):
+    """Shared screening of exp/cross/b0 eddies: linear alpha on a coarse, then a fine tau grid.
+
+    out_axis None means the B0 channel.  Returns (alpha, tau, OptionResult).
+    """
+    N = ws.data.N
+
+    def stats(taus, cache_key=None):
+        if cache_key is not None and cache_key not in ctx.cache:
+            ctx.cache[cache_key] = -exp_columns(ctx.P[:, in_axis], ws.data.dt_s, taus)
+
+        def make(ms):
+            if cache_key is not None:
+                E = ctx.cache[cache_key][:, ms]
+            else:
+                E = -exp_columns(ctx.P[ms, in_axis], ws.data.dt_s, taus)  # (K, Mc, N)
+            if out_axis is None:
+                return None, E
+            return {out_axis: E}, None
+
+        return ws.unit_stats(make, len(taus))
+
+    coarse = _tau_grid(ws)
+    A1, b1 = stats(coarse, ("exp_coarse", in_axis))
+    r1 = cross_validate(A1, b1, ws.c_units, ws.folds, [[j] for j in range(len(coarse))], free=True)
+    t_best = coarse[r1.option]
+    step = math.log(coarse[1] / coarse[0])
+    fine = t_best * np.exp(np.linspace(-step, step, 13))
+    A2, b2 = stats(fine)
+    taus = np.concatenate([coarse, fine])
+    A = np.concatenate([A1, A2], axis=1)  # diagonal statistics: options are single columns
+    b = np.concatenate([b1, b2], axis=1)
+    res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(taus))], free=True)
+    return float(res.theta[0]), float(taus[res.option]), res
+
+
+def screen_exp_eddy(ws: Workspace, ctx: Context, axis: str) -> Proposal:
+    a = _axis_index(axis)
+    alpha, tau, res = _screen_exp_family(ws, ctx, a, a)
+    return _finish(ws, "exp_eddy", axis, None, {"alpha": alpha, "tau_s": tau}, 2, res)
+
+
+def screen_cross_eddy(ws: Workspace, ctx: Context, axis: str, input_axis: str) -> Proposal:
+    alpha, tau, res = _screen_exp_family(ws, ctx, _axis_index(axis), _axis_index(input_axis))
+    return _finish(ws, "cross_eddy", axis, input_axis, {"alpha": alpha, "tau_s": tau}, 2, res)
+
+
+def screen_b0_eddy(ws: Workspace, ctx: Context, input_axis: str) -> Proposal:
+    alpha, tau, res = _screen_exp_family(ws, ctx, None, _axis_index(input_axis))
+    return _finish(ws, "b0_eddy", None, input_axis, {"alpha_uT_per_mT_per_m": alpha, "tau_s": tau}, 2, res)
+
+
+# -- delay --------------------------------------------------------------------------------------------
+def screen_delay(ws: Workspace, ctx: Context, axis: str | None) -> Proposal:
+    """Delay of one axis (or all axes when ``axis`` is None): exact PWL shifts on a grid."""
+    dt = ws.data.dt_s
+    axes = [0, 1, 2] if axis is None else [_axis_index(axis)]
+    shift = ctx.shift or (lambda x, tau: pwl_shift(x, tau, dt))
+
+    # Linearised estimate: r ~ -tau dP/dt.
+    def make_lin(ms):
+        return {a: -np.gradient(ctx.P[ms, a], dt, axis=-1)[None] for a in axes}, None
+
+    A, b = ws.unit_stats(make_lin, 1)
+    den = A[:, 0].sum()
+    tau0 = float(b[:, 0].sum() / den) if den > 0 else 0.0
+    tau0 = float(np.clip(tau0, -20 * dt, 20 * dt))
+
+    def grid_stats(taus):
+        def make(ms):
+            return {a: np.stack([shift(ctx.P[ms, a], t) - ctx.P[ms, a] for t in taus]) for a in axes}, None
+
+        return ws.unit_stats(make, len(taus))
+
+    width = max(0.5 * abs(tau0), 0.1 * dt)
+    taus = tau0 + width * np.linspace(-1.0, 1.0, 11)
+    for _ in range(3):  # recentre while the optimum sits on the grid's edge
+        A, b = grid_stats(taus)
+        res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(taus))], free=False)
+        if 0 < res.option < len(taus) - 1:
+            break
+        taus = taus[res.option] + width * np.linspace(-1.0, 1.0, 11)
+        width *= 2.0
+    # Fine grid around the best value.
+    step = taus[1] - taus[0]
+    fine = taus[res.option] + step * np.linspace(-1.0, 1.0, 11)
+    A, b = grid_stats(fine)
+    res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(fine))], free=False)
+    return _finish(ws, "delay", axis, None, {"seconds": float(fine[res.option])}, 1, res)
+
+
+# -- lti (non-parametric FIR correction) -------------------------------------------------------------
+def lti_layout(dt_s: float, n_taps: int | None = None, n_pre: int = 4) -> tuple[int, int]:
+    """(number of taps, index of the first tap relative to zero lag) of the FIR correction."""
+    if n_taps is None:
+        n_taps = 48
+    return n_taps, -n_pre
+
+
+def screen_lti(ws: Workspace, ctx: Context, axis: str, n_taps: int | None = None) -> Proposal:
+    a = _axis_index(axis)
+    L, j0 = lti_layout(ws.data.dt_s, n_taps)
+    N = ws.data.N
+
+    def make(ms):
+        x = ctx.P[ms, a]  # (Mc, N)
+        dG = np.zeros((L, len(ms), N))
+        for j in range(L):
+            lag = j + j0
+            if 0 <= lag < N:
+                dG[j, :, lag:] = x[:, : N - lag]
+            elif -N < lag < 0:
+                dG[j, :, : N + lag] = x[:, -lag:]
+        return {a: dG}, None
+
+    A, b = ws.unit_stats(make, L, full=True)
+    res = cross_validate(A, b, ws.c_units, ws.folds, [list(range(L))], free=True)
+    taps = [float(v) for v in res.theta]
+    dt = ws.data.dt_s
+    return _finish(ws, "lti", axis, None, {"taps": taps, "dt_s": dt, "t0_s": j0 * dt}, L, res,
+                   notes=lti_features(np.asarray(taps), j0, dt))
+
+
+def lti_features(taps: np.ndarray, first_lag: int, dt_s: float) -> dict:
+    """Dominant features of an FIR correction dH(f) = sum_j taps[j] exp(-2 pi i f (j + first_lag) dt):
+    peak |dH| and its frequency, and the DC change (sum of taps)."""
+    nfft = 4096
+    f = np.fft.rfftfreq(nfft, dt_s)
+    H = np.fft.rfft(np.asarray(taps, dtype=np.float64), nfft) * np.exp(-2j * np.pi * f * first_lag * dt_s)
+    k = int(np.argmax(np.abs(H)))
+    return {"peak_hz": float(f[k]), "peak_abs": float(np.abs(H[k])), "dc_change": float(np.real(H[0]))}
+
+
+# -- slew limit (non-linear, on the demanded input) --------------------------------------------------
+def screen_slew_limit(ws: Workspace, ctx: Context) -> Proposal | None:
+    if ctx.chain is None or ctx.slew_limit is None:
+        return None
+    dt = ws.data.dt_s
+    smax = float(np.max(np.abs(np.diff(ctx.g, axis=-1)))) / dt  # mT/m/s
+    if smax <= 0:
+        return None
+    base = ctx.P
+    base_b0 = ctx.P_b0
+
+    def stats(limits_T_per_m_per_s):
+        def make(ms):
+            dG = np.zeros((len(limits_T_per_m_per_s), len(ms), 3, ws.data.N))
+            db0 = np.zeros((len(limits_T_per_m_per_s), len(ms), ws.data.N))
+            for j, s in enumerate(limits_T_per_m_per_s):
+                pred = ctx.chain(ctx.slew_limit(ctx.g[ms], s))
+                dG[j] = pred.G - base[ms]
+                if pred.b0 is not None and base_b0 is not None:
+                    db0[j] = pred.b0 - base_b0[ms]
+            return {a: dG[:, :, a] for a in range(3)}, (db0 if base_b0 is not None else None)
+
+        return ws.unit_stats(make, len(limits_T_per_m_per_s), chunk=max(1, ws.data.M))
+
+    smax_T = smax * 1e-3
+    coarse = smax_T * np.geomspace(0.2, 0.98, 12)
+    A, b = stats(coarse)
+    res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(coarse))], free=False)
+    j = res.option
+    lo = coarse[max(j - 1, 0)]
+    hi = coarse[min(j + 1, len(coarse) - 1)]
+    fine = np.linspace(lo, hi, 9)
+    A2, b2 = stats(fine)
+    res2 = cross_validate(A2, b2, ws.c_units, ws.folds, [[j] for j in range(len(fine))], free=False)
+    best = res2 if res2.full_chi2 <= res.full_chi2 else res
+    val = fine[res2.option] if best is res2 else coarse[res.option]
+    return _finish(ws, "slew_limit", None, None, {"max_slew_T_per_m_per_s": float(val)}, 1, best, position="pre")
+
+
+# -- the whole library -----------------------------------------------------------------------------
+def screen_all(ws: Workspace, ctx: Context, kinds=None, exclude=()) -> list[Proposal]:
+    """Screen every candidate of the library (optionally only ``kinds``); best score first.
+
+    ``exclude``: names (:attr:`Proposal.name`) already in the model, not proposed again.
+    """
+    kinds = set(kinds) if kinds else {"delay", "gain", "offset", "exp_eddy", "cross_eddy", "b0_eddy", "lti", "slew_limit"}
+    props: list[Proposal] = []
+    measured_axes = [AXES[a] for a in range(3) if ws.data.axes_measured[:, a].any()]
+    active_in = [AXES[a] for a in range(3) if np.any(ctx.P[:, a] != 0)]
+    if "delay" in kinds:
+        if len(measured_axes) > 1:
+            props.append(screen_delay(ws, ctx, None))
+        props += [screen_delay(ws, ctx, ax) for ax in measured_axes]
+    if "gain" in kinds:
+        props += [screen_gain(ws, ctx, ax) for ax in measured_axes]
+    if "offset" in kinds:
+        props += [screen_offset(ws, ctx, ax) for ax in measured_axes]
+    if "exp_eddy" in kinds:
+        props += [screen_exp_eddy(ws, ctx, ax) for ax in measured_axes if ax in active_in]
+    if "cross_eddy" in kinds:
+        props += [screen_cross_eddy(ws, ctx, o, i) for o in measured_axes for i in active_in if i != o]
+    if "b0_eddy" in kinds and ws.data.b0 is not None:
+        props += [screen_b0_eddy(ws, ctx, i) for i in active_in]
+    if "lti" in kinds:
+        props += [screen_lti(ws, ctx, ax) for ax in measured_axes if ax in active_in]
+    if "slew_limit" in kinds:
+        p = screen_slew_limit(ws, ctx)
+        if p is not None:
+            props.append(p)
+    props = [p for p in props if p.name not in set(exclude)]
+    props.sort(key=lambda p: -p.score)
+    return props

@@ -1,0 +1,212 @@
+"""`identify`: residual of the declared model -> trace to missing effects -> updated model and report.
+
+Algorithm (forward stepwise selection with a held-out information criterion):
+
+1. Predict the measurement with the declared model (none: ideal hardware) and estimate each channel's
+   noise floor (:mod:`dtoc.identify.noise`) unless ``sigma_*`` is given.
+2. Screen every candidate of the library (:mod:`dtoc.identify.candidates`) against the current residual:
+   linearised / exact-grid fit on each fold's training units, chi-square on its test units, score =
+   held-out chi-square decrease - n_params ln(n).
+3. If the best score exceeds ``threshold`` (default 10), add that effect, refit every found parameter
+   jointly through the differentiable twin (:class:`dtoc.identify.twin.Twin`), confirm that the full-data
+   chi-square dropped by more than the threshold too, and repeat; otherwise stop.  At most ``max_effects``.
+   A measurement the declared model already explains gets nothing: spurious candidates gain ~chi2(p) in
+   held-out chi-square, far below the ln(n) penalty.
+4. Held-out error of the final model: every fold refitted on its training samples, scored on its test samples.
+5. ``explained`` = for every measured channel the held-out RMS residual is <= ``explained_ratio`` (1.2) x
+   the noise floor AND no significant narrow-band structure is left (:func:`diagnostics.spectral_peaks`).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from dtoc.constants import AXES
+from dtoc.hardware.effects import SlewLimit
+from dtoc.hardware.model import HardwareModel
+from dtoc.identify import diagnostics
+from dtoc.identify.candidates import Context, Proposal, screen_all
+from dtoc.identify.data import IdentData
+from dtoc.identify.folds import Folds, make_folds
+from dtoc.identify.noise import NoiseEstimate, estimate_sigma
+from dtoc.identify.twin import Twin
+from dtoc.identify.workspace import Workspace
+
+#: Kinds that may be added more than once on the same axes (multi-exponential eddy currents).
+REPEATABLE = {"exp_eddy", "cross_eddy", "b0_eddy"}
+
+
+@dataclass
+class IdentifyResult:
+    """Everything the report, the plots and the updated model file need."""
+
+    data: IdentData
+    twin: Twin
+    noise: dict  # channel -> NoiseEstimate
+    folds: Folds
+    before: dict
+    after: dict
+    heldout_before: dict
+    heldout_after: dict
+    explained: bool
+    remaining: list
+    residual_before: dict
+    residual_after: dict
+    history: list = field(default_factory=list)  # per round: list of (name, score) of the top proposals
+
+    def updated_model(self) -> HardwareModel:
+        return self.twin.updated_model()
+
+
+def _slew_limit_fn(dt_s: float):
+    """callable(g (M, 3, N) ndarray, max_slew T/m/s) -> slew-limited g, via the twin's SlewLimit effect."""
+
+    def fn(g: np.ndarray, max_slew: float) -> np.ndarray:
+        eff = SlewLimit(max_slew)
+        with torch.no_grad():
+            gt = torch.as_tensor(g, dtype=torch.float64)
+            G, _ = eff(gt, torch.zeros(g.shape[0], g.shape[-1], dtype=torch.float64), dt_s)
+        return G.numpy()
+
+    return fn
+
+
+def _excluded(twin: Twin) -> set:
+    """Names of candidates that would duplicate a found effect (multi-exponentials stay allowed)."""
+    names = set()
+    for f in twin.found:
+        e = f.effect
+        if e.kind in REPEATABLE:
+            continue
+        names.add(Proposal(e.kind, e.axis, e.input_axis, {}, 0, 0.0, 0.0, 0.0).name)
+        if e.kind == "delay":
+            if e.axis is None:
+                names.update(f"delay[{a}]" for a in AXES)
+            else:
+                names.add("delay")
+    return names
+
+
+def _chi2(ws: Workspace) -> float:
+    return float(ws.c_units.sum())
+
+
+def identify(data: IdentData, declared: HardwareModel | None = None, *, max_effects: int = 6, threshold: float = 10.0,
+             kinds=None, explained_ratio: float = 1.2, progress=None) -> IdentifyResult:
+    """Trace the residual of ``declared`` on ``data`` to missing effects (see module docstring).
+
+    Args:
+        data: the measurement.
+        declared: declared hardware model (None: ideal hardware).
+        max_effects: cap on added effects.
+        threshold: minimum held-out score (chi-square units) to add an effect.
+        kinds: restrict the candidate library to these kinds (default: all).
+        explained_ratio: held-out RMS / noise bound for ``explained``.
+        progress: optional callable(str) for progress lines.
+    """
+    say = progress or (lambda s: None)
+    twin = Twin(declared, data, {c: 1.0 for c in data.channels()})
+    pred0 = twin.predict()
+    folds = make_folds(data.M, data.N)
+    # Noise floors from the declared residual.
+    ws0 = Workspace(data, {c: 1.0 for c in data.channels()}, folds, pred0)
+    noise = {}
+    for c in data.channels():
+        noise[c] = estimate_sigma(data.sigma.get(c), data.g, data.measured(c), ws0.res[c], data.mask(c))
+    sigma = {c: noise[c].sigma for c in noise}
+    twin.sigma = sigma
+    ws = Workspace(data, sigma, folds, pred0)
+    res_before = ws.res
+    history = []
+    for rnd in range(max_effects):
+        ctx = Context(dt_s=data.dt_s, g=data.g, P=ws.pred.G, P_b0=ws.pred.b0, chain=twin.predict_fn(), slew_limit=_slew_limit_fn(data.dt_s))
+        props = screen_all(ws, ctx, kinds=kinds, exclude=_excluded(twin))
+        if any(f.effect.kind == "slew_limit" for f in twin.found):
+            props = [p for p in props if p.kind != "slew_limit"]
+        history.append([(p.name, round(p.score, 2)) for p in props[:5]])
+        if not props:
+            break
+        best = props[0]
+        say(f"round {rnd + 1}: best {best.name} score {best.score:.1f}" + (f", next {props[1].name} {props[1].score:.1f}" if len(props) > 1 else ""))
+        if best.score < threshold:
+            break
+        chi_old = _chi2(ws)
+        saved = [copy.deepcopy(f.effect.state_dict()) for f in twin.found]
+        f = twin.add(best.kind, best.axis, best.input_axis, best.params, best.score, best.position, best.notes)
+        twin.refit()
+        pred = twin.predict()
+        ws_new = Workspace(data, sigma, folds, pred)
+        if not (_chi2(ws_new) < chi_old - threshold):
+            say(f"  {best.name} rejected after the non-linear refit (chi2 {chi_old:.1f} -> {_chi2(ws_new):.1f})")
+            twin.found.pop()
+            for fo, st in zip(twin.found, saved):
+                fo.effect.load_state_dict(st)
+            break
+        ws = ws_new
+    # Final full-data refit and standard errors.
+    fit = twin.refit()
+    twin.set_stderr(fit)
+    ws = Workspace(data, sigma, folds, twin.predict())
+    res_after = ws.res
+    before = diagnostics.rmse(data, res_before)
+    after = diagnostics.rmse(data, res_after)
+    # Held-out: each fold refitted on its training samples, residual on its test samples.
+    held_sq = {c: np.zeros_like(res_after[c]) for c in res_after}
+    if twin.found:
+        state = [copy.deepcopy(f.effect.state_dict()) for f in twin.found]
+        for k in range(folds.K):
+            twin.refit(weight=folds.sample_mask(k, train=True))
+            r = Workspace(data, sigma, folds, twin.predict()).res
+            test = folds.sample_mask(k, train=False)
+            for c in r:
+                t = test[:, None, :] if c != "b0" else test
+                held_sq[c] += r[c] * t
+            for fo, st in zip(twin.found, state):
+                fo.effect.load_state_dict(st)
+        held_res = held_sq
+    else:
+        held_res = res_after
+    heldout_after = diagnostics.rmse(data, held_res)
+    heldout_before = diagnostics.rmse(data, res_before)
+    # Explained?
+    remaining = []
+    explained = True
+    for c in data.channels():
+        ratio = heldout_after[c] / sigma[c]
+        if ratio > explained_ratio:
+            explained = False
+            worst = ""
+            if c != "b0":
+                per = {ax: heldout_after.get(f"{c}_{ax}") for ax in AXES if heldout_after.get(f"{c}_{ax}") is not None}
+                if per:
+                    ax = max(per, key=per.get)
+                    worst = f" (worst axis {ax}: {per[ax] / sigma[c]:.2f}x)"
+            remaining.append(f"held-out {c} residual is {ratio:.2f}x the noise floor{worst}")
+        z = res_after[c] / sigma[c]
+        for pk in diagnostics.spectral_peaks(data, c, z):
+            explained = False
+            remaining.append(f"narrow-band {c} residual near {pk['f_hz'] / 1e3:.2f} kHz ({pk['ratio']:.1f}x the broadband level)")
+    if data.G is not None:
+        zG = res_after["G"] / sigma["G"]
+        for what in ("slew", "amplitude"):
+            note = diagnostics.dependence_note(data, zG, what)
+            if note:
+                remaining.append(note)
+                explained = False
+    for fo in twin.found:
+        if fo.effect.kind == "slew_limit":
+            remaining.append("a non-linear slew-rate limit was modelled: the amplifier cannot follow the demanded slew")
+        if fo.effect.kind == "lti":
+            n = fo.notes
+            if n:
+                remaining.append(f"lti correction on {fo.effect.axis}: largest |dH| {n['peak_abs']:.3f} near "
+                                 f"{n['peak_hz'] / 1e3:.2f} kHz (no parametric effect explained it)")
+    if len(twin.found) >= max_effects:
+        remaining.append(f"stopped at the cap of {max_effects} added effects")
+    say("done")
+    return IdentifyResult(data, twin, noise, folds, before, after, heldout_before, heldout_after, explained,
+                          remaining, res_before, res_after, history)

@@ -1,0 +1,93 @@
+"""Synthetic measurements for tests, examples and benchmarks.
+
+:func:`test_waveforms` makes demanded gradients like those used to characterise gradient systems: on each
+axis independently, a random train of trapezoids and triangles (random signed amplitude, slew between 30 %
+and 100 % of the limit, random plateau and gap lengths), starting and ending at zero.  Axes differ, so
+cross terms are identifiable.  :func:`simulate_measurement` plays them through a "true scanner"
+(a :class:`dtoc.hardware.model.HardwareModel`) and adds white Gaussian noise; :func:`save_measurement`
+writes the BRIEF §2.1 ``.npz``.  Everything is seeded: same arguments, same arrays.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import torch
+
+from dtoc.hardware.model import HardwareModel
+from dtoc.identify.data import IdentData, integrate_k
+from dtoc.util.atomic import atomic_write_bytes
+
+
+def test_waveforms(M: int, N: int, dt_s: float = 10e-6, gmax_mT_per_m: float = 30.0,
+                   smax_T_per_m_per_s: float = 150.0, seed: int = 0, axes=(0, 1, 2)) -> np.ndarray:
+    """(M, 3, N) demanded test gradients in mT/m (see module docstring); unused axes are zero."""
+    rng = np.random.default_rng(seed)
+    g = np.zeros((M, 3, N))
+    smax = smax_T_per_m_per_s * 1e3  # mT/m/s
+    for m in range(M):
+        for a in axes:
+            n = int(rng.integers(5, 40))
+            while n < N - 10:
+                amp = rng.uniform(0.2, 1.0) * gmax_mT_per_m * rng.choice([-1.0, 1.0])
+                slew = rng.uniform(0.3, 1.0) * smax
+                nr = max(1, int(np.ceil(abs(amp) / slew / dt_s)))
+                npl = int(rng.integers(0, 120)) if rng.random() < 0.7 else 0
+                if n + 2 * nr + npl >= N - 2:
+                    break
+                ramp = np.arange(1, nr + 1) / nr
+                g[m, a, n + 1 : n + nr + 1] = amp * ramp
+                g[m, a, n + nr + 1 : n + nr + npl + 1] = amp
+                g[m, a, n + nr + npl + 1 : n + 2 * nr + npl + 1] = amp * (1.0 - ramp)
+                n = n + 2 * nr + npl + 1 + int(rng.integers(5, 200))
+    return g
+
+
+def simulate_measurement(true_model: HardwareModel, g: np.ndarray, dt_s: float, *, sigma_G: float | None = 0.01,
+                         sigma_k: float | None = None, sigma_b0: float | None = None, seed: int = 1,
+                         give_sigma: bool = False) -> IdentData:
+    """Play ``g`` through ``true_model`` and add white noise.
+
+    Args:
+        true_model: the "true scanner".
+        g: (M, 3, N) demanded gradients, mT/m.
+        sigma_G / sigma_k / sigma_b0: noise std of the channels to deliver (None: channel absent).
+        give_sigma: store the noise levels in the measurement (else they must be estimated).
+    Returns:
+        :class:`IdentData` with the requested channels.
+    """
+    rng = np.random.default_rng(seed)
+    with torch.no_grad():
+        G, b0 = true_model(torch.as_tensor(g, dtype=torch.float64), dt_s)
+    G = G.numpy()
+    b0 = b0.numpy()
+    out = {}
+    if sigma_G is not None:
+        out["G"] = G + sigma_G * rng.standard_normal(G.shape)
+    if sigma_k is not None:
+        out["k"] = integrate_k(G, dt_s) + sigma_k * rng.standard_normal(G.shape)
+    if sigma_b0 is not None:
+        out["b0"] = b0 + sigma_b0 * rng.standard_normal(b0.shape)
+    sig = {"G": sigma_G, "k": sigma_k, "b0": sigma_b0} if give_sigma else {}
+    return IdentData(dt_s=dt_s, g=g, sigma=sig, **out)
+
+
+def measurement_npz_bytes(d: IdentData) -> bytes:
+    """The BRIEF §2.1 ``.npz`` bytes of a measurement (deterministic)."""
+    arrays = {"dt": np.float64(d.dt_s), "g": d.g}
+    for c in ("G", "k", "b0"):
+        if getattr(d, c) is not None:
+            arrays[c] = getattr(d, c)
+        if d.sigma.get(c) is not None:
+            arrays[f"sigma_{c}"] = np.float64(d.sigma[c])
+    arrays["labels"] = np.asarray(d.labels)
+    arrays["axes_measured"] = d.axes_measured
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def save_measurement(d: IdentData, path, force: bool = False):
+    """Write the measurement ``.npz`` atomically."""
+    return atomic_write_bytes(path, measurement_npz_bytes(d), force=force)

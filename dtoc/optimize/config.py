@@ -1,0 +1,138 @@
+"""Options of `dtoc optimize` (pydantic): defaults per sequence type, YAML file, CLI overrides.
+
+Precedence: built-in defaults for the sequence kind (GRE / EPI / other) < YAML config file < command
+line.  Every field has a unit in its name where it has one.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal, Optional
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from dtoc.errors import InputError
+
+
+class LossWeights(BaseModel):
+    """Weights of the normalised loss terms (see :mod:`dtoc.optimize.loss`).
+
+    Attributes:
+        image: L_I = ||I - I0|| / ||I0|| (NRMSE; dimensionless).
+        kspace: L_k = mean over ADC samples of sum_axes ((k - k0) / dk)^2 (units dk^2 per sample).
+        amplitude: L_g = mean over samples of max(|g| - gmax, 0) / gmax (zero under hard limits).
+        slew: L_s = mean over segments of max(|dg/dt| - smax, 0) / smax (zero under hard limits).
+        rf: L_tRF = mean over RF-period samples of sum_axes (G - g0)^2 / g_ref^2, g_ref the base's
+            peak |g| (the paper penalises realized gradient during RF: g0 = 0 there in GRE).
+        reg: Tikhonov term mean((g - g0)^2) / g_ref^2 of the linear warm start only.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    image: float = Field(1.0, ge=0)
+    kspace: float = Field(1.0, ge=0)
+    amplitude: float = Field(10.0, ge=0)
+    slew: float = Field(10.0, ge=0)
+    rf: float = Field(1.0, ge=0)
+    reg: float = Field(1e-6, ge=0)
+
+
+class OptimizeConfig(BaseModel):
+    """All options of one optimization run.
+
+    Attributes:
+        method: 'dto' (linear warm start then the full loss), 'adam-paper' (the paper's Adam with
+            restarts from the base waveform), 'warmstart' (linear warm start only), 'preemphasis'
+            (Eq. 2 classic pre-emphasis with fitted coefficients and its TE fallbacks).
+        gmax_mT_per_m / smax_T_per_m_per_s: hard limits (default: from the sequence's system limits).
+        amp_margin / slew_margin: relative safety margins of the hard limits.
+        weights: loss weights (defaults per kind).
+        warm_iters: iterations of the constrained least-squares warm start.
+        iters: iterations of the full-loss stage.
+        optimizer: 'adam' or 'lbfgs' for the full-loss stage ('dto').
+        lr: learning rate of Adam (mT/m per step for 'dto'; the paper's value for 'adam-paper').
+        restarts: Adam restart iterations (paper: 500, 1500, 3000, ... scaled to ``iters``).
+        augment_rotations: number of rotated phantoms cycled through (0 = no augmentation).
+        augment_max_deg: rotation range +- degrees.
+        augment_every: iterations between phantom switches.
+        discard: post-hoc discarding of samples whose k-space error exceeds an optimised threshold.
+        phantom_size: phantom matrix (default: the sequence's matrix).
+        n_dummies: dummy repetitions for the steady-state initial magnetisation (0 = none).
+        seed: random seed (augmentation angles).
+        threads: torch threads (fixed for reproducibility).
+        checkpoint_every: iterations between checkpoints when a checkpoint path is set.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    method: Literal["dto", "adam-paper", "warmstart", "preemphasis"] = "dto"
+    gmax_mT_per_m: Optional[float] = Field(None, gt=0)
+    smax_T_per_m_per_s: Optional[float] = Field(None, gt=0)
+    amp_margin: float = Field(0.005, ge=0, lt=0.5)
+    slew_margin: float = Field(0.01, ge=0, lt=0.5)
+    weights: LossWeights = Field(default_factory=LossWeights)
+    warm_iters: int = Field(400, ge=0)
+    iters: int = Field(60, ge=0)
+    optimizer: Literal["adam", "lbfgs"] = "adam"
+    lr: Optional[float] = Field(None, gt=0)
+    restarts: list[int] = Field(default_factory=list)
+    augment_rotations: int = Field(0, ge=0)
+    augment_max_deg: float = Field(90.0, ge=0, le=180)
+    augment_every: int = Field(5, ge=1)
+    discard: bool = True
+    phantom_size: Optional[int] = Field(None, ge=4)
+    n_dummies: int = Field(0, ge=0)
+    seed: int = 0
+    threads: int = Field(1, ge=1)
+    checkpoint_every: int = Field(20, ge=1)
+
+
+#: Defaults per sequence kind, applied below the config file.
+KIND_DEFAULTS: dict[str, dict] = {
+    "gre": {"weights": {"image": 1.0, "kspace": 1.0, "rf": 1.0}, "lr": 0.05, "iters": 60, "n_dummies": 100},
+    "epi": {"weights": {"image": 1.0, "kspace": 4.0, "rf": 1.0}, "lr": 0.002, "iters": 30, "n_dummies": 0},
+}
+
+PAPER_RESTARTS = [500, 1500, 3000, 5000, 7500, 10500, 14000, 18000]
+
+
+def _deep_update(a: dict, b: dict) -> dict:
+    out = dict(a)
+    for k, v in b.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _deep_update(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def load_config(kind: str | None, path: str | Path | None = None, overrides: dict | None = None) -> OptimizeConfig:
+    """Build the run configuration.
+
+    Args:
+        kind: sequence kind ('gre', 'epi' or None) selecting the built-in defaults.
+        path: optional YAML file with any :class:`OptimizeConfig` fields (``weights`` as a mapping).
+        overrides: command-line values (``None`` entries are ignored).
+    Raises:
+        InputError: unreadable file or invalid values (one line naming the field).
+    """
+    data: dict = dict(KIND_DEFAULTS.get(kind or "", {}))
+    if path is not None:
+        p = Path(path)
+        try:
+            loaded = yaml.safe_load(p.read_text()) or {}
+        except OSError as e:
+            raise InputError(f"{p}: cannot read config ({e.strerror})") from None
+        except yaml.YAMLError as e:
+            raise InputError(f"{p}: not valid YAML ({str(e).splitlines()[0]})") from None
+        if not isinstance(loaded, dict):
+            raise InputError(f"{p}: config must be a mapping of option: value")
+        data = _deep_update(data, loaded)
+    if overrides:
+        data = _deep_update(data, {k: v for k, v in overrides.items() if v is not None})
+    try:
+        return OptimizeConfig(**data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        loc = ".".join(str(x) for x in err["loc"])
+        src = f"{path}: " if path else ""
+        raise InputError(f"{src}config field '{loc}': {err['msg']}") from None

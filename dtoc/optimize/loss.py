@@ -1,0 +1,144 @@
+"""The digital-twin loss (paper Eq. 4A-F), normalised so the weights do not depend on scaling.
+
+Terms (all dimensionless; each multiplied by its weight from :class:`~dtoc.optimize.config.LossWeights`):
+
+* ``image``  (4B): ``||I - I0||_2 / ||I0||_2`` over the (possibly several, augmented) images: the
+  NRMSE, independent of the simulator's signal scale.
+* ``kspace`` (4C): ``mean_i sum_axes ((k_i - k0_i) / dk)^2``: k-space location error in units of dk^2
+  per sample (dk = 2 pi / FOV), independent of FOV and matrix.
+* ``amplitude`` (4D): ``mean_m relu(|g_m| - gmax) / gmax`` over fine samples and axes.
+* ``slew`` (4E): ``mean_m relu(|g_{m+1} - g_m| / dt - smax) / smax``.
+* ``rf`` (4F): ``mean over RF-period samples of sum_axes (G - g0)^2 / g_ref^2`` with ``g_ref`` the base
+  waveform's peak |g|: the realized gradient during RF pulses must be that of the base (zero in GRE,
+  the slice-select plateau in EPI), because slice selection is not simulated.
+
+Amplitude and slew are zero whenever the hard-limit projection is active; they remain for
+``adam-paper`` studies with soft limits.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from dtoc.optimize.config import LossWeights
+
+
+@dataclass
+class LossContext:
+    """Fixed quantities the loss needs (built once per run).
+
+    Attributes:
+        k0_rad_per_m: (3, N_adc) target k-space.
+        dk_rad_per_m: (3,) k-space step per axis (axes with infinite dk, e.g. slice, are ignored).
+        rf_mask: (M,) bool fine samples inside RF pulses.
+        g0_fine_mT_per_m: (3, M) base demanded waveform.
+        g_ref_mT_per_m: normalisation of gradient terms (base peak |g|).
+        gmax_mT_per_m / smax_T_per_m_per_s: limits for the soft terms.
+        dt_fine_s: fine grid spacing.
+        sample_weight: (N_adc,) optional per-sample weights of the k term (default 1).
+    """
+
+    k0_rad_per_m: torch.Tensor
+    dk_rad_per_m: torch.Tensor
+    rf_mask: torch.Tensor
+    g0_fine_mT_per_m: torch.Tensor
+    g_ref_mT_per_m: float
+    gmax_mT_per_m: float
+    smax_T_per_m_per_s: float
+    dt_fine_s: float
+    sample_weight: torch.Tensor | None = None
+
+
+def rf_mask_fine(ir) -> np.ndarray:
+    """(2N+1,) True on fine samples within an RF pulse ``[t_start, t_start + duration]``."""
+    t = ir.t_fine_s
+    m = np.zeros(t.shape, dtype=bool)
+    for r in ir.rf:
+        m |= (t >= r.t_start_s - 1e-12) & (t <= r.t_start_s + r.duration_s + 1e-12)
+    return m
+
+
+def build_context(ir, limits, dtype=torch.float64, device="cpu") -> LossContext:
+    """Loss context of a sequence IR and :class:`~dtoc.optimize.limits.Limits`."""
+    k0 = torch.as_tensor(ir.nominal_kspace_rad_per_m(), dtype=dtype, device=device)
+    dk = ir.dk_rad_per_m
+    if dk is None:
+        # without a FOV use the spread of the target k-space / matrix as the step
+        span = np.ptp(ir.nominal_kspace_rad_per_m(), axis=1)
+        n = max(ir.matrix or (64,))
+        dk = np.where(span > 0, span / max(n - 1, 1), np.inf)
+    dk_t = torch.as_tensor(np.asarray(dk, dtype=np.float64), dtype=dtype, device=device)
+    g0 = torch.as_tensor(ir.grad_mT_per_m, dtype=dtype, device=device)
+    gref = float(np.abs(ir.grad_mT_per_m).max()) or 1.0
+    return LossContext(
+        k0_rad_per_m=k0, dk_rad_per_m=dk_t, rf_mask=torch.as_tensor(rf_mask_fine(ir), device=device),
+        g0_fine_mT_per_m=g0, g_ref_mT_per_m=gref, gmax_mT_per_m=limits.gmax_mT_per_m,
+        smax_T_per_m_per_s=limits.smax_T_per_m_per_s, dt_fine_s=ir.dt_fine_s)
+
+
+def kspace_term(k: torch.Tensor, ctx: LossContext) -> torch.Tensor:
+    """mean over samples of sum_axes ((k - k0)/dk)^2 (axes with infinite dk skipped)."""
+    inv = torch.where(torch.isfinite(ctx.dk_rad_per_m), 1.0 / ctx.dk_rad_per_m, torch.zeros_like(ctx.dk_rad_per_m))
+    e = ((k - ctx.k0_rad_per_m) * inv[:, None]) ** 2
+    per = e.sum(0)
+    if ctx.sample_weight is not None:
+        return (per * ctx.sample_weight).sum() / ctx.sample_weight.sum().clamp_min(1e-12)
+    return per.mean()
+
+
+def image_term(images: list[torch.Tensor], targets: list[torch.Tensor]) -> torch.Tensor:
+    """Mean NRMSE ||I - I0|| / ||I0|| over image pairs (complex or magnitude; magnitudes are compared)."""
+    vals = []
+    for im, im0 in zip(images, targets):
+        a, b = im.abs(), im0.abs()
+        vals.append(torch.linalg.vector_norm(a - b) / torch.linalg.vector_norm(b).clamp_min(1e-30))
+    return torch.stack(vals).mean()
+
+
+def amplitude_term(g: torch.Tensor, ctx: LossContext) -> torch.Tensor:
+    return torch.relu(g.abs() - ctx.gmax_mT_per_m).mean() / ctx.gmax_mT_per_m
+
+
+def slew_term(g: torch.Tensor, ctx: LossContext) -> torch.Tensor:
+    s = (g[..., 1:] - g[..., :-1]).abs() / ctx.dt_fine_s * 1e-3
+    return torch.relu(s - ctx.smax_T_per_m_per_s).mean() / ctx.smax_T_per_m_per_s
+
+
+def rf_term(G: torch.Tensor, ctx: LossContext) -> torch.Tensor:
+    if not bool(ctx.rf_mask.any()):
+        return G.new_zeros(())
+    d = (G - ctx.g0_fine_mT_per_m)[:, ctx.rf_mask]
+    return (d ** 2).sum(0).mean() / ctx.g_ref_mT_per_m ** 2
+
+
+def reg_term(g: torch.Tensor, ctx: LossContext) -> torch.Tensor:
+    return ((g - ctx.g0_fine_mT_per_m) ** 2).mean() / ctx.g_ref_mT_per_m ** 2
+
+
+def total_loss(weights: LossWeights, ctx: LossContext, *, g: torch.Tensor, G: torch.Tensor, k: torch.Tensor,
+               images: list[torch.Tensor] | None = None, targets: list[torch.Tensor] | None = None,
+               include_reg: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
+    """Weighted sum of the terms and their weighted values (floats, for the history).
+
+    Args:
+        g: (3, M) demanded fine waveform, mT/m.   G: (3, M) realized, mT/m.   k: (3, N_adc) rad/m.
+        images / targets: simulated and target images (None: image term skipped).
+    """
+    terms: dict[str, torch.Tensor] = {}
+    if images is not None and weights.image > 0:
+        terms["image"] = weights.image * image_term(images, targets)
+    if weights.kspace > 0:
+        terms["kspace"] = weights.kspace * kspace_term(k, ctx)
+    if weights.amplitude > 0:
+        terms["amplitude"] = weights.amplitude * amplitude_term(g, ctx)
+    if weights.slew > 0:
+        terms["slew"] = weights.slew * slew_term(g, ctx)
+    if weights.rf > 0:
+        terms["rf"] = weights.rf * rf_term(G, ctx)
+    if include_reg and weights.reg > 0:
+        terms["reg"] = weights.reg * reg_term(g, ctx)
+    total = torch.stack(list(terms.values())).sum() if terms else g.new_zeros(())
+    return total, {k_: float(v.detach()) for k_, v in terms.items()}

@@ -1,0 +1,422 @@
+"""`dtoc optimize` as a library call: inputs -> pre-compensated sequence, manifest, report.
+
+:func:`optimize_sequence` validates every input and output path first (bad input: one-line error,
+nothing written), runs the chosen method, projects onto the hard limits a last time, verifies the
+exported waveform (:func:`dtoc.seq.check.check_ir_limits`), then writes the ``.seq`` (and checks the
+written file with the full validator before it replaces the destination), the manifest and the PNG.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from dtoc.errors import InputError, LimitError, ValidationFailed
+from dtoc.optimize import loss as L
+from dtoc.optimize import optimizer as O
+from dtoc.optimize.config import OptimizeConfig
+from dtoc.optimize.limits import EdgeProjector, Limits, check_area_reachable, limit_violations
+from dtoc.optimize.twin import Imager, Twin
+from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_output_path, sha256_file
+
+
+# ---------------------------------------------------------------------------------------------------
+# set-up helpers
+# ---------------------------------------------------------------------------------------------------
+def system_limits(ir, cfg: OptimizeConfig) -> Limits:
+    """Hard limits: config values, else the sequence's recorded system limits, else SystemSpec defaults."""
+    from dtoc.seq.system import SystemSpec
+
+    d = ir.definitions or {}
+
+    def num(key):
+        v = d.get(key)
+        if isinstance(v, (list, tuple)):
+            v = v[0] if v else None
+        try:
+            return float(v)
+        except (TypeError, ValueError):
+            return None
+
+    sdef = SystemSpec()
+    g = cfg.gmax_mT_per_m or num("MaxGrad_mT_per_m") or sdef.max_grad_mT_per_m
+    s = cfg.smax_T_per_m_per_s or num("MaxSlew_T_per_m_per_s") or sdef.max_slew_T_per_m_per_s
+    return Limits(g, s, amp_margin=cfg.amp_margin, slew_margin=cfg.slew_margin)
+
+
+def free_edges(ir) -> np.ndarray:
+    """(3, N+1) optimizer variables: free raster edges on axes whose base waveform is not all zero
+    (the paper optimizes the readout and phase axes of the GRE; an idle axis stays idle)."""
+    free = np.asarray(ir.free_mask[:, ::2], dtype=bool).copy()
+    idle = ~np.any(np.abs(ir.grad_mT_per_m) > 0, axis=1)
+    free[idle] = False
+    return free
+
+
+def make_phantoms(ir, cfg: OptimizeConfig, phantom=None) -> list:
+    """The phantom (built-in brain at the sequence's matrix/FOV unless given) and rotated copies."""
+    from dtoc.sim.phantom import brain_phantom, rotate
+
+    if phantom is None:
+        if not ir.matrix or not ir.fov_m:
+            raise InputError("sequence has no matrix/FOV definitions: cannot build the phantom")
+        n = cfg.phantom_size or int(ir.matrix[0])
+        ny = cfg.phantom_size or int(ir.matrix[1] if len(ir.matrix) > 1 else ir.matrix[0])
+        field = 7.0 if ir.kind == "epi" else 3.0
+        phantom = brain_phantom((ny, n), field_T=field, fov_m=(ir.fov_m[0], ir.fov_m[1]))
+    out = [phantom]
+    if cfg.augment_rotations > 0:
+        rng = np.random.default_rng(cfg.seed)
+        for a in rng.uniform(-cfg.augment_max_deg, cfg.augment_max_deg, size=cfg.augment_rotations):
+            out.append(rotate(phantom, float(a)))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# metrics
+# ---------------------------------------------------------------------------------------------------
+def quality(twin: Twin, imager: Imager | None, ctx, edges, keep_mask=None, played=None) -> dict:
+    """Figures of one demanded waveform: nrmse, ghost_ratio (EPI), k-space errors, discards.
+
+    ``played`` overrides the fine waveform (e.g. the base sequence as given, limits ignored).
+    """
+    from dtoc.sim import metrics
+
+    with torch.no_grad():
+        g = twin.played(edges) if played is None else torch.as_tensor(played, dtype=twin.dtype)
+        G, b0 = twin.realize(g)
+        k = twin.kspace(G)
+        dk = ctx.dk_rad_per_m.cpu().numpy()
+        ke = metrics.kspace_errors(k, ctx.k0_rad_per_m, dk)
+        out = {
+            "kspace_rmse_rad_per_m": ke["kspace_rmse_rad_per_m"],
+            "kspace_max_dk": ke["kspace_max_err_dk"],
+            "kspace_max_err_rad_per_m": ke["kspace_max_err_rad_per_m"],
+            "nrmse": None,
+            "ghost_ratio": None,
+        }
+        if keep_mask is not None and not np.all(keep_mask):
+            kk = metrics.kspace_errors(k, ctx.k0_rad_per_m, dk, mask=keep_mask)
+            out["kspace_rmse_kept_rad_per_m"] = kk["kspace_rmse_rad_per_m"]
+            out["kspace_max_kept_dk"] = kk["kspace_max_err_dk"]
+        out["samples_discarded"] = int(0 if keep_mask is None else np.sum(~np.asarray(keep_mask)))
+        if imager is not None:
+            sig = imager.signal(G, b0, 0)
+            km = None if keep_mask is None else torch.as_tensor(np.asarray(keep_mask))
+            im = imager.image(sig, keep_mask=km)
+            out["nrmse"] = float(metrics.nrmse(im, imager.targets[0]))
+            if twin.ir.kind == "epi":
+                pdim = -1 if twin.ir.phase_axis == 0 else -2
+                out["ghost_ratio"] = float(metrics.ghost_ratio(im, imager.targets[0], phase_dim=pdim))
+            out["_image"] = im.abs().cpu().numpy()
+        out["_k"] = k.cpu().numpy()
+        out["_G"] = G.cpu().numpy()
+        out["_g"] = g.cpu().numpy()
+    return out
+
+
+def _public(q: dict) -> dict:
+    return {k: v for k, v in q.items() if not k.startswith("_")}
+
+
+# ---------------------------------------------------------------------------------------------------
+# checkpoints
+# ---------------------------------------------------------------------------------------------------
+def save_checkpoint(path, edges, it: int, stage: str, history: list, config: OptimizeConfig, force=True) -> Path:
+    """Atomic ``.npz`` checkpoint: edges (3, N+1) mT/m, iteration, stage, history, config JSON."""
+    import io
+
+    buf = io.BytesIO()
+    e = edges.detach().cpu().numpy() if isinstance(edges, torch.Tensor) else np.asarray(edges)
+    np.savez(buf, edges_mT_per_m=e, it=np.int64(it), stage=np.array(stage),
+             history=np.array(json.dumps(history)), config=np.array(config.model_dump_json()))
+    return atomic_write_bytes(path, buf.getvalue(), force=force)
+
+
+def load_checkpoint(path, n_edges: int) -> dict:
+    """Read a checkpoint written by :func:`save_checkpoint` (InputError when unusable)."""
+    p = Path(path)
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            e = np.asarray(z["edges_mT_per_m"], dtype=np.float64)
+            out = {"edges": e, "it": int(z["it"]), "stage": str(z["stage"]),
+                   "history": json.loads(str(z["history"]))}
+    except FileNotFoundError:
+        raise InputError(f"{p}: checkpoint not found") from None
+    except Exception as e:  # noqa: BLE001
+        raise InputError(f"{p}: not a dtoc optimize checkpoint ({type(e).__name__})") from None
+    if e.shape != (3, n_edges):
+        raise InputError(f"{p}: key 'edges_mT_per_m' has shape {e.shape}, expected (3, {n_edges}) for this sequence")
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# main entry
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class RunOutputs:
+    manifest: dict
+    ir_out: object
+    figures: dict
+
+
+def _versions() -> dict:
+    import importlib.metadata as md
+
+    out = {"python": platform.python_version()}
+    for pkg in ("dtoc", "torch", "numpy", "scipy", "pypulseq", "pydantic"):
+        try:
+            out[pkg] = md.version(pkg)
+        except md.PackageNotFoundError:
+            out[pkg] = None
+    return out
+
+
+def optimize_sequence(base, *, out=None, girf=None, model=None, config: OptimizeConfig | None = None,
+                      config_path=None, manifest_path=None, png_path=None, force: bool = False,
+                      resume=None, checkpoint_path=None, device: str = "cpu", phantom=None,
+                      progress: Callable | None = None, hardware=None, with_image: bool | None = None,
+                      base_path=None) -> RunOutputs:
+    """Run `dtoc optimize` (see the module doc).
+
+    Args:
+        base: base sequence (``.seq`` path, spec ``.yaml`` path, or a SequenceIR).
+        out / manifest_path / png_path: outputs (None: not written).
+        girf / model: hardware model files (``--girf`` / ``--model``); ``hardware`` overrides both
+            with a ready callable.
+        config: :class:`OptimizeConfig` (default: built from ``config_path`` and the sequence kind).
+        resume: checkpoint to continue from.  checkpoint_path: where to save checkpoints (default:
+            ``<out>.ckpt.npz`` on Ctrl-C only).
+        with_image: simulate images (default: when the image weight is > 0 or for reporting).
+    Returns:
+        :class:`RunOutputs` (manifest dict, output IR, arrays for plots).
+    """
+    t_start = time.time()
+    from dtoc.optimize.config import load_config
+    from dtoc.seq.read import load_sequence
+
+    for p in (out, manifest_path, png_path):
+        if p is not None:
+            check_output_path(p, force)
+    if isinstance(base, (str, os.PathLike)):
+        bp = Path(base)
+        if not bp.exists():
+            raise InputError(f"{bp}: base sequence not found")
+        ir = load_sequence(bp)
+    else:
+        ir = base
+    if not ir.adc:
+        raise InputError(f"{base if isinstance(base, (str, os.PathLike)) else 'sequence'}: has no ADC event: nothing to optimize for")
+    cfg = config if config is not None else load_config(ir.kind, config_path)
+    O.set_deterministic(cfg.seed, cfg.threads)
+    if hardware is None:
+        from dtoc.hardware.model import resolve_model
+
+        hardware = resolve_model(girf=girf, model=model)
+    limits = system_limits(ir, cfg)
+    free = free_edges(ir)
+    if not free.any():
+        raise InputError("sequence has no optimizable gradient samples (free_mask is empty)")
+    projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
+    check_area_reachable(ir, limits)
+    dtype = torch.float64
+    twin = Twin(ir, hardware, projector, dtype=dtype, device=device)
+    ctx = L.build_context(ir, limits, dtype=dtype, device=device)
+    if with_image is None:
+        with_image = True
+    imager = None
+    if with_image:
+        phantoms = make_phantoms(ir, cfg, phantom)
+        imager = Imager(ir, phantoms, n_dummies=cfg.n_dummies, dtype=dtype, device=device)
+
+    before = quality(twin, imager, ctx, None, played=ir.grad_mT_per_m)
+    state = O.StageState(best_edges=twin.base_edges())
+    stage_times = {}
+    keep = np.ones(ir.n_adc_samples, dtype=bool)
+    thr = math.inf
+    start_it = 0
+    x = None
+    if resume is not None:
+        ck = load_checkpoint(resume, projector.n_edges)
+        x = projector.project(torch.as_tensor(ck["edges"], dtype=dtype))
+        start_it = ck["it"] if ck["stage"] == "full" else 0
+        state.history = list(ck["history"])
+    ckpt_target = checkpoint_path or (None if out is None else str(out) + ".ckpt.npz")
+
+    def ckpt(edges, it):
+        if checkpoint_path is not None:
+            save_checkpoint(checkpoint_path, edges, it, "full", state.history, cfg)
+
+    extra: dict = {}
+    if cfg.method == "preemphasis":
+        from dtoc.optimize import preemphasis as PE
+
+        t0 = time.time()
+        pe = PE.run_preemphasis(ir, twin, ctx, imager, limits)
+        stage_times["preemphasis_s"] = time.time() - t0
+        x = torch.as_tensor(pe["edges"], dtype=dtype)
+        keep = pe["keep_mask"]
+        extra["preemphasis"] = pe["report"]
+    else:
+        if x is None:
+            if cfg.method in ("dto", "warmstart"):
+                t0 = time.time()
+                x = O.warm_start(twin, ctx, cfg.weights, cfg.warm_iters, state, progress)
+                stage_times["warm_start_s"] = time.time() - t0
+            else:
+                x = projector.project(twin.base_edges())
+        if cfg.method in ("dto", "adam-paper") and not state.interrupted and cfg.iters > 0:
+            t0 = time.time()
+            state.best_loss = math.inf
+            x = O.full_loss(twin, imager if cfg.weights.image > 0 else None, ctx, cfg, x, state, progress,
+                            start_it=start_it, paper=cfg.method == "adam-paper", checkpoint=ckpt)
+            stage_times["full_loss_s"] = time.time() - t0
+        if cfg.discard and imager is not None:
+            t0 = time.time()
+            keep, thr, _ = O.choose_discard(twin, imager, ctx, x)
+            stage_times["discard_s"] = time.time() - t0
+
+    # final projection (feasible by construction) and verification
+    x = projector.project(x, n_iter=60, exact=True)
+    fine = twin.export_fine(x)
+    viol = limit_violations(fine, ir.dt_fine_s, limits)
+    if viol:
+        raise LimitError(f"internal: projected waveform violates limits ({viol[0]}); nothing written")
+    ir_out = ir.with_grad(fine)
+    _check_system_limits(ir_out, limits)
+    after = quality(twin, imager, ctx, x, keep_mask=keep)
+    if state.interrupted and ckpt_target is not None:
+        save_checkpoint(ckpt_target, x, len([h for h in state.history if h.get("stage") == "full"]) + start_it,
+                        "full", state.history, cfg, force=True)
+        extra["checkpoint"] = str(ckpt_target)
+
+    manifest = {
+        "dtoc_optimize": 1,
+        "inputs": _inputs(base_path if base_path is not None else base, girf, model, config_path, resume),
+        "options": json.loads(cfg.model_dump_json()),
+        "limits": {"gmax_mT_per_m": limits.gmax_mT_per_m, "smax_T_per_m_per_s": limits.smax_T_per_m_per_s,
+                   "amp_margin": limits.amp_margin, "slew_margin": limits.slew_margin},
+        "sequence": {"kind": ir.kind, "n_adc_samples": ir.n_adc_samples, "raster_s": ir.raster_s,
+                     "n_free_variables": int(free.sum()), "duration_s": ir.duration_s},
+        "versions": _versions(),
+        "device": str(device),
+        "before": _public(before),
+        "after": _public(after),
+        "samples_discarded": int(np.sum(~keep)),
+        "samples_discarded_fraction": float(np.mean(~keep)),
+        "discard_threshold_dk": None if not math.isfinite(thr) else thr,
+        "discarded_sample_indices": np.flatnonzero(~keep).tolist(),
+        "exported_extremes": _extremes(fine, ir.dt_fine_s),
+        "limit_violations": 0,
+        "loss_history": state.history,
+        "interrupted": state.interrupted,
+        "stage_times_s": stage_times,
+        "run_time_s": None,
+        **extra,
+    }
+    if out is not None:
+        manifest["output"] = _write_checked(ir_out, out, force, limits)
+    manifest["run_time_s"] = time.time() - t_start
+    figures = {"before": before, "after": after, "keep": keep, "ir": ir, "imager": imager, "history": state.history}
+    if manifest_path is not None:
+        atomic_write_text(manifest_path, json.dumps(_jsonable(manifest), indent=2, sort_keys=True) + "\n", force=force)
+    if png_path is not None:
+        from dtoc.optimize.report import write_report_png
+
+        write_report_png(png_path, figures, manifest, force=force)
+    return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)
+
+
+def _extremes(fine, dt):
+    from dtoc.optimize.limits import waveform_extremes
+
+    return waveform_extremes(fine, dt)
+
+
+def _check_system_limits(ir_out, limits: Limits) -> None:
+    """The validator's IR limit check (per axis and vector) before anything is written."""
+    from dtoc.seq.system import SystemSpec
+
+    try:
+        from dtoc.seq.check import check_ir_limits
+    except ImportError:  # validator not available: the per-axis check above stands
+        return
+    sysspec = SystemSpec(max_grad_mT_per_m=limits.gmax_mT_per_m, max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
+                         grad_raster_s=ir_out.raster_s)
+    v = check_ir_limits(ir_out, sysspec)
+    if v:
+        raise LimitError(f"exported waveform fails the validator: {v[0].message}; nothing written")
+
+
+def _write_checked(ir_out, out, force: bool, limits: Limits) -> dict:
+    """Write via the seq writer into a temporary file, validate it, then move it into place."""
+    from dtoc.seq.write import write_seq
+
+    outp = Path(out)
+    with tempfile.TemporaryDirectory(dir=outp.parent if str(outp.parent) else ".") as d:
+        tmp = Path(d) / outp.name
+        write_seq(ir_out, tmp, force=True)
+        result = {"path": str(outp)}
+        try:
+            from dtoc.seq.check import check_file
+            from dtoc.seq.system import SystemSpec
+
+            sysspec = SystemSpec(max_grad_mT_per_m=limits.gmax_mT_per_m,
+                                 max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
+                                 grad_raster_s=ir_out.raster_s, block_raster_s=_block_raster(ir_out))
+            res = check_file(tmp, sysspec)
+            lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector"}
+            bad = [v for v in res.violations if v.rule in lim_rules]
+            if bad:
+                raise ValidationFailed(f"written file fails dtoc check: {bad[0].message}; nothing written")
+            result["check_ok"] = res.ok
+            result["check_other_rules"] = sorted(res.rules() - lim_rules)
+        except ImportError:
+            result["check_ok"] = None
+        data = tmp.read_bytes()
+    atomic_write_bytes(outp, data, force=force)
+    result["sha256"] = sha256_file(outp)
+    return result
+
+
+def _block_raster(ir) -> float:
+    v = (ir.definitions or {}).get("BlockDurationRaster")
+    try:
+        return float(v[0] if isinstance(v, (list, tuple)) else v)
+    except (TypeError, ValueError):
+        return ir.raster_s
+
+
+def _inputs(base, girf, model, config_path, resume) -> dict:
+    out = {}
+    for key, p in (("base", base), ("girf", girf), ("model", model), ("config", config_path), ("resume", resume)):
+        if p is None or not isinstance(p, (str, os.PathLike)):
+            out[key] = None if p is None else {"path": "<in-memory>", "sha256": None}
+            continue
+        out[key] = {"path": str(p), "sha256": sha256_file(p)}
+    return out
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, (np.floating, float)):
+        f = float(o)
+        return f if math.isfinite(f) else None
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    return o

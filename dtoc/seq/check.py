@@ -1,0 +1,299 @@
+"""dtoc's pre-upload validator: everything a careful engineer checks before a ``.seq`` goes to a scanner.
+
+Two layers:
+
+* :func:`check_ir_limits` (IR only; the optimizer calls it before writing): per-axis and vector
+  gradient amplitude and slew rate on the played piecewise-linear waveform, i.e. on every fine-grid
+  segment including the half-raster edge segments to an arbitrary gradient's ``first``/``last``.
+* :func:`check_file` (file text + pypulseq events + IR): the limits above, plus continuity between
+  blocks (``system.continuity_tol_hz_per_m``, 1 Hz/m by default), gradients that end inside a block
+  or at the end of the sequence must end at zero, block durations on the block raster, events
+  inside their block, RF dead time / ring-down / raster, ADC dead time / raster / sample-count rules,
+  gradient timing on the gradient raster, the md5 signature, LF line endings, integer fields without
+  scientific notation or decimals, rasters equal to the system's, and required definitions.
+
+Each problem is a :class:`Violation` (rule, block, axis, value, limit, unit, message).  Limits are
+aggregated per (rule, block, axis): one row with the worst value.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dtoc.constants import AXES, GAMMA_HZ_PER_T, mT_per_m_from_hz_per_m
+from dtoc.errors import InputError
+from dtoc.seq.ir import SequenceIR
+from dtoc.seq.seqtext import INTEGER_COLUMNS, parse_seq_text
+from dtoc.seq.system import SystemSpec
+
+_RTOL = 1e-6  # relative tolerance on limits (file precision: 6 significant digits)
+_TTOL = 1e-9  # s, timing tolerance
+
+
+@dataclass
+class Violation:
+    rule: str
+    block: int | None = None  # Pulseq block number (1-based) when known
+    axis: str | None = None
+    value: float | None = None
+    limit: float | None = None
+    unit: str = ""
+    message: str = ""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class CheckResult:
+    path: str
+    system: SystemSpec
+    limits_source: str
+    violations: list[Violation] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.violations
+
+    def rules(self) -> set[str]:
+        return {v.rule for v in self.violations}
+
+    def to_dict(self) -> dict:
+        return {
+            "path": self.path,
+            "ok": self.ok,
+            "limits_source": self.limits_source,
+            "system": self.system.model_dump(mode="json"),
+            "n_violations": len(self.violations),
+            "violations": [v.to_dict() for v in self.violations],
+        }
+
+
+# ------------------------------------------------------------------------------------------ limits
+def _block_numbers(ir: SequenceIR) -> list[int]:
+    ids = ir.meta.get("block_ids")
+    nb = len(ir.block_edges_s) - 1
+    return list(ids) if ids and len(ids) == nb else list(range(1, nb + 1))
+
+
+def check_ir_limits(ir: SequenceIR, system: SystemSpec, grad_mT_per_m=None) -> list[Violation]:
+    """Amplitude and slew violations of the played demanded gradient (per axis and vector norm).
+
+    Args:
+        ir: the sequence (its fine grid and blocks).
+        system: limits.
+        grad_mT_per_m: optional (3, 2N+1) waveform to check instead of ``ir.grad_mT_per_m``.
+    Returns:
+        violations, one per (rule, block, axis) with the worst value.
+    """
+    g = np.asarray(ir.grad_mT_per_m if grad_mT_per_m is None else grad_mT_per_m, dtype=np.float64)
+    dtf = ir.dt_fine_s
+    nums = _block_numbers(ir)
+    m_edges = np.round(np.asarray(ir.block_edges_s) / dtf).astype(np.int64)
+    # block of each sample / segment (a segment belongs to the block holding its start)
+    seg_block = np.searchsorted(m_edges, np.arange(g.shape[1] - 1), side="right") - 1
+    smp_block = np.clip(np.searchsorted(m_edges, np.arange(g.shape[1]), side="right") - 1, 0, len(nums) - 1)
+    slew = np.diff(g, axis=1) / dtf * 1e-3  # T/m/s
+    out: list[Violation] = []
+
+    def worst(rule, vals, blocks, limit, unit, axis=None, what=""):
+        bad = np.flatnonzero(np.abs(vals) > limit * (1 + _RTOL))
+        if bad.size == 0:
+            return
+        for b in np.unique(blocks[bad]):
+            sel = bad[blocks[bad] == b]
+            i = sel[np.argmax(np.abs(vals[sel]))]
+            v = float(abs(vals[i]))
+            out.append(
+                Violation(rule, nums[int(b)], axis, v, limit, unit,
+                          f"{what} {v:.4g} {unit} > {limit:.4g} at t = {i * dtf * 1e3:.3f} ms")
+            )
+
+    for a in range(3):
+        worst("grad_amplitude", g[a], smp_block, system.max_grad_mT_per_m, "mT/m", AXES[a], f"|g{AXES[a]}|")
+        worst("slew_rate", slew[a], seg_block, system.max_slew_T_per_m_per_s, "T/m/s", AXES[a], f"|dg{AXES[a]}/dt|")
+    worst("grad_vector", np.linalg.norm(g, axis=0), smp_block, system.vector_grad_limit_mT_per_m, "mT/m", None, "|g|")
+    worst("slew_vector", np.linalg.norm(slew, axis=0), seg_block, system.vector_slew_limit_T_per_m_per_s, "T/m/s", None, "|dg/dt|")
+    return out
+
+
+# ------------------------------------------------------------------------------------------- file
+def system_from_definitions(defs: dict) -> SystemSpec | None:
+    """The design limits a dtoc-built file records (MaxGrad_mT_per_m, MaxSlew_T_per_m_per_s, rasters)."""
+    try:
+        g = float(defs["MaxGrad_mT_per_m"])
+        s = float(defs["MaxSlew_T_per_m_per_s"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    kw = {"name": "file definitions", "max_grad_mT_per_m": g, "max_slew_T_per_m_per_s": s}
+    for key, f in (("GradientRasterTime", "grad_raster_s"), ("RadiofrequencyRasterTime", "rf_raster_s"),
+                   ("AdcRasterTime", "adc_raster_s"), ("BlockDurationRaster", "block_raster_s")):
+        try:
+            kw[f] = float(defs[key])
+        except (KeyError, TypeError, ValueError):
+            pass
+    return SystemSpec(**kw)
+
+
+def _on_raster(t: float, r: float) -> bool:
+    return abs(t / r - round(t / r)) < 1e-6
+
+
+def _text_rules(st, system: SystemSpec, out: list[Violation]) -> None:
+    raw = st.raw
+    if b"\r" in raw:
+        n = raw.count(b"\r\n") or raw.count(b"\r")
+        out.append(Violation("line_endings", message=f"{n} CR characters: the file must use LF line endings"))
+    if st.signature_hash is None:
+        out.append(Violation("signature", message="no [SIGNATURE] md5 hash"))
+    else:
+        got = st.content_md5()
+        if got != st.signature_hash:
+            out.append(Violation("signature", message=f"md5 of content {got} != signature {st.signature_hash}"))
+    cols = INTEGER_COLUMNS.get(st.major_minor, {})
+    for sec, idx in cols.items():
+        for ln in st.sections.get(sec, []):
+            t = ln.tokens
+            for c in idx:
+                if c < len(t) and not re.fullmatch(r"[+-]?\d+", t[c]):
+                    out.append(Violation("integer_format", message=f"line {ln.lineno} {sec} field {c + 1}: {t[c]!r} is not a plain integer"))
+    for ln in st.sections.get("[SHAPES]", []):
+        t = ln.tokens
+        if len(t) == 2 and t[0] in ("shape_id", "num_samples") and not re.fullmatch(r"\d+", t[1]):
+            out.append(Violation("integer_format", message=f"line {ln.lineno} [SHAPES] {t[0]}: {t[1]!r} is not a plain integer"))
+    defs = st.definitions()
+    for key in system.required_definitions:
+        if key not in defs:
+            out.append(Violation("definitions", message=f"required definition {key} is missing"))
+    for key, want in (("GradientRasterTime", system.grad_raster_s), ("RadiofrequencyRasterTime", system.rf_raster_s),
+                      ("AdcRasterTime", system.adc_raster_s), ("BlockDurationRaster", system.block_raster_s)):
+        if key in defs:
+            try:
+                v = float(defs[key])
+            except ValueError:
+                out.append(Violation("definitions", message=f"definition {key} {defs[key]!r} is not a number"))
+                continue
+            if abs(v - want) > 1e-12:
+                out.append(Violation("raster", value=v, limit=want, unit="s", message=f"{key} {v:g} s differs from the system's {want:g} s"))
+
+
+def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) -> None:
+    from dtoc.seq.read import _grad_vertices, quiet
+
+    r = float(seq.grad_raster_time)
+    keys = list(seq.block_events.keys())
+    tol = system.continuity_tol_hz_per_m
+    prev_last = np.zeros(3)  # value each axis has at the end of the previous block, Hz/m
+    for b, key in enumerate(keys):
+        with quiet():
+            blk = seq.get_block(key)
+        dur = float(seq.block_durations[key])
+        if not _on_raster(dur, system.block_raster_s):
+            out.append(Violation("block_raster", key, None, dur * 1e6, system.block_raster_s * 1e6, "us",
+                                 f"duration {dur * 1e6:.3f} us is not a multiple of the block raster"))
+        first = np.zeros(3)
+        last = np.zeros(3)
+        for a, ch in enumerate(("gx", "gy", "gz")):
+            gr = getattr(blk, ch, None)
+            if gr is None:
+                continue
+            tv, vv = _grad_vertices(gr, r)
+            if not _on_raster(gr.delay, r):
+                out.append(Violation("grad_raster", key, AXES[a], gr.delay * 1e6, r * 1e6, "us", "gradient delay not on the gradient raster"))
+            if gr.type == "trap":
+                for nm in ("rise_time", "flat_time", "fall_time"):
+                    if not _on_raster(getattr(gr, nm), r):
+                        out.append(Violation("grad_raster", key, AXES[a], getattr(gr, nm) * 1e6, r * 1e6, "us", f"trapezoid {nm} not on the gradient raster"))
+            elif gr.time_id not in (0, -1) and any(not _on_raster(t, r) for t in gr.tt):
+                out.append(Violation("grad_raster", key, AXES[a], None, r * 1e6, "us", "extended-trapezoid vertex not on the gradient raster"))
+            if tv[-1] > dur + _TTOL:
+                out.append(Violation("block_duration", key, AXES[a], tv[-1] * 1e6, dur * 1e6, "us", "gradient ends after its block"))
+            if tv[0] <= _TTOL:
+                first[a] = vv[0]
+            elif abs(vv[0]) > tol:
+                out.append(Violation("grad_start_nonzero", key, AXES[a], abs(vv[0]), tol, "Hz/m", "gradient starting after the block start does not start at zero"))
+            if tv[-1] >= dur - _TTOL:
+                last[a] = vv[-1]
+            elif abs(vv[-1]) > tol:
+                out.append(Violation("grad_end_nonzero", key, AXES[a], abs(vv[-1]), tol, "Hz/m",
+                                     f"gradient ends at {vv[-1]:.6g} Hz/m before the block end ({tv[-1] * 1e6:.1f} of {dur * 1e6:.1f} us)"))
+        for a in range(3):
+            jump = abs(first[a] - prev_last[a])
+            if jump > tol:
+                what = "sequence starts" if b == 0 else f"jump from block {keys[b - 1]}"
+                out.append(Violation("continuity", key, AXES[a], jump, tol, "Hz/m", f"{what}: {prev_last[a]:.6g} -> {first[a]:.6g} Hz/m"))
+        prev_last = last
+        rf = getattr(blk, "rf", None)
+        if rf is not None:
+            if rf.delay < system.rf_dead_time_s - _TTOL:
+                out.append(Violation("rf_dead_time", key, None, rf.delay * 1e6, system.rf_dead_time_s * 1e6, "us", "RF delay shorter than the RF dead time"))
+            tail = dur - (rf.delay + rf.shape_dur)
+            if tail < system.rf_ringdown_time_s - _TTOL:
+                out.append(Violation("rf_ringdown", key, None, tail * 1e6, system.rf_ringdown_time_s * 1e6, "us", "time from RF end to block end shorter than the ring-down time"))
+            if not _on_raster(rf.delay, system.rf_raster_s):
+                out.append(Violation("rf_raster", key, None, rf.delay * 1e6, system.rf_raster_s * 1e6, "us", "RF delay not on the RF raster"))
+        adc = getattr(blk, "adc", None)
+        if adc is not None:
+            end = adc.delay + adc.num_samples * adc.dwell
+            if adc.delay < system.adc_dead_time_s - _TTOL:
+                out.append(Violation("adc_dead_time", key, None, adc.delay * 1e6, system.adc_dead_time_s * 1e6, "us", "ADC delay shorter than the ADC dead time"))
+            if dur - end < system.adc_dead_time_s - _TTOL:
+                out.append(Violation("adc_dead_time", key, None, (dur - end) * 1e6, system.adc_dead_time_s * 1e6, "us", "time from ADC end to block end shorter than the ADC dead time"))
+            if end > dur + _TTOL:
+                out.append(Violation("block_duration", key, None, end * 1e6, dur * 1e6, "us", "ADC ends after its block"))
+            if not _on_raster(adc.dwell, system.adc_raster_s):
+                out.append(Violation("adc_raster", key, None, adc.dwell * 1e9, system.adc_raster_s * 1e9, "ns", "ADC dwell not on the ADC raster"))
+            if not _on_raster(adc.delay, system.rf_raster_s):
+                out.append(Violation("adc_raster", key, None, adc.delay * 1e6, system.rf_raster_s * 1e6, "us", "ADC delay not on the RF raster"))
+            if adc.num_samples % system.adc_samples_divisor:
+                out.append(Violation("adc_samples", key, None, adc.num_samples, system.adc_samples_divisor, "",
+                                     f"{adc.num_samples} samples is not a multiple of {system.adc_samples_divisor}"))
+            if adc.num_samples > system.adc_max_samples:
+                out.append(Violation("adc_samples", key, None, adc.num_samples, system.adc_max_samples, "",
+                                     f"{adc.num_samples} samples exceeds {system.adc_max_samples} per ADC"))
+    for a in range(3):
+        if abs(prev_last[a]) > tol:
+            out.append(Violation("grad_end_nonzero", keys[-1], AXES[a], abs(prev_last[a]), tol, "Hz/m", "sequence ends with a non-zero gradient"))
+
+
+def check_file(path: str | Path, system: SystemSpec | None = None) -> CheckResult:
+    """Validate a ``.seq`` file.  ``system=None``: the limits the file records (dtoc-built files), else
+    :class:`SystemSpec` defaults.
+
+    Raises:
+        InputError: only when the file cannot be opened or parsed at all (missing, binary, truncated
+            structure); every other problem is a :class:`Violation`.
+    """
+    from dtoc.seq.read import from_pypulseq, read_pypulseq
+
+    st = parse_seq_text(path)
+    source = "given"
+    if system is None:
+        from dtoc.seq.read import _plain_definitions  # noqa: F401
+
+        defs = {}
+        for k, v in st.definitions().items():
+            defs[k] = v.split()[0] if v.split() else v
+        system = system_from_definitions(defs)
+        source = "file definitions" if system is not None else "defaults"
+        if system is None:
+            system = SystemSpec()
+    res = CheckResult(path=str(path), system=system, limits_source=source)
+    _text_rules(st, system, res.violations)
+    seq, _ = read_pypulseq(path, require_signature=False)
+    try:
+        ir = from_pypulseq(seq)
+    except InputError as e:
+        res.violations.append(Violation("block_raster", message=str(e)))
+        return res
+    _event_rules(seq, ir, system, res.violations)
+    res.violations.extend(check_ir_limits(ir, system))
+    return res
+
+
+__all__ = ["Violation", "CheckResult", "check_ir_limits", "check_file", "system_from_definitions", "GAMMA_HZ_PER_T",
+           "mT_per_m_from_hz_per_m"]

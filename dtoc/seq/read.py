@@ -1,0 +1,346 @@
+"""Read Pulseq ``.seq`` files (1.4.x, 1.5.x) and pypulseq ``Sequence`` objects into a :class:`SequenceIR`.
+
+The IR holds the demanded gradient exactly as the Pulseq interpreter plays it, on the fine grid
+``t_m = m * raster / 2`` (docs/conventions.md):
+
+* trapezoids and extended trapezoids: straight lines between their vertices (on raster edges in any
+  valid file, hence even fine samples);
+* arbitrary gradients: straight lines through ``first`` (at the gradient start), the samples at raster
+  centres (odd fine samples) and ``last`` (at the end of the shape);
+* oversampled arbitrary gradients (time shape id -1): samples every half raster, with ``first``/``last``.
+
+Where two blocks meet, the boundary sample takes the value the new block starts with (a valid file has
+``last == first`` there; :mod:`dtoc.seq.check` reports jumps).  Vertices off the fine grid cannot be
+represented exactly; they are linearly resampled and listed in ``ir.meta['off_grid_vertices']``.
+
+Default ``free_mask`` (what an optimizer may change), documented in docs/sequences.md:
+
+* never inside a block that holds an RF pulse (all axes, including that block's boundary samples:
+  changing a boundary sample would put a ramp inside the RF block);  ``rf_guard='pulse'`` narrows this to
+  the RF pulse itself (from its start to its end, all axes);
+* never on an axis that carries a slice-selection gradient (non-zero demanded gradient at the centre of an
+  excitation pulse) unless ``free_slice_axis=True``;
+* never the first and last sample of the sequence (gradients start and end at zero).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from dtoc.constants import AXES, mT_per_m_from_hz_per_m
+from dtoc.errors import InputError
+from dtoc.seq.ir import ADCEvent, RFEvent, SequenceIR
+from dtoc.seq.seqtext import parse_seq_text, verify_signature
+
+_TIME_TOL = 1e-9  # s: times closer than this to a grid point are on it
+
+
+@contextlib.contextmanager
+def quiet():
+    """Silence pypulseq's prints and warnings (it prints to stdout on read/write)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with contextlib.redirect_stdout(io.StringIO()):
+            yield
+
+
+def read_pypulseq(path: str | Path, require_signature: bool = True):
+    """Pre-validate a ``.seq`` file and load it with pypulseq.
+
+    Returns:
+        (seq, seqtext): the ``pypulseq.Sequence`` and the :class:`dtoc.seq.seqtext.SeqText`.
+    Raises:
+        InputError: missing / empty / binary / truncated / corrupt / unsigned / bad signature /
+            unsupported version, or anything pypulseq cannot read (one line).
+    """
+    import pypulseq as pp
+
+    p = Path(path)
+    st = parse_seq_text(p)
+    verify_signature(st, require=require_signature)
+    # pypulseq loops forever on a file ending inside [SHAPES] without a blank line: read a copy that
+    # always ends with one (the signature was checked on the original bytes above).
+    fd, tmp = tempfile.mkstemp(suffix=".seq")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(st.raw.rstrip(b"\n") + b"\n\n")
+        seq = pp.Sequence()
+        with quiet():
+            seq.read(tmp)
+    except InputError:
+        raise
+    except Exception as e:  # noqa: BLE001 - pypulseq raises anything on bad content
+        raise InputError(f"{p}: pypulseq cannot read it: {type(e).__name__}: {e}") from None
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+    return seq, st
+
+
+def read_seq(
+    path: str | Path,
+    *,
+    free_slice_axis: bool = False,
+    rf_guard: str = "block",
+    require_signature: bool = True,
+) -> SequenceIR:
+    """Read a Pulseq 1.4/1.5 ``.seq`` file into a :class:`SequenceIR` (see module doc).
+
+    Args:
+        path: the ``.seq`` file.
+        free_slice_axis: let the optimizer change the slice-select axis too (outside RF).
+        rf_guard: 'block' (default) or 'pulse': what is fixed around RF pulses.
+        require_signature: reject unsigned files (default; pass False for hand-written files).
+    """
+    seq, _ = read_pypulseq(path, require_signature=require_signature)
+    ir = from_pypulseq(seq, free_slice_axis=free_slice_axis, rf_guard=rf_guard)
+    ir.meta["path"] = str(path)
+    return ir
+
+
+def load_sequence(path_or_spec, **kwargs) -> SequenceIR:
+    """A base sequence from a ``.seq`` file, a spec ``.yaml``/``.yml`` file or a spec object.
+
+    This is what every command that takes a base sequence (simulate, predict, optimize) calls.
+    Keyword arguments go to :func:`read_seq` / :func:`from_pypulseq`.
+    """
+    from dtoc.seq.spec import BaseSpec
+
+    if isinstance(path_or_spec, BaseSpec):
+        from dtoc.seq.build import build_ir
+
+        return build_ir(path_or_spec, **kwargs)
+    p = Path(path_or_spec)
+    if p.suffix.lower() in (".yaml", ".yml"):
+        from dtoc.seq.build import build_ir
+        from dtoc.seq.spec import load_spec
+
+        ir = build_ir(load_spec(p), **kwargs)
+        ir.meta["spec_path"] = str(p)
+        return ir
+    if p.suffix.lower() != ".seq" and p.exists():
+        raise InputError(f"{p}: expected a .seq file or a spec .yaml")
+    return read_seq(p, **kwargs)
+
+
+# --------------------------------------------------------------------------------------------------
+def _grad_vertices(grad, raster_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (times relative to block start [s], values [Hz/m]) of one pypulseq gradient event."""
+    if grad.type == "trap":
+        d, r, f, fa, a = grad.delay, grad.rise_time, grad.flat_time, grad.fall_time, grad.amplitude
+        t = np.array([d, d + r, d + r + f, d + r + f + fa])
+        v = np.array([0.0, a, a, 0.0])
+        return t, v
+    w = np.asarray(grad.waveform, dtype=np.float64)
+    tt = np.asarray(grad.tt, dtype=np.float64)
+    first = float(grad.first) if getattr(grad, "first", None) is not None else None
+    last = float(grad.last) if getattr(grad, "last", None) is not None else None
+    tid = grad.time_id
+    if tid == 0:  # arbitrary: first, raster-centre samples, last
+        n = len(w)
+        t_end = n * raster_s
+        first = (1.5 * w[0] - 0.5 * w[1]) if first is None and n > 1 else (first if first is not None else w[0])
+        last = (1.5 * w[-1] - 0.5 * w[-2]) if last is None and n > 1 else (last if last is not None else w[-1])
+        t = np.concatenate([[0.0], (np.arange(n) + 0.5) * raster_s, [t_end]])
+        v = np.concatenate([[first], w, [last]])
+    elif tid == -1:  # oversampled: samples every half raster starting at raster/2
+        n = len(w)
+        t_end = (n + 1) * raster_s / 2
+        t = np.concatenate([[0.0], (np.arange(n) + 1) * raster_s / 2, [t_end]])
+        v = np.concatenate([[first if first is not None else w[0]], w, [last if last is not None else w[-1]]])
+    else:  # extended trapezoid: vertices at tt
+        t, v = tt.copy(), w.copy()
+        if t[0] > _TIME_TOL:
+            t = np.concatenate([[0.0], t])
+            v = np.concatenate([[first if first is not None else 0.0], v])
+    return t + grad.delay, v
+
+
+def from_pypulseq(seq, *, free_slice_axis: bool = False, rf_guard: str = "block") -> SequenceIR:
+    """Convert a ``pypulseq.Sequence`` (read or built) into a :class:`SequenceIR`.
+
+    Raises:
+        InputError: a block duration that is not a whole number of gradient rasters (the fine grid
+            could not hold the block boundary).
+    """
+    if rf_guard not in ("block", "pulse"):
+        raise InputError(f"rf_guard must be 'block' or 'pulse', got {rf_guard!r}")
+    raster = float(seq.grad_raster_time)
+    dtf = raster / 2
+    keys = list(seq.block_events.keys())
+    durs = np.array([seq.block_durations[k] for k in keys], dtype=np.float64)
+    n_r = durs / raster
+    bad = np.flatnonzero(np.abs(n_r - np.round(n_r)) > 1e-6)
+    if bad.size:
+        b = bad[0]
+        raise InputError(
+            f"block {keys[b]}: duration {durs[b] * 1e6:.3f} us is not a multiple of the gradient raster {raster * 1e6:g} us"
+        )
+    edge_idx = np.concatenate([[0], np.cumsum(np.round(n_r).astype(np.int64))])  # in raster units
+    edges = edge_idx * raster
+    n_fine = 2 * int(edge_idx[-1]) + 1
+    g = np.zeros((3, n_fine))
+    rf_events: list[RFEvent] = []
+    adc_events: list[ADCEvent] = []
+    off_grid: list[str] = []
+    rf_blocks: list[int] = []
+    for b, key in enumerate(keys):
+        with quiet():
+            blk = seq.get_block(key)
+        t0 = edges[b]
+        m0, m1 = 2 * int(edge_idx[b]), 2 * int(edge_idx[b + 1])
+        for a, ch in enumerate(("gx", "gy", "gz")):
+            gr = getattr(blk, ch, None)
+            if gr is None:
+                continue
+            tv, vv = _grad_vertices(gr, raster)
+            pos = tv / dtf
+            if np.any(np.abs(pos - np.round(pos)) > _TIME_TOL / dtf):
+                off_grid.append(f"block {key} {AXES[a]}")
+            lo = m0 + int(np.clip(np.ceil(pos[0] - 1e-6), 0, m1 - m0))
+            hi = m0 + int(np.clip(np.floor(pos[-1] + 1e-6), 0, m1 - m0))
+            mm = np.arange(lo, hi + 1)
+            g[a, mm] = mT_per_m_from_hz_per_m(np.interp((mm - m0) * dtf, tv, vv))
+        if getattr(blk, "rf", None) is not None:
+            rf = blk.rf
+            rf_blocks.append(b)
+            t_rf = np.asarray(rf.t, dtype=np.float64)
+            sig = np.asarray(rf.signal)
+            if len(t_rf) > 1 and rf.shape_dur > 0 and not np.allclose(np.diff(t_rf), seq.rf_raster_time):
+                area = np.trapezoid(sig, t_rf)
+            else:
+                area = np.sum(sig) * seq.rf_raster_time
+            rf_events.append(
+                RFEvent(
+                    block=b,
+                    t_start_s=float(t0 + rf.delay),
+                    t_center_s=float(t0 + rf.delay + rf.center),
+                    duration_s=float(rf.shape_dur),
+                    flip_angle_rad=float(2 * np.pi * abs(area)),
+                    phase_rad=float(rf.phase_offset),
+                    freq_offset_hz=float(rf.freq_offset),
+                    use=str(getattr(rf, "use", "undefined") or "undefined"),
+                )
+            )
+        if getattr(blk, "adc", None) is not None:
+            adc = blk.adc
+            adc_events.append(
+                ADCEvent(
+                    block=b,
+                    t_start_s=float(t0 + adc.delay),
+                    num_samples=int(adc.num_samples),
+                    dwell_s=float(adc.dwell),
+                    phase_rad=float(adc.phase_offset),
+                    freq_offset_hz=float(adc.freq_offset),
+                )
+            )
+    # gradient at RF centres (slice selection)
+    t_fine = np.arange(n_fine) * dtf
+    rf_events = [
+        RFEvent(**{**r.__dict__, "grad_at_center_mT_per_m": tuple(float(np.interp(r.t_center_s, t_fine, g[a])) for a in range(3))})
+        for r in rf_events
+    ]
+    defs = _plain_definitions(seq.definitions)
+    ir = SequenceIR(
+        raster_s=raster,
+        grad_mT_per_m=g,
+        block_edges_s=edges,
+        rf=rf_events,
+        adc=adc_events,
+        definitions=defs,
+        source=seq,
+    )
+    _apply_metadata(ir)
+    ir.free_mask = default_free_mask(ir, free_slice_axis=free_slice_axis, rf_guard=rf_guard)
+    ir.meta["block_ids"] = [int(k) for k in keys]
+    if off_grid:
+        ir.meta["off_grid_vertices"] = off_grid
+    return ir
+
+
+def _plain_definitions(defs) -> dict:
+    out = {}
+    for k, v in dict(defs).items():
+        if isinstance(v, np.ndarray):
+            out[k] = [float(x) for x in v.ravel()]
+        elif isinstance(v, (np.floating, np.integer)):
+            out[k] = float(v)
+        else:
+            out[k] = v
+    return out
+
+
+def _axis_index(v) -> int | None:
+    if isinstance(v, str) and v.strip().lower() in AXES:
+        return AXES.index(v.strip().lower())
+    return None
+
+
+def _apply_metadata(ir: SequenceIR) -> None:
+    """fov_m, matrix, kind and axes from the definitions written by dtoc's builder (or guessed)."""
+    d = ir.definitions
+    fov = d.get("FOV")
+    if isinstance(fov, list) and len(fov) >= 2:
+        f = list(fov) + [0.0] * (3 - len(fov))
+        ir.fov_m = (float(f[0]), float(f[1]), float(f[2]))
+    elif isinstance(fov, float):
+        ir.fov_m = (fov, fov, 0.0)
+    mat = d.get("MatrixSize")
+    if isinstance(mat, list):
+        ir.matrix = tuple(int(round(x)) for x in mat if x)
+    elif isinstance(mat, float):
+        ir.matrix = (int(mat), int(mat))
+    kind = d.get("Kind")
+    ir.kind = kind.strip().lower() if isinstance(kind, str) else None
+    ir.readout_axis = _axis_index(d.get("ReadoutAxis"))
+    ir.phase_axis = _axis_index(d.get("PhaseAxis"))
+    if "EchoSpacing" in d and isinstance(d["EchoSpacing"], float):
+        ir.meta["echo_spacing_s"] = d["EchoSpacing"]
+    if isinstance(d.get("Name"), str):
+        ir.meta["name"] = d["Name"].strip()
+    if ir.readout_axis is None and ir.adc:
+        # guess: the axis with the largest mean |g| over all ADC samples
+        t = ir.adc_times_s
+        gm = np.array([np.abs(np.interp(t, ir.t_fine_s, ir.grad_mT_per_m[a])).mean() for a in range(3)])
+        if gm.max() > 0:
+            ir.readout_axis = int(np.argmax(gm))
+            ir.meta["axes_guessed"] = True
+
+
+def slice_axes(ir: SequenceIR, tol_mT_per_m: float = 1e-6) -> list[int]:
+    """Axes with a non-zero demanded gradient at the centre of any excitation pulse."""
+    out = set()
+    for r in ir.rf:
+        if r.use == "excitation":
+            for a in range(3):
+                if abs(r.grad_at_center_mT_per_m[a]) > tol_mT_per_m:
+                    out.add(a)
+    return sorted(out)
+
+
+def default_free_mask(ir: SequenceIR, *, free_slice_axis: bool = False, rf_guard: str = "block") -> np.ndarray:
+    """(3, 2N+1) bool: where an optimizer may change the demanded gradient (module doc)."""
+    n = ir.n_fine
+    dtf = ir.dt_fine_s
+    mask = np.ones((3, n), dtype=bool)
+    mask[:, 0] = False
+    mask[:, -1] = False
+    for r in ir.rf:
+        if rf_guard == "block":
+            lo_t, hi_t = ir.block_edges_s[r.block], ir.block_edges_s[r.block + 1]
+        else:
+            lo_t, hi_t = r.t_start_s, r.t_start_s + r.duration_s
+        lo = int(np.floor(lo_t / dtf + 1e-6))
+        hi = int(np.ceil(hi_t / dtf - 1e-6))
+        mask[:, max(lo, 0) : min(hi, n - 1) + 1] = False
+    if not free_slice_axis:
+        for a in slice_axes(ir):
+            mask[a, :] = False
+    return mask

@@ -1,0 +1,265 @@
+"""Text-level view of a Pulseq ``.seq`` file: sections, signature and structural pre-validation.
+
+pypulseq's reader trusts its input (it loops forever on an unsigned file that ends inside the
+[SHAPES] section without a trailing blank line, and turns most defects into tracebacks).  dtoc
+therefore parses the text itself first: every defect becomes a one-line :class:`InputError`
+naming the file, the line and the problem.  The same parse feeds the validator (:mod:`dtoc.seq.check`).
+
+Signature: Pulseq's md5 covers the bytes before the newline that precedes ``[SIGNATURE]``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from dtoc.errors import InputError
+
+#: Number of fields (including the id) per line in each event section, by (major, minor).
+_FIELDS = {
+    (1, 5): {"[BLOCKS]": 8, "[RF]": 12, "[GRADIENTS]": 7, "[TRAP]": 6, "[ADC]": 9},
+    (1, 4): {"[BLOCKS]": 8, "[RF]": 8, "[GRADIENTS]": 5, "[TRAP]": 6, "[ADC]": 6},
+}
+#: Columns (0-based, id = 0) that the format defines as integers, per section and version.
+INTEGER_COLUMNS = {
+    (1, 5): {
+        "[BLOCKS]": tuple(range(8)),
+        "[RF]": (0, 2, 3, 4, 6),  # id, mag_id, phase_id, time_shape_id, delay [us]
+        "[GRADIENTS]": (0, 4, 5, 6),  # id, amp_shape_id, time_shape_id, delay [us]
+        "[TRAP]": (0, 2, 3, 4, 5),  # id, rise, flat, fall, delay [us]
+        "[ADC]": (0, 1, 2, 3, 8),  # id, num, dwell [ns], delay [us], phase_id
+    },
+    (1, 4): {
+        "[BLOCKS]": tuple(range(8)),
+        "[RF]": (0, 2, 3, 4, 5),
+        "[GRADIENTS]": (0, 2, 3, 4),
+        "[TRAP]": (0, 2, 3, 4, 5),
+        "[ADC]": (0, 1, 2, 3),
+    },
+}
+_NUM = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$|^[+-]?(nan|inf)$", re.IGNORECASE)
+
+
+@dataclass
+class SeqLine:
+    lineno: int  # 1-based line number in the file
+    text: str  # stripped line
+
+    @property
+    def tokens(self) -> list[str]:
+        return self.text.split()
+
+
+@dataclass
+class SeqText:
+    """A parsed ``.seq`` text: raw bytes, version, sections (name -> data lines), signature."""
+
+    path: str
+    raw: bytes
+    version: tuple[int, int, int] = (0, 0, 0)
+    sections: dict[str, list[SeqLine]] = field(default_factory=dict)
+    section_order: list[str] = field(default_factory=list)
+    signature_hash: str | None = None
+    signature_type: str | None = None
+    shapes: dict[int, tuple[int, list[float], int]] = field(default_factory=dict)  # id -> (num_samples, data, line)
+
+    @property
+    def major_minor(self) -> tuple[int, int]:
+        return self.version[:2]
+
+    def content_md5(self) -> str | None:
+        """md5 of the bytes before the newline preceding ``[SIGNATURE]`` (None if unsigned)."""
+        i = self.raw.find(b"\n[SIGNATURE]")
+        if i < 0:
+            return None
+        return hashlib.md5(self.raw[:i]).hexdigest()
+
+    def definitions(self) -> dict[str, str]:
+        out = {}
+        for ln in self.sections.get("[DEFINITIONS]", []):
+            parts = ln.text.split(None, 1)
+            out[parts[0]] = parts[1].strip() if len(parts) > 1 else ""
+        return out
+
+
+def _err(path, msg):
+    return InputError(f"{path}: {msg}")
+
+
+def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
+    """Split a ``.seq`` file into sections and check its structure.
+
+    Raises:
+        InputError: missing, empty, binary, no/unsupported [VERSION], malformed or truncated content,
+            references to undefined events or shapes.  (The signature is checked by
+            :func:`verify_signature`.)
+    """
+    p = Path(path)
+    if raw is None:
+        if not p.exists():
+            raise _err(p, "no such file")
+        if p.is_dir():
+            raise _err(p, "is a directory, expected a .seq file")
+        try:
+            raw = p.read_bytes()
+        except OSError as e:
+            raise _err(p, f"cannot read ({e.strerror})") from None
+    if not raw.strip():
+        raise _err(p, "empty file")
+    if b"\x00" in raw:
+        raise _err(p, "not a Pulseq text file (binary data)")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise _err(p, "not a Pulseq text file (not UTF-8/ASCII: corrupt?)") from None
+    st = SeqText(path=str(p), raw=raw)
+    current = None
+    for i, line in enumerate(text.split("\n"), start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        if s.startswith("["):
+            if not s.endswith("]"):
+                raise _err(p, f"line {i}: malformed section header {s[:40]!r}")
+            current = s
+            if current in st.sections:
+                raise _err(p, f"line {i}: section {current} appears twice")
+            st.sections[current] = []
+            st.section_order.append(current)
+            continue
+        if s.startswith("extension "):
+            current = s
+            st.sections.setdefault(current, [])
+            st.section_order.append(current)
+            continue
+        if current is None:
+            raise _err(p, f"line {i}: content before the first section: {s[:40]!r}")
+        st.sections[current].append(SeqLine(i, s))
+    if "[VERSION]" not in st.sections:
+        raise _err(p, "not a Pulseq file (no [VERSION] section)")
+    ver = {}
+    for ln in st.sections["[VERSION]"]:
+        t = ln.tokens
+        if len(t) != 2 or t[0] not in ("major", "minor", "revision"):
+            raise _err(p, f"line {ln.lineno}: malformed [VERSION] entry {ln.text[:40]!r}")
+        m = re.match(r"^(\d+)", t[1])
+        if not m:
+            raise _err(p, f"line {ln.lineno}: malformed version number {t[1]!r}")
+        ver[t[0]] = int(m.group(1))
+    if "major" not in ver or "minor" not in ver:
+        raise _err(p, "[VERSION] lacks major/minor")
+    st.version = (ver["major"], ver["minor"], ver.get("revision", 0))
+    if st.major_minor not in _FIELDS:
+        v = ".".join(map(str, st.version))
+        raise _err(p, f"Pulseq format version {v} is not supported (dtoc reads 1.4.x and 1.5.x)")
+    if "[SIGNATURE]" in st.sections:
+        for ln in st.sections["[SIGNATURE]"]:
+            t = ln.tokens
+            if len(t) == 2 and t[0] == "Hash":
+                st.signature_hash = t[1].lower()
+            elif len(t) == 2 and t[0] == "Type":
+                st.signature_type = t[1].lower()
+    _check_structure(st, p)
+    return st
+
+
+def _check_structure(st: SeqText, p: Path) -> None:
+    fields = _FIELDS[st.major_minor]
+    signed = "[SIGNATURE]" in st.sections
+    hint = "" if signed else " (file truncated?)"
+    if "[BLOCKS]" not in st.sections or not st.sections["[BLOCKS]"]:
+        raise _err(p, f"no [BLOCKS] section{hint}")
+    ids: dict[str, set[int]] = {}
+    for sec, n in fields.items():
+        ids[sec] = set()
+        for ln in st.sections.get(sec, []):
+            t = ln.tokens
+            is_rf15 = sec == "[RF]" and st.major_minor == (1, 5)
+            numeric = t[:-1] if is_rf15 else t
+            if len(t) != n:
+                raise _err(p, f"line {ln.lineno} in {sec}: expected {n} fields, got {len(t)}{hint}")
+            bad = [x for x in numeric if not _NUM.match(x)]
+            if bad:
+                raise _err(p, f"line {ln.lineno} in {sec}: not a number: {bad[0][:20]!r}")
+            if is_rf15 and t[-1] not in ("e", "r", "i", "s", "p", "o", "u"):
+                raise _err(p, f"line {ln.lineno} in [RF]: unknown RF use {t[-1]!r}")
+            try:
+                ids[sec].add(int(float(t[0])))
+            except (ValueError, OverflowError):
+                raise _err(p, f"line {ln.lineno} in {sec}: bad id {t[0]!r}") from None
+    # shapes
+    shp = st.sections.get("[SHAPES]", [])
+    i = 0
+    while i < len(shp):
+        t = shp[i].tokens
+        if len(t) != 2 or t[0] != "shape_id":
+            raise _err(p, f"line {shp[i].lineno} in [SHAPES]: expected 'shape_id N', got {shp[i].text[:30]!r}")
+        sid = int(t[1]) if t[1].isdigit() else None
+        if sid is None:
+            raise _err(p, f"line {shp[i].lineno} in [SHAPES]: bad shape id {t[1]!r}")
+        if i + 1 >= len(shp) or shp[i + 1].tokens[:1] != ["num_samples"] or len(shp[i + 1].tokens) != 2:
+            raise _err(p, f"shape {sid} (line {shp[i].lineno}): missing 'num_samples'{hint}")
+        try:
+            num = int(shp[i + 1].tokens[1])
+        except ValueError:
+            raise _err(p, f"line {shp[i + 1].lineno} in [SHAPES]: bad num_samples {shp[i + 1].tokens[1]!r}") from None
+        data = []
+        j = i + 2
+        while j < len(shp) and not shp[j].text.startswith("shape_id"):
+            if not _NUM.match(shp[j].text):
+                raise _err(p, f"line {shp[j].lineno} in [SHAPES]: not a number: {shp[j].text[:20]!r}")
+            data.append(float(shp[j].text))
+            j += 1
+        if not data:
+            raise _err(p, f"shape {sid} (line {shp[i].lineno}) has no samples{hint}")
+        if len(data) > num:
+            raise _err(p, f"shape {sid} (line {shp[i].lineno}): {len(data)} values for num_samples {num}")
+        if len(data) < num and not _compressed_length_ok(data, num):
+            raise _err(p, f"shape {sid} (line {shp[i].lineno}): compressed data do not expand to {num} samples{hint}")
+        st.shapes[sid] = (num, data, shp[i].lineno)
+        i = j
+    # references
+    grad_ids = ids["[GRADIENTS]"] | ids["[TRAP]"]
+    for ln in st.sections["[BLOCKS]"]:
+        t = [int(float(x)) for x in ln.tokens]
+        refs = (("RF", t[2], ids["[RF]"]), ("gradient", t[3], grad_ids), ("gradient", t[4], grad_ids),
+                ("gradient", t[5], grad_ids), ("ADC", t[6], ids["[ADC]"]))
+        for name, ref, have in refs:
+            if ref and ref not in have:
+                raise _err(p, f"line {ln.lineno}: block {t[0]} uses {name} {ref}, which is not defined{hint}")
+    shape_cols = {"[RF]": (2, 3, 4), "[GRADIENTS]": (4, 5) if st.major_minor == (1, 5) else (2, 3)}
+    for sec, cols in shape_cols.items():
+        for ln in st.sections.get(sec, []):
+            for c in cols:
+                sid = int(float(ln.tokens[c]))
+                if sid > 0 and sid not in st.shapes:
+                    raise _err(p, f"line {ln.lineno} in {sec}: shape {sid} is not defined{hint}")
+
+
+def _compressed_length_ok(data: list[float], num: int) -> bool:
+    """True if Pulseq run-length-compressed ``data`` expands to ``num`` samples."""
+    n = 0
+    k = 0
+    while k < len(data):
+        if k + 2 < len(data) and data[k] == data[k + 1] and float(data[k + 2]).is_integer() and data[k + 2] >= 0:
+            n += 2 + int(data[k + 2])
+            k += 3
+        else:
+            n += 1
+            k += 1
+    return n == num
+
+
+def verify_signature(st: SeqText, require: bool = True) -> None:
+    """Raise :class:`InputError` if the md5 signature is absent (when ``require``) or does not match."""
+    if st.signature_hash is None:
+        if require:
+            raise _err(st.path, "unsigned: no [SIGNATURE] md5 hash (file truncated or not written by Pulseq)")
+        return
+    if st.signature_type not in (None, "md5"):
+        raise _err(st.path, f"unsupported signature type {st.signature_type!r} (expected md5)")
+    got = st.content_md5()
+    if got != st.signature_hash:
+        raise _err(st.path, f"signature mismatch: md5 of content is {got}, file says {st.signature_hash} (modified after writing?)")

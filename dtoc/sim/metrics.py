@@ -1,0 +1,109 @@
+"""Image and k-space quality metrics, defined once (docs/metrics.md).
+
+All image metrics take images reconstructed by :func:`dtoc.sim.recon.reconstruct` on the same grid;
+they accept numpy arrays or torch tensors and return torch scalars (differentiable where it makes
+sense: :func:`nrmse` is the optimizer's image loss) -- use ``float(...)`` for reports.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+def _t(x) -> torch.Tensor:
+    return x if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x))
+
+
+def nrmse(image, ideal) -> torch.Tensor:
+    """The paper's normalised RMS error ``||abs(I) - abs(I0)||_2 / ||abs(I0)||_2``.
+
+    Magnitude images, no rescaling (both from the same reconstruction of the same phantom), the
+    2-norm over all pixels (and leading batch dims).  0 when ``image`` equals ``ideal``; 1 for an
+    empty image.  Returned as a fraction (multiply by 100 for %).
+
+    Args:
+        image: (..., ny, nx) realized image, complex or magnitude.
+        ideal: (..., ny, nx) target image I0 from ideal hardware.
+    """
+    a = _t(image).abs()
+    b = _t(ideal).abs().to(a.dtype)
+    return torch.linalg.vector_norm(a - b) / torch.linalg.vector_norm(b)
+
+
+def object_mask(ideal, threshold: float = 0.1) -> np.ndarray:
+    """Object region: pixels of the ideal magnitude image above ``threshold`` x its maximum (bool (ny, nx))."""
+    m = np.abs(_t(ideal).detach().cpu().numpy())
+    return m > threshold * m.max()
+
+
+def ghost_mask(obj: np.ndarray, phase_dim: int = -2) -> np.ndarray:
+    """N/2 (Nyquist) ghost region: the object mask circularly shifted by N/2 along the phase axis, minus the object.
+
+    Args:
+        obj: (ny, nx) bool object mask.
+        phase_dim: array dimension of the phase-encoding direction (-2 = rows = y, the shipped specs).
+    """
+    n = obj.shape[phase_dim]
+    return np.roll(obj, n // 2, axis=phase_dim) & ~obj
+
+
+def ghost_ratio(image, ideal, *, phase_dim: int = -2, threshold: float = 0.1) -> torch.Tensor:
+    """EPI ghost-to-signal ratio: energy in the N/2 ghost region / energy in the object region.
+
+    ``sum_{ghost} |I|^2 / sum_{object} |I|^2`` with object = ``abs(I0) > threshold * max abs(I0)`` and
+    ghost = object shifted by N/2 along phase minus the object (:func:`ghost_mask`); both regions are
+    defined from the *ideal* image so that the ratio of every realized image is measured on the same
+    pixels.  Dimensionless (x 100 for %); the ideal image itself scores its Gibbs ringing only.
+    """
+    img = _t(image)
+    obj = object_mask(ideal, threshold)
+    gh = ghost_mask(obj, phase_dim)
+    p = img.abs() ** 2
+    o = torch.as_tensor(obj, device=p.device)
+    g = torch.as_tensor(gh, device=p.device)
+    return (p * g).sum() / (p * o).sum()
+
+
+def kspace_errors(k_rad_per_m, k0_rad_per_m, dk_rad_per_m=None, mask=None) -> dict:
+    """k-space deviation of realized from nominal samples.
+
+    Args:
+        k_rad_per_m: (3, N) realized k at the ADC samples, rad/m.
+        k0_rad_per_m: (3, N) nominal k, rad/m.
+        dk_rad_per_m: (3,) grid steps 2 pi / FOV (inf or None: axis not reported in dk).
+        mask: (N,) bool samples to include (default all).
+    Returns:
+        dict with ``kspace_rmse_rad_per_m`` = sqrt(mean_i |k_i - k0_i|^2) (Euclidean norm over the
+        three axes, mean over samples), ``kspace_max_err_rad_per_m`` = max_i |k_i - k0_i|, and
+        ``kspace_max_err_dk`` = max over samples and axes of |k - k0| / dk (None without dk), all floats.
+    """
+    k = np.asarray(_t(k_rad_per_m).detach().cpu().numpy(), dtype=np.float64)
+    k0 = np.asarray(_t(k0_rad_per_m).detach().cpu().numpy(), dtype=np.float64)
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        k, k0 = k[:, m], k0[:, m]
+    if k.shape[1] == 0:
+        return {"kspace_rmse_rad_per_m": 0.0, "kspace_max_err_rad_per_m": 0.0, "kspace_max_err_dk": 0.0 if dk_rad_per_m is not None else None}
+    e = k - k0
+    norm = np.sqrt((e**2).sum(0))
+    out = {"kspace_rmse_rad_per_m": float(np.sqrt(np.mean(norm**2))), "kspace_max_err_rad_per_m": float(norm.max())}
+    if dk_rad_per_m is None:
+        out["kspace_max_err_dk"] = None
+    else:
+        dk = np.asarray(dk_rad_per_m, dtype=np.float64).reshape(-1)
+        fin = np.isfinite(dk) & (dk > 0)
+        out["kspace_max_err_dk"] = float((np.abs(e[fin]) / dk[fin, None]).max()) if fin.any() else None
+    return out
+
+
+def kspace_within(k_rad_per_m, k0_rad_per_m, dk_rad_per_m, tol_dk: float = 0.5) -> np.ndarray:
+    """(N,) bool: samples whose realized k is within ``tol_dk`` grid steps of nominal on every finite-dk axis.
+
+    The paper discards ("skips") samples that miss their target; this is the mask to pass as ``keep_mask``.
+    """
+    k = np.asarray(_t(k_rad_per_m).detach().cpu().numpy(), dtype=np.float64)
+    k0 = np.asarray(_t(k0_rad_per_m).detach().cpu().numpy(), dtype=np.float64)
+    dk = np.asarray(dk_rad_per_m, dtype=np.float64).reshape(-1)
+    fin = np.isfinite(dk) & (dk > 0)
+    return np.all(np.abs(k[fin] - k0[fin]) <= tol_dk * dk[fin, None], axis=0)

@@ -1,0 +1,427 @@
+"""The PDG pre-pass (numpy): states, RF splitting edges, merging, pruning, emitting states.
+
+Model (docs/simulator.md): between two RF centres the magnetisation is a sum of configuration
+states.  A *transverse* state j contributes ``a_j(v) exp(-i (k_j . r + omega tau_j))`` to M+ = Mx + i My
+of voxel v, a *longitudinal* state contributes ``Re(a_j(v) exp(-i (k_j . r + omega tau_j)))`` to Mz.
+k_j (rad/m) is the state's dephasing and tau_j (s) its dephasing time (the time it has spent
+transverse, counted with sign: a conjugated state has -tau).  Gradients shift k of transverse states,
+time shifts their tau; longitudinal states keep both.  An instantaneous RF rotation (flip alpha,
+phase phi) maps each state to up to three children (edge kinds, right-handed rotation about
+(cos phi, sin phi, 0), Weigel's EPG matrix):
+
+===== ============ ============================== ==============
+kind  parent -> ch coefficient on parent amplitude pattern
+===== ============ ============================== ==============
+0     + -> +       cos^2(a/2)                     same
+1     + -> +       e^{2i phi} sin^2(a/2) * conj   conjugated (k, tau -> -k, -tau)
+2     + -> z       -i e^{-i phi} sin a            same
+3     z -> +       -i e^{i phi} sin a / 2         same
+4     z -> +       -i e^{i phi} sin a / 2 * conj  conjugated
+5     z -> z       cos a                          same
+===== ============ ============================== ==============
+
+Children with the same (type, nominal k, nominal tau) are merged.  The pre-pass runs on the nominal
+(demanded) gradient only; the main pass (:mod:`dtoc.sim.pdg_main`) recomputes every state's k from
+the realized gradient along its *representative* parent (the edge carrying the largest amplitude
+bound), so k stays differentiable w.r.t. the gradient.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
+from dtoc.seq.ir import SequenceIR
+from dtoc.seq.kspace import pwl_integral_at
+from dtoc.sim.pdg_config import PDGConfig
+
+#: edge kinds whose child is longitudinal / whose parent amplitude is conjugated
+Z_CHILD = np.array([False, False, True, False, False, True])
+CONJ = np.array([False, True, False, False, True, False])
+
+
+@dataclass
+class IntervalGraph:
+    """States alive between two consecutive RF centres (or the sequence start/end).
+
+    Attributes:
+        t_start_s, t_end_s: interval bounds, s (RF centres; 0 and the sequence end at the ends).
+        is_z: (S,) True for longitudinal states.
+        tau_s: (S,) nominal dephasing time at the interval start, s.
+        k_nom_rad_per_m: (S, 3) nominal dephasing at the interval start, rad/m.
+        eq_index: index of the equilibrium state (longitudinal, k = 0, tau = 0), which receives
+            T1 recovery; always present.
+        edge_child, edge_parent, edge_kind: (E,) RF splitting edges from the previous interval's
+            states (at its end) into this interval's states (empty for interval 0).
+        rep_parent: (S,) representative parent (index into the previous interval) giving the
+            state's k; -1 for the equilibrium state and for states of interval 0.
+        rep_conj: (S,) True when the representative edge conjugates (k -> -k).
+        emit: (J,) indices of transverse states evaluated at this interval's ADC samples.
+        adc_start, adc_stop: slice of the time-sorted ADC samples inside this interval.
+        mag: (S,) amplitude bound (units of PD).
+    """
+
+    t_start_s: float
+    t_end_s: float
+    is_z: np.ndarray
+    tau_s: np.ndarray
+    k_nom_rad_per_m: np.ndarray
+    eq_index: int
+    edge_child: np.ndarray
+    edge_parent: np.ndarray
+    edge_kind: np.ndarray
+    rep_parent: np.ndarray
+    rep_conj: np.ndarray
+    emit: np.ndarray
+    adc_start: int
+    adc_stop: int
+    mag: np.ndarray
+
+    @property
+    def n_states(self) -> int:
+        return int(self.is_z.shape[0])
+
+
+@dataclass
+class PDGGraph:
+    """Result of :func:`build_graph`: one :class:`IntervalGraph` per RF interval.
+
+    Attributes:
+        intervals: NI = n_rf + 1 interval graphs (interval n starts at RF n-1).
+        rf_order: indices into ``ir.rf`` in time order (RF n of the graph = ``ir.rf[rf_order[n]]``).
+        adc_times_s: (N_adc,) ADC sample times sorted ascending, s.
+        adc_order: (N_adc,) index into the IR-ordered ADC samples of each sorted sample.
+        adc_phase_rad: (N_adc,) receiver phase of each sorted sample, rad.
+        tau_ignored: True when the phantom had neither B0 nor finite T2', so states were merged
+            regardless of tau (then the graph must not be used with a phantom that has either).
+        config: the configuration used.
+        n_fine: fine-grid length of the IR it was built for (consistency check).
+    """
+
+    intervals: list[IntervalGraph]
+    rf_order: np.ndarray
+    adc_times_s: np.ndarray
+    adc_order: np.ndarray
+    adc_phase_rad: np.ndarray
+    tau_ignored: bool
+    config: PDGConfig
+    n_fine: int
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def n_states_total(self) -> int:
+        return int(sum(iv.n_states for iv in self.intervals))
+
+    @property
+    def n_emitting_total(self) -> int:
+        return int(sum(iv.emit.size for iv in self.intervals))
+
+    def summary(self) -> dict:
+        """Counts for logs and reports."""
+        s = [iv.n_states for iv in self.intervals]
+        return {
+            "intervals": len(self.intervals),
+            "states_total": int(sum(s)),
+            "states_max": int(max(s)) if s else 0,
+            "emitting_total": self.n_emitting_total,
+            "edges_total": int(sum(iv.edge_child.size for iv in self.intervals)),
+            "tau_ignored": self.tau_ignored,
+        }
+
+
+# ------------------------------------------------------------------------------------------------
+def rf_edge_magnitude_bounds(flip_rad: float, b1_samples: np.ndarray) -> np.ndarray:
+    """(6,) max over the B1 samples of |coefficient| of each edge kind (see module table)."""
+    a = flip_rad * np.asarray(b1_samples, dtype=np.float64)
+    c2 = np.cos(a / 2) ** 2
+    s2 = np.sin(a / 2) ** 2
+    s = np.abs(np.sin(a))
+    c = np.abs(np.cos(a))
+    return np.array([c2.max(), s2.max(), s.max(), 0.5 * s.max(), 0.5 * s.max(), c.max()])
+
+
+def voxel_envelope(k_rad_per_m: np.ndarray, voxel_m: tuple, shape: str) -> np.ndarray:
+    """Upper bound of the voxel-shape attenuation for dephasing k (..., 3) -> (...).
+
+    'box': |sinc(k d / 2)| <= min(1, 2 / (|k| d)) per axis; 'sinc' voxel: 1 inside |k| <= pi/d else 0;
+    'none': 1.  Axes with voxel size None are not attenuated.
+    """
+    k = np.abs(np.asarray(k_rad_per_m, dtype=np.float64))
+    env = np.ones(k.shape[:-1])
+    if shape == "none":
+        return env
+    for a, d in enumerate(voxel_m):
+        if d is None or d <= 0:
+            continue
+        if shape == "box":
+            with np.errstate(divide="ignore"):
+                env = env * np.minimum(1.0, 2.0 / (k[..., a] * d))
+        else:
+            env = env * (k[..., a] <= np.pi / d + 1e-9)
+    return env
+
+
+@dataclass
+class _Bounds:
+    """Relaxation bounds used for pruning (longest times of the phantom)."""
+
+    t1: float = np.inf
+    t2: float = np.inf
+    t2d: float = np.inf
+    b1: np.ndarray = field(default_factory=lambda: np.ones(1))
+    voxel_m: tuple = (None, None, None)
+    voxel_shape: str = "box"
+
+    def e1(self, dt):
+        return np.exp(-np.asarray(dt) / self.t1)
+
+    def e2(self, dt):
+        return np.exp(-np.asarray(dt) / self.t2)
+
+
+def _bounds(ir: SequenceIR, config: PDGConfig, phantom) -> _Bounds:
+    b = _Bounds()
+    zsize = config.voxel_size_z_m
+    if phantom is not None:
+        m = phantom.pd > 0
+        if not m.any():
+            m = np.ones_like(phantom.pd, dtype=bool)
+        b.t1 = float(np.max(phantom.t1_s[m]))
+        b.t2 = float(np.max(phantom.t2_s[m]))
+        b.t2d = float(np.max(phantom.t2dash_s[m]))
+        lo, hi = float(np.min(phantom.b1[m])), float(np.max(phantom.b1[m]))
+        b.b1 = np.linspace(lo, hi, 9) if hi > lo else np.array([lo])
+        ny, nx = phantom.shape
+        b.voxel_m = (phantom.fov_m[0] / nx, phantom.fov_m[1] / ny, zsize)
+        b.voxel_shape = phantom.voxel_shape
+    elif ir.fov_m is not None and ir.matrix is not None and len(ir.matrix) >= 2:
+        ro = ir.readout_axis if ir.readout_axis is not None else 0
+        pe = ir.phase_axis if ir.phase_axis is not None else 1
+        vox = [None, None, zsize]
+        vox[ro] = ir.fov_m[ro] / ir.matrix[0]
+        vox[pe] = ir.fov_m[pe] / ir.matrix[1]
+        b.voxel_m = tuple(vox)
+    return b
+
+
+def _nominal_integrals(ir: SequenceIR, times: np.ndarray) -> np.ndarray:
+    """(Q, 3) gamma * integral_0^t of the demanded gradient, rad/m (exact PWL)."""
+    if times.size == 0:
+        return np.zeros((0, 3))
+    g = torch.as_tensor(ir.grad_mT_per_m, dtype=torch.float64)
+    out = pwl_integral_at(g, ir.dt_fine_s, times).numpy()
+    return (GAMMA_RAD_PER_S_PER_MT * out).T
+
+
+def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_readout: bool = False) -> PDGGraph:
+    """Build the PDG of ``ir`` (see :func:`dtoc.sim.pdg.build_graph`).
+
+    ``final_z_readout`` (used by the dummy-cycle steady state): longitudinal states at the end of the
+    sequence count as observed (with the voxel envelope), so pruning keeps what shapes the final Mz.
+    """
+    cfg = config
+    bnd = _bounds(ir, cfg, phantom)
+    tau_ignored = bool(
+        phantom is not None and not np.any(phantom.b0_hz[phantom.pd > 0]) and np.all(np.isinf(phantom.t2dash_s[phantom.pd > 0]))
+    )
+
+    # --- events --------------------------------------------------------------------------------
+    rf_t = np.array([r.t_center_s for r in ir.rf], dtype=np.float64)
+    rf_order = np.argsort(rf_t, kind="stable")
+    rf_t = rf_t[rf_order]
+    bounds_t = np.concatenate([[0.0], rf_t, [ir.duration_s]])
+    NI = len(bounds_t) - 1
+    adc_t_ir = ir.adc_times_s
+    adc_ph_ir = np.concatenate([np.full(a.num_samples, a.phase_rad) for a in ir.adc]) if ir.adc else np.zeros(0)
+    adc_order = np.argsort(adc_t_ir, kind="stable")
+    adc_t = adc_t_ir[adc_order]
+    adc_ph = adc_ph_ir[adc_order]
+    # sample at exactly an RF centre belongs to the interval after it
+    adc_lo = np.searchsorted(adc_t, bounds_t[:-1], side="left")
+    adc_hi = np.searchsorted(adc_t, bounds_t[1:], side="left")
+    adc_hi[-1] = adc_t.size
+    adc_lo[0] = 0
+
+    I_b = _nominal_integrals(ir, bounds_t)  # (NI+1, 3)
+    I_adc = _nominal_integrals(ir, adc_t)  # (N_adc, 3)
+    m_int = I_b[1:] - I_b[:-1]  # (NI, 3) nominal moment per interval
+    dt_int = np.diff(bounds_t)
+
+    qk, qt = cfg.merge_k_rad_per_m, cfg.merge_tau_s
+
+    def keys(is_z, k, tau):
+        tk = np.zeros_like(tau, dtype=np.int64) if tau_ignored else np.round(tau / qt).astype(np.int64)
+        return np.concatenate([is_z[:, None].astype(np.int64), np.round(k / qk).astype(np.int64), tk[:, None]], axis=1)
+
+    # --- forward pass --------------------------------------------------------------------------
+    raw = []  # per interval dict of arrays
+    is_z = np.array([True])
+    k = np.zeros((1, 3))
+    tau = np.zeros(1)
+    mag = np.ones(1)
+    eq = 0
+    e_child = e_par = e_kind = e_cand = np.zeros(0, dtype=np.int64)
+    e_cand = np.zeros(0)
+    for n in range(NI):
+        raw.append(dict(is_z=is_z, k=k, tau=tau, mag=mag, eq=eq, e_child=e_child, e_par=e_par, e_kind=e_kind, e_cand=e_cand))
+        if n == NI - 1:
+            break
+        dt = dt_int[n]
+        tr = ~is_z
+        k_end = k + tr[:, None] * m_int[n][None, :]
+        tau_end = tau + tr * dt
+        mag_end = np.where(tr, mag * bnd.e2(dt), mag * bnd.e1(dt))
+        mag_end[eq] = min(1.0, mag[eq] * bnd.e1(dt) + (1.0 - bnd.e1(dt)))
+        rf = ir.rf[rf_order[n]]
+        cm = rf_edge_magnitude_bounds(rf.flip_angle_rad, bnd.b1)
+        S = is_z.size
+        par = np.repeat(np.arange(S), 3)
+        kind = np.tile(np.arange(3), S) + 3 * is_z[par]
+        cand = cm[kind] * mag_end[par]
+        keep = cand >= cfg.min_magnitude
+        par, kind, cand = par[keep], kind[keep], cand[keep]
+        conj = CONJ[kind]
+        sgn = np.where(conj, -1.0, 1.0)
+        ck = k_end[par] * sgn[:, None]
+        ct = tau_end[par] * sgn
+        cz = Z_CHILD[kind]
+        kk = keys(cz, ck, ct)
+        eq_key = keys(np.array([True]), np.zeros((1, 3)), np.zeros(1))
+        uniq, inv = np.unique(np.concatenate([kk, eq_key]), axis=0, return_inverse=True)
+        inv = inv.ravel()
+        inv_e, eq_new = inv[:-1], int(inv[-1])
+        nU = uniq.shape[0]
+        cmag = np.bincount(inv_e, weights=cand, minlength=nU)
+        # representative edge per child: largest cand
+        order = np.lexsort((-cand, inv_e))
+        first = np.ones(order.size, dtype=bool)
+        first[1:] = inv_e[order][1:] != inv_e[order][:-1]
+        rep_e = np.full(nU, -1)
+        rep_e[inv_e[order][first]] = order[first]
+        alive = (cmag >= cfg.min_magnitude) & (rep_e >= 0)
+        alive[eq_new] = True
+        if alive.sum() > cfg.max_states:
+            score = np.where(alive, cmag, -1.0)
+            score[eq_new] = np.inf
+            top = np.argsort(-score, kind="stable")[: cfg.max_states]
+            alive = np.zeros(nU, dtype=bool)
+            alive[top] = True
+        new_idx = np.cumsum(alive) - 1
+        ekeep = alive[inv_e]
+        e_child = new_idx[inv_e[ekeep]]
+        e_par, e_kind, e_cand = par[ekeep], kind[ekeep], cand[ekeep]
+        sel = np.where(alive)[0]
+        is_z = uniq[sel, 0].astype(bool)
+        r = rep_e[sel]
+        has = r >= 0
+        k = np.zeros((sel.size, 3))
+        tau = np.zeros(sel.size)
+        k[has] = ck[r[has]]
+        tau[has] = ct[r[has]]
+        eq = int(new_idx[eq_new])
+        k[eq] = 0.0
+        tau[eq] = 0.0
+        is_z[eq] = True
+        mag = cmag[sel]
+        mag[eq] = max(mag[eq], 0.0)
+
+    # --- emission and latent bounds (backward) --------------------------------------------------
+    vm = bnd.voxel_m
+    emit_b = []
+    for n in range(NI):
+        R = raw[n]
+        e = np.zeros(R["is_z"].size)
+        lo, hi = adc_lo[n], adc_hi[n]
+        tr = np.where(~R["is_z"])[0]
+        if hi > lo and tr.size:
+            dtt = adc_t[lo:hi] - bounds_t[n]
+            mt = I_adc[lo:hi] - I_b[n]
+            # chunk over states to bound memory (S x T)
+            step = max(1, int(2**22 // max(1, hi - lo)))
+            for s0 in range(0, tr.size, step):
+                idx = tr[s0 : s0 + step]
+                kt = R["k"][idx][:, None, :] + mt[None, :, :]
+                env = voxel_envelope(kt, vm, bnd.voxel_shape)
+                tt = np.abs(R["tau"][idx][:, None] + dtt[None, :])
+                env = env * bnd.e2(dtt)[None, :] * np.exp(-tt / bnd.t2d)
+                e[idx] = env.max(axis=1)
+        if final_z_readout and n == NI - 1:
+            zi = np.where(R["is_z"])[0]
+            e[zi] = voxel_envelope(R["k"][zi], vm, bnd.voxel_shape) * np.exp(-np.abs(R["tau"][zi]) / bnd.t2d)
+        emit_b.append(e)
+    latent = [None] * NI
+    for n in range(NI - 1, -1, -1):
+        R = raw[n]
+        L = emit_b[n].copy()
+        if n + 1 < NI:
+            C = raw[n + 1]
+            rf = ir.rf[rf_order[n]]
+            cm = rf_edge_magnitude_bounds(rf.flip_angle_rad, bnd.b1)
+            dt = dt_int[n]
+            decay = np.where(R["is_z"], bnd.e1(dt), bnd.e2(dt))
+            via = cm[C["e_kind"]] * latent[n + 1][C["e_child"]] * decay[C["e_par"]]
+            best = np.zeros(R["is_z"].size)
+            np.maximum.at(best, C["e_par"], via)
+            L = np.maximum(L, best)
+        latent[n] = L
+
+    # --- prune and re-index (forward) -----------------------------------------------------------
+    intervals: list[IntervalGraph] = []
+    prev_keep = None
+    for n in range(NI):
+        R = raw[n]
+        S = R["is_z"].size
+        keepm = R["mag"] * latent[n] >= cfg.min_latent_signal
+        keepm[R["eq"]] = True
+        if n == 0:
+            ec = ep = ek = np.zeros(0, dtype=np.int64)
+            rep = np.full(S, -1)
+            rconj = np.zeros(S, dtype=bool)
+            newi = np.cumsum(keepm) - 1
+        else:
+            ok = keepm[R["e_child"]] & prev_keep[R["e_par"]]
+            has_in = np.zeros(S, dtype=bool)
+            has_in[R["e_child"][ok]] = True
+            keepm &= has_in | (np.arange(S) == R["eq"])
+            ok &= keepm[R["e_child"]]
+            newi = np.cumsum(keepm) - 1
+            ec = newi[R["e_child"][ok]]
+            ep = prev_newi[R["e_par"][ok]]
+            ek = R["e_kind"][ok]
+            cand = R["e_cand"][ok]
+            nS = int(keepm.sum())
+            order = np.lexsort((-cand, ec))
+            first = np.ones(order.size, dtype=bool)
+            first[1:] = ec[order][1:] != ec[order][:-1]
+            rep = np.full(nS, -1)
+            rconj = np.zeros(nS, dtype=bool)
+            rep[ec[order][first]] = ep[order][first]
+            rconj[ec[order][first]] = CONJ[ek[order][first]]
+        sel = np.where(keepm)[0]
+        eqn = int(newi[R["eq"]])
+        if n > 0:
+            rep[eqn] = -1
+        is_z = R["is_z"][sel]
+        em = (~R["is_z"]) & (R["mag"] * emit_b[n] >= cfg.min_emitted_signal) & keepm
+        emit = newi[np.where(em)[0]] if adc_hi[n] > adc_lo[n] else np.zeros(0, dtype=np.int64)
+        intervals.append(
+            IntervalGraph(
+                t_start_s=float(bounds_t[n]), t_end_s=float(bounds_t[n + 1]), is_z=is_z, tau_s=R["tau"][sel],
+                k_nom_rad_per_m=R["k"][sel], eq_index=eqn, edge_child=ec.astype(np.int64), edge_parent=ep.astype(np.int64),
+                edge_kind=ek.astype(np.int64), rep_parent=rep.astype(np.int64), rep_conj=rconj, emit=emit.astype(np.int64),
+                adc_start=int(adc_lo[n]), adc_stop=int(adc_hi[n]), mag=R["mag"][sel],
+            )
+        )
+        prev_keep = keepm
+        prev_newi = newi
+    if final_z_readout:
+        last = intervals[-1]
+        zk = np.where(last.is_z)[0]
+        last.meta_final_z = zk  # type: ignore[attr-defined]
+    return PDGGraph(
+        intervals=intervals, rf_order=rf_order, adc_times_s=adc_t, adc_order=adc_order, adc_phase_rad=adc_ph,
+        tau_ignored=tau_ignored, config=cfg, n_fine=ir.n_fine,
+    )

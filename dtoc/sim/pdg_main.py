@@ -1,0 +1,206 @@
+"""The PDG main pass (torch): state amplitudes per voxel, realized k, signal of emitting states.
+
+See :mod:`dtoc.sim.pdg_graph` for the state model and docs/simulator.md for the physics.  Amplitudes
+``A`` (S, V) carry PD, RF mixing (flip scaled by B1), T1/T2 relaxation, T1 recovery and diffusion;
+the spatial pattern ``exp(-i (k . r + omega tau))`` and the T2' factor ``exp(-|tau| / T2')`` are
+applied only when a state is observed (ADC sample, or the final Mz of a dummy train).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from dtoc.seq.ir import SequenceIR
+from dtoc.sim.pdg_config import PDGConfig
+from dtoc.sim.pdg_graph import CONJ, PDGGraph, build_graph
+from dtoc.sim.pdg_moments import compute_moments
+from dtoc.sim.pdg_signal import VoxelData, emit_signal, voxel_factor
+
+
+def _complex_dtype(dtype):
+    if dtype == torch.float32:
+        return torch.complex64
+    if dtype == torch.float64:
+        return torch.complex128
+    raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+
+
+def rf_coefficients(flip_rad: float, phase_rad: float, b1: torch.Tensor, cdtype) -> torch.Tensor:
+    """(6, V) complex edge coefficients of one RF pulse per voxel (kinds of the pdg_graph table)."""
+    a = flip_rad * b1
+    s = torch.sin(a)
+    c = torch.cos(a)
+    s2 = torch.sin(0.5 * a) ** 2
+    c2 = torch.cos(0.5 * a) ** 2
+    e1 = complex(np.cos(phase_rad), np.sin(phase_rad))
+    e2 = complex(np.cos(2 * phase_rad), np.sin(2 * phase_rad))
+    em1 = e1.conjugate()
+    rows = [c2.to(cdtype), e2 * s2.to(cdtype), (-1j * em1) * s.to(cdtype), (-0.5j * e1) * s.to(cdtype), (-0.5j * e1) * s.to(cdtype), c.to(cdtype)]
+    return torch.stack(rows)
+
+
+def _prepare(ir: SequenceIR, phantom, graph: PDGGraph | None, cfg: PDGConfig, grad, b0_uT, initial_mz, dtype, device, final_z=False):
+    if phantom is None:
+        raise ValueError("simulate: a phantom is required")
+    if graph is None:
+        graph = build_graph(ir, cfg, phantom, final_z_readout=final_z)
+    if graph.n_fine != ir.n_fine:
+        raise ValueError(f"graph was built for a sequence with {graph.n_fine} fine samples, this one has {ir.n_fine}")
+    vox = VoxelData.from_phantom(phantom, initial_mz, dtype, device, cfg)
+    if graph.tau_ignored and (vox.has_b0 or vox.has_t2d):
+        raise ValueError("graph was built for a phantom without B0 and T2' (tau merged); rebuild it for this phantom")
+    if grad is None:
+        grad = torch.as_tensor(ir.grad_mT_per_m, dtype=torch.float64, device=device)
+    else:
+        if tuple(grad.shape) != tuple(ir.grad_mT_per_m.shape):
+            raise ValueError(f"grad_mT_per_m has shape {tuple(grad.shape)}, expected {tuple(ir.grad_mT_per_m.shape)} (3, 2N+1)")
+        grad = grad.to(device)
+    if b0_uT is not None:
+        b0_uT = torch.as_tensor(b0_uT, device=device)
+        if b0_uT.reshape(-1).shape[0] != ir.n_fine:
+            raise ValueError(f"b0_uT has {b0_uT.numel()} samples, expected {ir.n_fine} (2N+1)")
+    bounds_t = np.array([iv.t_start_s for iv in graph.intervals] + [graph.intervals[-1].t_end_s])
+    mom = compute_moments(grad, b0_uT, ir.dt_fine_s, bounds_t, graph.adc_times_s, vox.has_diffusion)
+    return graph, vox, mom, bounds_t
+
+
+def _evolve(iv, A, K, mom, n, vox, dt, tr_t):
+    """Free evolution over interval n: relaxation, recovery, diffusion, dephasing of transverse states."""
+    E1 = torch.exp(-dt * vox.r1)
+    E2 = torch.exp(-dt * vox.r2)
+    fac = torch.where(tr_t[:, None], E2[None, :], E1[None, :])
+    dM = (mom.I_bound[n + 1] - mom.I_bound[n]).to(K.dtype)
+    K_end = K + tr_t[:, None].to(K.dtype) * dM[None, :]
+    if vox.has_diffusion:
+        k3 = K[:, :3].to(torch.float64)
+        u = k3 - mom.I_bound[n][:3][None, :]
+        dJ1 = mom.J1_bound[n + 1] - mom.J1_bound[n]
+        dJ2 = mom.J2_bound[n + 1] - mom.J2_bound[n]
+        b_tr = (u * u).sum(1) * dt + 2.0 * (u * dJ1[None, :]).sum(1) + dJ2
+        b_z = (k3 * k3).sum(1) * dt
+        b = torch.where(tr_t, b_tr, b_z).to(vox.r1.dtype)
+        fac = fac * torch.exp(-b[:, None] * vox.d[None, :])
+    A_end = A * fac.to(A.dtype)
+    rec = (vox.pd * (1.0 - E1)).to(A.dtype)
+    A_end = A_end.index_add(0, torch.tensor([iv.eq_index], device=A.device), rec[None, :])
+    return A_end, K_end
+
+
+def _apply_rf(nxt, A_end, K_end, coefs):
+    """Split the states at an RF pulse into the next interval's states."""
+    dev = A_end.device
+    par = torch.as_tensor(nxt.edge_parent, device=dev)
+    kind = torch.as_tensor(nxt.edge_kind, device=dev)
+    src = A_end.index_select(0, par)
+    conj = torch.as_tensor(CONJ[nxt.edge_kind], device=dev)
+    if bool(conj.any()):
+        src = torch.where(conj[:, None], src.conj(), src)
+    contrib = coefs.index_select(0, kind) * src
+    A_new = torch.zeros((nxt.n_states, A_end.shape[1]), dtype=A_end.dtype, device=dev)
+    A_new = A_new.index_add(0, torch.as_tensor(nxt.edge_child, device=dev), contrib)
+    rep = nxt.rep_parent
+    sgn = np.where(rep < 0, 0.0, np.where(nxt.rep_conj, -1.0, 1.0))
+    K_new = K_end.index_select(0, torch.as_tensor(np.maximum(rep, 0), device=dev)) * torch.as_tensor(sgn, dtype=K_end.dtype, device=dev)[:, None]
+    return A_new, K_new
+
+
+def _loop(ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_signal: bool, final_state: bool):
+    cdtype = _complex_dtype(dtype)
+    iv0 = graph.intervals[0]
+    A = torch.zeros((iv0.n_states, vox.n), dtype=cdtype, device=device)
+    A = A.index_add(0, torch.tensor([iv0.eq_index], device=device), vox.mz0.to(cdtype)[None, :])
+    K = torch.zeros((iv0.n_states, 4), dtype=torch.float64, device=device)
+    pieces = []
+    NI = len(graph.intervals)
+    for n, iv in enumerate(graph.intervals):
+        if with_signal and iv.emit.size and iv.adc_stop > iv.adc_start:
+            pieces.append((iv.adc_start, emit_signal(iv, A, K, mom, n, vox, graph, bounds_t, cfg)))
+        if n == NI - 1 and not final_state:
+            break
+        dt = float(bounds_t[n + 1] - bounds_t[n])
+        tr_t = torch.as_tensor(~iv.is_z, device=device)
+        A, K = _evolve(iv, A, K, mom, n, vox, dt, tr_t)
+        if n == NI - 1:
+            break
+        rf = ir.rf[graph.rf_order[n]]
+        coefs = rf_coefficients(rf.flip_angle_rad, rf.phase_rad, vox.b1, cdtype)
+        A, K = _apply_rf(graph.intervals[n + 1], A, K, coefs)
+    return pieces, A, K
+
+
+def run_main_pass(ir, phantom, graph, cfg, grad, b0_uT, initial_mz, dtype, device):
+    """Signal (n_coils, N_adc) complex in IR ADC order (see :func:`dtoc.sim.pdg.simulate`)."""
+    graph, vox, mom, bounds_t = _prepare(ir, phantom, graph, cfg, grad, b0_uT, initial_mz, dtype, device)
+    cdtype = _complex_dtype(dtype)
+    N = graph.adc_times_s.size
+    pieces, _, _ = _loop(ir, graph, vox, mom, bounds_t, cfg, dtype, device, True, False)
+    sig = torch.zeros((vox.n_coils, N), dtype=cdtype, device=device)
+    for start, s in pieces:
+        idx = torch.arange(start, start + s.shape[1], device=device)
+        sig = sig.index_add(1, idx, s)
+    if N:
+        ph = torch.as_tensor(np.exp(-1j * graph.adc_phase_rad), dtype=cdtype, device=device)
+        sig = sig * ph[None, :]
+        inv = np.empty(N, dtype=np.int64)
+        inv[graph.adc_order] = np.arange(N)
+        sig = sig.index_select(1, torch.as_tensor(inv, device=device))
+    return sig
+
+
+# ------------------------------------------------------------------------------------------------
+# Dummy cycles
+# ------------------------------------------------------------------------------------------------
+def _dummy_train(ir: SequenceIR, n: int, block_range) -> SequenceIR:
+    """IR of ``n`` repetitions (block ranges) played back to back, without ADC."""
+    from dataclasses import replace as _replace
+
+    from dtoc.seq.ir import SequenceIR as _IR
+
+    edges = ir.block_edges_s
+    nb = len(edges) - 1
+    if block_range is not None:
+        b0, b1 = int(block_range[0]), int(block_range[1])
+        if not (0 <= b0 < b1 <= nb):
+            raise ValueError(f"block_range {block_range} outside 0..{nb}")
+        reps = [(b0, b1)]
+    else:
+        exc = sorted({r.block for r in ir.rf if r.use == "excitation"} or {r.block for r in ir.rf})
+        if not exc:
+            raise ValueError("steady_state_mz: the sequence has no RF pulse")
+        reps = [(exc[i], exc[i + 1] if i + 1 < len(exc) else nb) for i in range(len(exc))]
+    dtf = ir.dt_fine_s
+    segs, rfs, bedges = [], [], [0.0]
+    t_off = 0.0
+    for d in range(n):
+        b0, b1 = reps[d % len(reps)]
+        m0 = int(round(edges[b0] / dtf))
+        m1 = int(round(edges[b1] / dtf))
+        segs.append(ir.grad_mT_per_m[:, m0:m1])
+        shift = t_off - m0 * dtf
+        for r in ir.rf:
+            if b0 <= r.block < b1:
+                rfs.append(_replace(r, block=len(bedges) - 1 + (r.block - b0), t_start_s=r.t_start_s + shift, t_center_s=r.t_center_s + shift))
+        for b in range(b0 + 1, b1 + 1):
+            bedges.append(edges[b] + shift)
+        t_off += (m1 - m0) * dtf
+    last = reps[(n - 1) % len(reps)][1]
+    g = np.concatenate(segs + [ir.grad_mT_per_m[:, int(round(edges[last] / dtf)) : int(round(edges[last] / dtf)) + 1]], axis=1)
+    return _IR(raster_s=ir.raster_s, grad_mT_per_m=g, block_edges_s=np.array(bedges), rf=rfs, adc=[], fov_m=ir.fov_m, matrix=ir.matrix,
+               kind=ir.kind, readout_axis=ir.readout_axis, phase_axis=ir.phase_axis)
+
+
+def run_dummies(ir, phantom, n_dummies, block_range, cfg, dtype, device):
+    """Voxel-mean Mz (ny, nx) after ``n_dummies`` repetitions (see :func:`dtoc.sim.pdg.steady_state_mz`)."""
+    if n_dummies <= 0:
+        return torch.as_tensor(phantom.pd, dtype=dtype, device=device)
+    train = _dummy_train(ir, n_dummies, block_range)
+    with torch.no_grad():
+        graph, vox, mom, bounds_t = _prepare(train, phantom, None, cfg, None, None, None, dtype, device, final_z=True)
+        _, A, K = _loop(train, graph, vox, mom, bounds_t, cfg, dtype, device, False, True)
+        last = graph.intervals[-1]
+        zi = np.where(last.is_z)[0]
+        mz = vox.observe_mz(A[zi], K[zi], last.tau_s[zi])
+    out = torch.zeros(phantom.shape, dtype=dtype, device=device).reshape(-1)
+    out[vox.index] = mz.real.to(dtype)
+    return out.reshape(phantom.shape)

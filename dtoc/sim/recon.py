@@ -1,0 +1,179 @@
+"""Plain inverse-FFT reconstruction onto the target Cartesian grid, assuming *nominal* k (as the paper).
+
+Conventions (consistent with :class:`dtoc.sim.phantom.Phantom` and the simulator's signal model
+``s(k) = sum_r m(r) exp(-i k . r)``, docs/conventions.md):
+
+* Each ADC sample i is placed at grid index ``j = round(k0_i / dk) + N/2`` per in-plane axis, where
+  ``k0 = ir.nominal_kspace_rad_per_m()`` (rad/m) and ``dk = 2 pi / FOV``; so grid index j holds
+  k = (j - N/2) dk, j = 0..N-1 (k = -N/2 dk .. (N/2-1) dk).  Samples must lie on the grid within
+  ``on_grid_tol`` (fraction of dk), inside it, and not on top of each other (several samples at one
+  grid point are averaged).  Discarded samples (``keep_mask`` False) and unsampled grid points are
+  zero-filled.
+* ``image = fftshift(ifft2(ifftshift(K)))`` with numpy's default 1/N normalisation: pixel (iy, ix)
+  is at x = (ix - nx/2) dx, y = (iy - ny/2) dy -- exactly the Phantom's voxel positions -- and a
+  voxel of transverse magnetisation m at that position reconstructs to value m (no flip, no shift).
+* Image array layout (ny, nx): rows = physical y, columns = physical x (z ignored: 2D).
+* Multi-coil: root-sum-of-squares magnitude over coils; one coil: the complex image.
+
+Everything is torch and differentiable with respect to the signal (the optimizer's image loss).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from dtoc.errors import InputError
+
+
+@dataclass(frozen=True)
+class CartesianGrid:
+    """Mapping of ADC samples onto the (ny, nx) Cartesian target grid.
+
+    Attributes:
+        shape: (ny, nx) image matrix.
+        fov_m: (fov_x, fov_y), m.
+        flat_index: (N_adc,) int64 index into the flattened (ny*nx) k-space grid (-1: sample not used).
+        counts: (ny*nx,) number of samples on each grid point.
+        max_off_grid: largest |k0/dk - round(k0/dk)| over used samples (fraction of dk).
+    """
+
+    shape: tuple[int, int]
+    fov_m: tuple[float, float]
+    flat_index: np.ndarray
+    counts: np.ndarray
+    max_off_grid: float
+
+    @property
+    def fill_fraction(self) -> float:
+        """Fraction of grid points that receive at least one sample."""
+        return float(np.mean(self.counts > 0))
+
+
+def _infer_matrix_fov(ir, matrix, fov_m):
+    if fov_m is None:
+        if ir.fov_m is None:
+            raise InputError("reconstruction: the sequence has no FOV; pass fov_m")
+        fov_m = (ir.fov_m[0], ir.fov_m[1])
+    fov = np.asarray(fov_m, dtype=np.float64).ravel()
+    fov = np.repeat(fov, 2) if fov.size == 1 else fov[:2]
+    if fov.size != 2 or not np.all(np.isfinite(fov)) or np.any(fov <= 0):
+        raise InputError(f"reconstruction: fov_m {fov_m!r}: expected positive (fov_x, fov_y) in m")
+    if matrix is None:
+        m = ir.matrix
+        if m is None or len(m) < 2:
+            raise InputError("reconstruction: the sequence has no matrix size; pass matrix=(nx, ny)")
+        ro = ir.readout_axis if ir.readout_axis is not None else 0
+        ph = ir.phase_axis if ir.phase_axis is not None else 1
+        n = [0, 0]
+        if {ro, ph} != {0, 1}:
+            raise InputError(f"reconstruction: readout/phase axes {ro}/{ph} are not the x-y plane")
+        n[ro], n[ph] = int(m[0]), int(m[1])
+        matrix = (n[0], n[1])
+    nx, ny = (int(matrix[0]), int(matrix[1])) if np.size(matrix) == 2 else (int(matrix), int(matrix))
+    return (ny, nx), (float(fov[0]), float(fov[1]))
+
+
+def cartesian_grid(ir, keep_mask=None, *, matrix=None, fov_m=None, k0_rad_per_m=None, on_grid_tol: float = 0.05) -> CartesianGrid:
+    """Grid indices of every ADC sample of ``ir`` from its nominal k-space.
+
+    Args:
+        ir: :class:`dtoc.seq.ir.SequenceIR`.
+        keep_mask: (N_adc,) bool; False samples are discarded (index -1).
+        matrix: (nx, ny) image matrix (default from ``ir.matrix`` and its readout/phase axes).
+        fov_m: (fov_x, fov_y), m (default ``ir.fov_m``).
+        k0_rad_per_m: (3, N_adc) nominal k to use instead of ``ir.nominal_kspace_rad_per_m()``.
+        on_grid_tol: allowed distance from a grid point, fraction of dk.
+    Raises:
+        InputError: samples off the grid, outside it, or shape mismatch.
+    """
+    (ny, nx), fov = _infer_matrix_fov(ir, matrix, fov_m)
+    k0 = np.asarray(ir.nominal_kspace_rad_per_m() if k0_rad_per_m is None else k0_rad_per_m, dtype=np.float64)
+    n_adc = k0.shape[1]
+    keep = np.ones(n_adc, dtype=bool) if keep_mask is None else np.asarray(keep_mask, dtype=bool).ravel()
+    if keep.shape != (n_adc,):
+        raise InputError(f"keep_mask has {keep.size} entries, expected one per ADC sample ({n_adc})")
+    dk = 2 * np.pi / np.asarray(fov)
+    u = k0[:2] / dk[:, None]  # (2, N_adc) in grid units
+    r = np.rint(u)
+    off = np.abs(u - r)
+    max_off = float(off[:, keep].max()) if keep.any() else 0.0
+    if max_off > on_grid_tol:
+        i = int(np.argmax(np.where(keep, off.max(0), -1)))
+        raise InputError(
+            f"nominal k-space is not on the {nx}x{ny} Cartesian grid (sample {i} is {max_off:.3f} dk off; tolerance {on_grid_tol}): "
+            "plain iFFT reconstruction needs on-grid nominal samples"
+        )
+    jx = r[0].astype(np.int64) + nx // 2
+    jy = r[1].astype(np.int64) + ny // 2
+    outside = keep & ((jx < 0) | (jx >= nx) | (jy < 0) | (jy >= ny))
+    if outside.any():
+        i = int(np.argmax(outside))
+        raise InputError(f"nominal k-space sample {i} lies outside the {nx}x{ny} grid (k/dk = {u[0, i]:.2f}, {u[1, i]:.2f})")
+    flat = np.where(keep, jy * nx + jx, -1).astype(np.int64)
+    counts = np.bincount(flat[keep], minlength=ny * nx)
+    return CartesianGrid((ny, nx), fov, flat, counts, max_off)
+
+
+def grid_kspace(signal, grid: CartesianGrid) -> torch.Tensor:
+    """Scatter samples onto the grid (averaging duplicates, zero elsewhere).
+
+    Args:
+        signal: (..., N_adc) complex tensor/array.
+    Returns:
+        (..., ny, nx) complex tensor, index (jy, jx) holding k = ((jx - nx/2) dkx, (jy - ny/2) dky).
+    """
+    s = torch.as_tensor(signal)
+    if not s.is_complex():
+        s = s.to(torch.complex128 if s.dtype == torch.float64 else torch.complex64)
+    ny, nx = grid.shape
+    if s.shape[-1] != grid.flat_index.size:
+        raise InputError(f"signal has {s.shape[-1]} samples, the sequence {grid.flat_index.size} ADC samples")
+    used = np.where(grid.flat_index >= 0)[0]
+    idx = torch.as_tensor(grid.flat_index[used], device=s.device)
+    src = s[..., torch.as_tensor(used, device=s.device)]
+    cnt = grid.counts[grid.flat_index[used]]
+    if np.any(cnt > 1):
+        src = src / torch.as_tensor(cnt, dtype=src.real.dtype, device=s.device)
+    out = torch.zeros(s.shape[:-1] + (ny * nx,), dtype=s.dtype, device=s.device)
+    out = out.index_add(-1, idx, src)
+    return out.reshape(s.shape[:-1] + (ny, nx))
+
+
+def kspace_to_image(kgrid: torch.Tensor) -> torch.Tensor:
+    """(..., ny, nx) centred k-space grid -> (..., ny, nx) complex image (see module conventions)."""
+    dims = (-2, -1)
+    return torch.fft.fftshift(torch.fft.ifft2(torch.fft.ifftshift(kgrid, dim=dims), dim=dims), dim=dims)
+
+
+def reconstruct(signal, ir, keep_mask=None, *, grid: CartesianGrid | None = None, matrix=None, fov_m=None, coil_axis: bool | None = None) -> torch.Tensor:
+    """Inverse-FFT image from simulated/measured samples assuming nominal k.
+
+    Args:
+        signal: (n_coils, N_adc) or (N_adc,) complex (leading batch dims allowed: (..., n_coils, N_adc)).
+        ir: the sequence (nominal k, FOV, matrix).
+        keep_mask: (N_adc,) bool, samples to keep (others zero-filled).
+        grid: precomputed :func:`cartesian_grid` (then ``keep_mask``/``matrix``/``fov_m`` are ignored).
+        coil_axis: whether the second-to-last axis is a coil axis (default: True for 2D+ input).
+    Returns:
+        (ny, nx) complex image for one coil, or (ny, nx) real root-sum-of-squares magnitude for several.
+    """
+    s = torch.as_tensor(signal)
+    if grid is None:
+        grid = cartesian_grid(ir, keep_mask, matrix=matrix, fov_m=fov_m)
+    if coil_axis is None:
+        coil_axis = s.ndim >= 2
+    img = kspace_to_image(grid_kspace(s, grid))
+    if not coil_axis:
+        return img
+    if img.shape[-3] == 1:
+        return img[..., 0, :, :]
+    return rss(img)
+
+
+def rss(images: torch.Tensor, dim: int = -3) -> torch.Tensor:
+    """Root-sum-of-squares magnitude over the coil axis (differentiable; no NaN gradient at 0)."""
+    p = (images.real**2 + images.imag**2).sum(dim=dim)
+    return torch.sqrt(p + torch.finfo(p.dtype).tiny)
