@@ -8,8 +8,8 @@ import torch
 
 from dtoc.errors import InputError
 from dtoc.hardware import (
-    GirfData, HardwareModel, Measurement, build_effect, load_girf, load_measurement, load_model,
-    model_from_girf, resolve_model, save_girf, save_measurement, save_model,
+    GirfData, build_effect, load_girf, load_measurement, load_model, resolve_model, save_girf, save_measurement,
+    save_model,
 )
 from dtoc.hardware.measurement import G_from_k, k_from_G
 from dtoc.hardware.npzio import save_npz

@@ -107,3 +107,18 @@ def test_bad_limits_raise():
         Limits(0.0, 100.0)
     with pytest.raises(LimitError):
         Limits(10.0, float("nan"))
+
+
+def test_gmax_below_readout_amplitude_is_impossible():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from opt_synth import gre_ir
+
+    from dtoc.optimize.limits import check_area_reachable
+
+    ir = gre_ir(8, reps=2)  # readout 7.34 mT/m (one dk per 0.1 ms dwell at FOV 32 mm)
+    check_area_reachable(ir, Limits(7.5, 500.0))
+    with pytest.raises(LimitError, match="7.34"):
+        check_area_reachable(ir, Limits(7.0, 500.0))

@@ -1,7 +1,183 @@
-"""CLI commands of the `dtoc.hardware` stage (registered by :mod:`dtoc.cli.main`)."""
+"""CLI commands of the hardware twin: ``girf import``, ``girf fit``, ``girf show``, ``predict``.
+
+Thin layer: parse options -> call :mod:`dtoc.hardware` / :mod:`dtoc.identify.girf_fit` -> print a table on
+stderr (rich) or JSON on stdout (``--json``).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Optional
 
 import typer
+
+girf_app = typer.Typer(help="GIRF files: import published ones, fit from measurements, show figures.",
+                       no_args_is_help=True)
+
+
+def _console():
+    from rich.console import Console
+
+    return Console(stderr=True)
+
+
+def _fmt(v, scale=1.0, digits=4):
+    if v is None:
+        return "-"
+    return f"{v * scale:.{digits}g}"
+
+
+def _summary_table(rows, title):
+    from rich.table import Table
+
+    t = Table(title=title)
+    for c in ("term", "DC gain", "-3 dB BW (kHz)", "group delay (us)", "peak |H|", "at (kHz)"):
+        t.add_column(c, justify="right")
+    for r in rows:
+        t.add_row(r["term"], _fmt(r["dc_gain"]), _fmt(r["bandwidth_3db_hz"], 1e-3), _fmt(r["group_delay_s"], 1e6, 3),
+                  _fmt(r["peak_gain"]), _fmt(r["peak_hz"], 1e-3))
+    return t
+
+
+def _emit_girf(gd, out: Path, force: bool, as_json: bool):
+    from dtoc.hardware.girf_analysis import girf_summary
+    from dtoc.hardware.girf_io import save_girf
+
+    p = save_girf(gd, out, force=force)
+    rows = girf_summary(gd)
+    if as_json:
+        sys.stdout.write(json.dumps({"output": str(p), "notes": gd.notes, "terms": rows}, indent=2) + "\n")
+    else:
+        _console().print(_summary_table(rows, f"{p}"))
+        for n in gd.notes:
+            sys.stderr.write(f"note: {n}\n")
+        sys.stderr.write(f"wrote {p}\n")
+
+
+@girf_app.command("import")
+def import_cmd(
+    files: list[Path] = typer.Argument(..., help="published GIRF file(s): one .mat, or the per-axis X/Y/Z .mat files"),
+    out: Path = typer.Option(..., "-o", "--out", help="output GIRF .npz (contract format)"),
+    b0: bool = typer.Option(False, "--b0", help="also import the B0 (zeroth-order) term (unit undocumented in the published files)"),
+    shift_us: float = typer.Option(0.0, "--shift-us", help="add a pure delay to every term, us (positive = later)"),
+    force: bool = typer.Option(False, "--force", help="overwrite an existing output"),
+    as_json: bool = typer.Option(False, "--json", help="print figures as JSON on stdout"),
+):
+    """Convert a published GIRF (MATLAB v5 or v7.3) into the dtoc GIRF .npz (conventions: docs/hardware.md)."""
+    from dtoc.hardware.girf_import import import_girf
+
+    gd = import_girf(files, include_b0=b0, shift_s=shift_us * 1e-6)
+    _emit_girf(gd, out, force, as_json)
+
+
+@girf_app.command("fit")
+def fit_cmd(
+    measured: Path = typer.Argument(..., help="measurement .npz (g and G or k, optional b0)"),
+    out: Path = typer.Option(..., "-o", "--out", help="output GIRF .npz"),
+    reg: float = typer.Option(1e-6, "--reg", help="relative Tikhonov weight lambda / max input power"),
+    fmax_khz: Optional[float] = typer.Option(None, "--fmax-khz", help="frequency window: taper to zero at this frequency, kHz"),
+    tmin_ms: Optional[float] = typer.Option(None, "--tmin-ms", help="time window start (taps kept from here), ms"),
+    tmax_ms: Optional[float] = typer.Option(None, "--tmax-ms", help="time window end, ms"),
+    no_b0: bool = typer.Option(False, "--no-b0", help="do not fit the B0 row even when b0 was measured"),
+    force: bool = typer.Option(False, "--force", help="overwrite an existing output"),
+    as_json: bool = typer.Option(False, "--json", help="print figures as JSON on stdout"),
+):
+    """Estimate a 3x3 GIRF (+ B0 row) from measured input/output pairs by regularised least squares."""
+    from dtoc.errors import InputError
+    from dtoc.hardware.measurement import load_measurement
+    from dtoc.identify.girf_fit import fit_girf
+
+    m = load_measurement(measured)
+    tw = None
+    if tmin_ms is not None or tmax_ms is not None:
+        if tmin_ms is None or tmax_ms is None:
+            raise InputError("give both --tmin-ms and --tmax-ms")
+        tw = (tmin_ms * 1e-3, tmax_ms * 1e-3)
+    if fmax_khz is not None and fmax_khz <= 0:
+        raise InputError("--fmax-khz must be > 0")
+    gd = fit_girf(m, reg=reg, fmax_hz=None if fmax_khz is None else fmax_khz * 1e3, time_window_s=tw, fit_b0=not no_b0)
+    _emit_girf(gd, out, force, as_json)
+
+
+@girf_app.command("show")
+def show_cmd(
+    girf: Path = typer.Argument(..., help="GIRF .npz"),
+    png: Optional[Path] = typer.Option(None, "--png", help="write magnitude / phase / impulse-response plots"),
+    force: bool = typer.Option(False, "--force", help="overwrite an existing PNG"),
+    as_json: bool = typer.Option(False, "--json", help="print figures as JSON on stdout"),
+):
+    """Print DC gain, -3 dB bandwidth and group delay per term; optionally plot the GIRF."""
+    from dtoc.hardware.girf_analysis import girf_summary
+    from dtoc.hardware.girf_io import load_girf
+    from dtoc.hardware.girf_plot import plot_girf
+
+    gd = load_girf(girf)
+    rows = girf_summary(gd)
+    if png is not None:
+        plot_girf(gd, png, title=girf.name, force=force)
+    if as_json:
+        sys.stdout.write(json.dumps({"file": str(girf), "notes": gd.notes, "terms": rows}, indent=2) + "\n")
+    else:
+        _console().print(_summary_table(rows, str(girf)))
+        if png is not None:
+            sys.stderr.write(f"wrote {png}\n")
+
+
+def predict_cmd(
+    seq: Path = typer.Argument(..., help="base sequence: .seq file or spec .yaml"),
+    girf: Optional[Path] = typer.Option(None, "--girf", help="GIRF .npz (shortcut for a one-effect model)"),
+    model: Optional[Path] = typer.Option(None, "--model", help="hardware model JSON"),
+    as_json: bool = typer.Option(False, "--json", help="print the figures as JSON on stdout"),
+    png: Optional[Path] = typer.Option(None, "--png", help="write demanded/realized waveforms and k error plot"),
+    force: bool = typer.Option(False, "--force", help="overwrite an existing PNG"),
+    device: str = typer.Option("cpu", "--device", help="torch device (cpu, cuda)"),
+):
+    """Realized vs demanded: gradient error, k error at ADC samples, B0 phase, EPI odd/even offsets."""
+    from dtoc.hardware.model import resolve_model
+    from dtoc.hardware.predict import plot_prediction, predict
+    from dtoc.seq.read import load_sequence
+
+    m = resolve_model(girf=girf, model=model)
+    ir = load_sequence(seq)
+    res = predict(ir, m, device=device)
+    if png is not None:
+        plot_prediction(ir, res, png, title=f"{seq.name} with {girf or model or 'ideal hardware'}", force=force)
+    res.pop("_arrays")
+    res["sequence"] = str(seq)
+    res["model"] = str(girf or model or "ideal")
+    if as_json:
+        sys.stdout.write(json.dumps(res, indent=2) + "\n")
+        return
+    _print_prediction(res)
+
+
+def _print_prediction(res):
+    from rich.table import Table
+
+    con = _console()
+    t = Table(title=f"{res['sequence']} with {res['model']}")
+    for c in ("axis", "max |G-g| (mT/m)", "RMS (mT/m)", "max |k-k0| (rad/m)", "RMS (rad/m)", "max (dk)", "RMS (dk)"):
+        t.add_column(c, justify="right")
+    for a in ("x", "y", "z"):
+        ge = res["grad_error"][a]
+        ke = res["k_error"].get(a, {})
+        t.add_row(a, _fmt(ge["max_mT_per_m"]), _fmt(ge["rms_mT_per_m"]), _fmt(ke.get("max_rad_per_m")),
+                  _fmt(ke.get("rms_rad_per_m")), _fmt(ke.get("max_dk")), _fmt(ke.get("rms_dk")))
+    con.print(t)
+    con.print(f"max B0: {_fmt(res['b0_max_uT'])} uT; accrued B0 phase at ADC: max {_fmt(res['b0_phase_max_rad'])} rad")
+    epi = res.get("epi")
+    if epi:
+        for key in ("readout", "phase"):
+            e = epi.get(key)
+            if e:
+                con.print(f"EPI {key} ({epi[key + '_axis']}) line k offsets: even {_fmt(e['even_mean_rad_per_m'])}, "
+                          f"odd {_fmt(e['odd_mean_rad_per_m'])} rad/m; odd-even {_fmt(e['odd_minus_even_rad_per_m'])} rad/m "
+                          f"= {_fmt(e['odd_minus_even_dk'])} dk")
 
 
 def register(app: typer.Typer) -> None:
     """Add this stage's commands to app."""
+    app.add_typer(girf_app, name="girf")
+    app.command("predict")(predict_cmd)

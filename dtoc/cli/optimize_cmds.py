@@ -80,19 +80,27 @@ def optimize_cmd(
 
 
 def _run_with_progress(fn):
+    """Run ``fn(progress)`` with a rich progress bar on stderr, started lazily at the first report
+    (so that an early error prints nothing but its one line)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                  TextColumn("loss {task.fields[loss]:.4g}"), TimeElapsedColumn(),
-                  console=_console(), transient=True) as prog:
-        tasks = {}
+    prog = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                    TextColumn("loss {task.fields[loss]:.4g}"), TimeElapsedColumn(),
+                    console=_console(), transient=True)
+    tasks: dict = {}
 
-        def progress(stage, it, total, loss):
-            if stage not in tasks:
-                tasks[stage] = prog.add_task(stage, total=total, loss=float("nan"))
-            prog.update(tasks[stage], completed=it, loss=loss)
+    def progress(stage, it, total, loss):
+        if not tasks:
+            prog.start()
+        if stage not in tasks:
+            tasks[stage] = prog.add_task(stage, total=total, loss=float("nan"))
+        prog.update(tasks[stage], completed=it, loss=loss)
 
+    try:
         return fn(progress)
+    finally:
+        if tasks:
+            prog.stop()
 
 
 def _console():

@@ -14,7 +14,8 @@ import typer
 def _console():
     from rich.console import Console
 
-    return Console(stderr=True)
+    con = Console(stderr=True)
+    return con if con.is_terminal else Console(stderr=True, width=160)
 
 
 def build_cmd(
@@ -26,10 +27,16 @@ def build_cmd(
     from dtoc.seq.build import SpecLimitWarning, build_to_file
     from dtoc.seq.spec import load_spec
 
+    from dtoc.errors import InputError
+
     s = load_spec(spec)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", SpecLimitWarning)
-        p = build_to_file(s, out, force=force)
+        try:
+            p = build_to_file(s, out, force=force)
+        except InputError as e:
+            msg = str(e)
+            raise InputError(msg if msg.startswith(str(spec)) or msg.startswith(str(out)) else f"{spec}: {msg}") from None
     for w in caught:
         if issubclass(w.category, SpecLimitWarning):
             sys.stderr.write(f"dtoc: warning: {w.message}\n")

@@ -24,7 +24,6 @@ import math
 from functools import lru_cache
 
 import numpy as np
-import scipy.fft
 import torch
 
 HALF_WIDTH_ZEROS = 16
@@ -96,22 +95,33 @@ def _shift_slice(c: torch.Tensor, start: int, T: int) -> torch.Tensor:
     return c[..., s:s + T]
 
 
-def fft_convolve(g: torch.Tensor, h: torch.Tensor, shift: int) -> torch.Tensor:
+def conv_length(T: int, L: int) -> tuple[int, int]:
+    """(full linear-convolution length N = T + L - 1, FFT length >= N)."""
+    N = T + L - 1
+    return N, 1 << max(1, (N - 1).bit_length())  # power of two: torch's FFTs are slowest on 5-smooth sizes
+
+
+def kernel_spectrum(h: torch.Tensor, T: int) -> torch.Tensor:
+    """rfft of kernel taps (O, I, L) zero-padded for waveforms of length T (reusable across calls)."""
+    _, nfft = conv_length(T, h.shape[-1])
+    return torch.fft.rfft(h, n=nfft)
+
+
+def fft_convolve(g: torch.Tensor, h: torch.Tensor, shift: int, spectrum: torch.Tensor | None = None) -> torch.Tensor:
     """Multi-input multi-output linear convolution by zero-padded FFT.
 
     Args:
         g: (..., I, T) input waveforms on the grid dt (zero outside).
         h: (O, I, L) taps on the same grid, tap j at time ``(shift + j) * dt``.
         shift: integer start of the kernel in samples (negative for centred kernels).
+        spectrum: optional precomputed :func:`kernel_spectrum` of ``h`` for this T.
     Returns:
         (..., O, T) with ``out[o, n] = sum_i sum_j h[o, i, j] g[i, n - j - shift]``.
     """
     T = g.shape[-1]
-    L = h.shape[-1]
-    N = T + L - 1
-    nfft = scipy.fft.next_fast_len(N, real=True)
+    N, nfft = conv_length(T, h.shape[-1])
     Gf = torch.fft.rfft(g, n=nfft)
-    Hf = torch.fft.rfft(h.to(g.dtype), n=nfft)
-    Cf = torch.einsum("...if,oif->...of", Gf, Hf)
+    Hf = torch.fft.rfft(h.to(g.dtype), n=nfft) if spectrum is None else spectrum
+    Cf = (Gf.unsqueeze(-3) * Hf).sum(-2)  # (..., O, F); elementwise (an einsum here becomes F tiny matmuls)
     c = torch.fft.irfft(Cf, n=nfft)[..., :N]
     return _shift_slice(c, -shift, T)

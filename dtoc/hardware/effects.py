@@ -27,7 +27,7 @@ from torch import nn
 
 from dtoc.constants import AXES
 from dtoc.errors import InputError
-from dtoc.hardware.convolution import fft_convolve, resample_kernel
+from dtoc.hardware.convolution import fft_convolve, kernel_spectrum, resample_kernel
 from dtoc.hardware.recursion import exp_response
 
 
@@ -320,6 +320,8 @@ class Girf(Effect):
     resampled onto the waveform grid when ``dt`` differs or ``t0`` is not a multiple of it (see
     :mod:`dtoc.hardware.convolution`) and applied by zero-padded FFT convolution (the waveform is zero
     outside its samples).  ``h`` and ``h0`` are parameters (identification may refine them).
+    Axes whose response is exactly ideal (unit tap at t = 0, no cross/B0 terms; e.g. z of a 2-axis
+    published GIRF) are passed through unchanged (their parameters then have no effect).
     ``file`` remembers where the kernel came from (model files reference it).
     """
 
@@ -344,6 +346,27 @@ class Girf(Effect):
         self.dt_s = float(dt_s)
         self.t0_s = float(t0_s)
         self.file = file
+        self.passthrough = self._ideal_axes(h, self.h0, self.dt_s, self.t0_s)
+
+    @staticmethod
+    def _ideal_axes(h: np.ndarray, h0, dt_s: float, t0_s: float) -> tuple[int, ...]:
+        """Axes with an exactly ideal response (unit tap at t = 0, no cross or B0 terms), e.g. an axis
+        absent from a published GIRF: they are passed through unchanged instead of being band-limited
+        by the kernel's resampling."""
+        out = []
+        i0 = -t0_s / dt_s
+        if abs(i0 - round(i0)) > 1e-6 or not 0 <= round(i0) < h.shape[2]:
+            return ()
+        i0 = int(round(i0))
+        h0n = None if h0 is None else h0.detach().numpy()
+        for a in range(3):
+            delta = np.zeros(h.shape[2])
+            delta[i0] = 1.0
+            others = [b for b in range(3) if b != a]
+            if (np.array_equal(h[a, a], delta) and not np.any(h[a, others]) and not np.any(h[others, a])
+                    and (h0n is None or not np.any(h0n[a]))):
+                out.append(a)
+        return tuple(out)
 
     def kernels(self, dt_s: float, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, int]:
         """(h (3,3,L2), h0 (1,3,L2) or None, shift) on the grid dt_s, dtype/device of ``like``."""
@@ -352,10 +375,30 @@ class Girf(Effect):
         hr, shift = resample_kernel(hs, self.dt_s, self.t0_s, dt_s)
         return hr[:3], (hr[3:] if self.h0 is not None else None), shift
 
-    def forward(self, g, b0, dt_s):
+    def _full_kernel(self, dt_s: float, g: torch.Tensor):
+        """Resampled (3|4, 3, L2) kernel, shift and its spectrum; cached while the kernel is frozen
+        (no gradient w.r.t. h/h0 requested), e.g. inside an optimizer loop over the waveform."""
+        frozen = not (torch.is_grad_enabled() and (self.h.requires_grad or (self.h0 is not None and self.h0.requires_grad)))
+        key = (float(dt_s), g.shape[-1], g.dtype, str(g.device), self.h._version,
+               None if self.h0 is None else self.h0._version)
+        if frozen and getattr(self, "_cache_key", None) == key:
+            return self._cache_val
         h, h0, shift = self.kernels(dt_s, g)
         full = h if h0 is None else torch.cat([h, h0], dim=0)
-        out = fft_convolve(g, full, shift)
+        if frozen:
+            full = full.detach()
+        spec = kernel_spectrum(full, g.shape[-1])
+        if frozen:
+            self._cache_key, self._cache_val = key, (full, shift, spec)
+        return full, shift, spec
+
+    def forward(self, g, b0, dt_s):
+        full, shift, spec = self._full_kernel(dt_s, g)
+        h0 = full[3:] if full.shape[0] == 4 else None
+        out = fft_convolve(g, full, shift, spectrum=spec)
+        if self.passthrough:
+            keep = [g[:, a:a + 1] if a in self.passthrough else out[:, a:a + 1] for a in range(3)]
+            out = torch.cat(keep + ([out[:, 3:]] if h0 is not None else []), dim=1)
         if h0 is None:
             return out, b0
         return out[:, :3], b0 + out[:, 3]

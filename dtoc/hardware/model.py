@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 from torch import nn
 
 from dtoc.errors import InputError
-from dtoc.hardware.effects import EFFECTS, Effect, Girf, Lti
+from dtoc.hardware.effects import EFFECTS, Effect, Girf
 from dtoc.util.atomic import atomic_write_text
 
 Axis = Optional[Literal["x", "y", "z"]]
@@ -138,6 +138,15 @@ class HardwareModel(nn.Module):
         if squeeze:
             return G[0], b0[0]
         return G, b0
+
+    def frozen(self) -> "HardwareModel":
+        """Stop gradients w.r.t. the model's parameters (in place; returns self).
+
+        Use when optimizing the waveform through a fixed model: no parameter gradients are computed and
+        GIRF effects reuse their resampled kernel spectrum across calls.
+        """
+        self.requires_grad_(False)
+        return self
 
     @property
     def is_identity(self) -> bool:

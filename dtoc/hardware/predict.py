@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from dtoc.constants import AXES, GAMMA_RAD_PER_S_PER_MT
+from dtoc.constants import AXES
 from dtoc.hardware.model import HardwareModel
 from dtoc.seq.ir import SequenceIR
 

@@ -282,12 +282,56 @@ def screen_lti(ws: Workspace, ctx: Context, axis: str, n_taps: int | None = None
                 dG[j, :, : N + lag] = x[:, -lag:]
         return {a: dG}, None
 
-    A, b = ws.unit_stats(make, L, full=True)
+    if ws.data.k is None:  # G only: the columns change nothing else
+        A, b = _lti_stats_toeplitz(ws, ctx.P[:, a], a, [j + j0 for j in range(L)])
+    else:
+        A, b = ws.unit_stats(make, L, full=True)
     res = cross_validate(A, b, ws.c_units, ws.folds, [list(range(L))], free=True)
     taps = [float(v) for v in res.theta]
     dt = ws.data.dt_s
     return _finish(ws, "lti", axis, None, {"taps": taps, "dt_s": dt, "t0_s": j0 * dt}, L, res,
                    notes=lti_features(np.asarray(taps), j0, dt))
+
+
+def _lti_stats_toeplitz(ws: Workspace, x: np.ndarray, a: int, lags: list) -> tuple[np.ndarray, np.ndarray]:
+    """Per-unit Gram and projection of shifted copies x[n - lag] on the G channel of axis a, in O(p N).
+
+    Column j is x(t - lag_j dt) (zero outside the record), whitened by sigma_G, restricted to the unit's
+    samples; A[j, l] = sum_n x[n - lag_j] x[n - lag_l] is a range sum of the product sequence
+    x[m] x[m - d] (d = lag_l - lag_j), taken from prefix sums.  Equal to :meth:`Workspace.unit_stats`
+    with ``full=True`` for a G-only measurement (tests check it), without forming the p columns.
+    """
+    U = len(ws.folds.units)
+    p = len(lags)
+    lags = np.asarray(lags)
+    N = x.shape[-1]
+    s2 = ws.sigma["G"] ** 2
+    A = np.zeros((U, p, p))
+    b = np.zeros((U, p))
+    for ui, u in enumerate(ws.folds.units):
+        if not ws.data.axes_measured[u.m, a]:
+            continue
+        xm = x[u.m]
+        z = ws.z["G"][u.m, a]
+        for j, lag in enumerate(lags):  # b_j = sum_{n in unit} x[n - lag] z[n]
+            lo, hi = max(u.n0, lag), min(u.n1, N + lag)
+            if hi > lo:
+                b[ui, j] = np.einsum("n,n->", xm[lo - lag : hi - lag], z[lo:hi])
+        for d in range(p):  # pairs (j, j + d): lag_l - lag_j = d (consecutive lags)
+            prod = np.zeros(N)
+            prod[d:] = xm[d:] * xm[: N - d]  # prod[m] = x[m] x[m - d]
+            C = np.concatenate([[0.0], np.cumsum(prod)])
+            j = np.arange(p - d)
+            lagj = lags[j]
+            # n ranges over the unit; m = n - lag_j must lie in [d, N): m in [n0 - lag_j, n1 - lag_j)
+            m_lo = np.clip(u.n0 - lagj, 0, N)
+            m_hi = np.clip(u.n1 - lagj, 0, N)
+            vals = np.where(m_hi > m_lo, C[m_hi] - C[m_lo], 0.0)
+            A[ui, j, j + d] = vals
+            A[ui, j + d, j] = vals
+        b[ui] /= ws.sigma["G"]
+        A[ui] /= s2
+    return A, b
 
 
 def lti_features(taps: np.ndarray, first_lag: int, dt_s: float) -> dict:
@@ -325,13 +369,13 @@ def screen_slew_limit(ws: Workspace, ctx: Context) -> Proposal | None:
         return ws.unit_stats(make, len(limits_T_per_m_per_s), chunk=max(1, ws.data.M))
 
     smax_T = smax * 1e-3
-    coarse = smax_T * np.geomspace(0.2, 0.98, 12)
+    coarse = smax_T * np.geomspace(0.2, 0.98, 9)
     A, b = stats(coarse)
     res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(coarse))], free=False)
     j = res.option
     lo = coarse[max(j - 1, 0)]
     hi = coarse[min(j + 1, len(coarse) - 1)]
-    fine = np.linspace(lo, hi, 9)
+    fine = np.linspace(lo, hi, 7)
     A2, b2 = stats(fine)
     res2 = cross_validate(A2, b2, ws.c_units, ws.folds, [[j] for j in range(len(fine))], free=False)
     best = res2 if res2.full_chi2 <= res.full_chi2 else res

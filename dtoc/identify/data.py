@@ -88,6 +88,10 @@ class IdentData:
         self.axes_measured = np.asarray(self.axes_measured, dtype=bool)
         if self.axes_measured.shape != (M, 3):
             raise InputError(f"measurement key 'axes_measured': expected shape {(M, 3)}, got {self.axes_measured.shape}")
+        for name in ("G", "k"):  # unmeasured entries may hold anything (NaN): zero them once
+            a = getattr(self, name)
+            if a is not None:
+                setattr(self, name, np.where(self.axes_measured[:, :, None], a, 0.0))
         self.sigma = {c: (None if self.sigma.get(c) is None else float(self.sigma[c])) for c in CHANNELS}
         if not self.labels:
             self.labels = [f"w{m}" for m in range(M)]
@@ -112,9 +116,8 @@ class IdentData:
         return np.broadcast_to(self.axes_measured[:, :, None], self.g.shape).astype(np.float64)
 
     def measured(self, channel: str) -> np.ndarray:
-        """The measured channel with unmeasured entries set to 0 (they carry no weight anyway)."""
-        a = getattr(self, channel)
-        return np.where(self.mask(channel) > 0, a, 0.0) if channel != "b0" else a
+        """The measured channel (unmeasured entries are 0 and carry no weight)."""
+        return getattr(self, channel)
 
 
 def from_measurement(meas) -> IdentData:

@@ -26,13 +26,14 @@ import numpy as np
 import torch
 
 from dtoc.constants import AXES
+from dtoc.errors import InputError
 from dtoc.hardware.effects import SlewLimit
 from dtoc.hardware.model import HardwareModel
 from dtoc.identify import diagnostics
-from dtoc.identify.candidates import Context, Proposal, screen_all
+from dtoc.identify.candidates import Context, Proposal, lti_features, screen_all
 from dtoc.identify.data import IdentData
 from dtoc.identify.folds import Folds, make_folds
-from dtoc.identify.noise import NoiseEstimate, estimate_sigma
+from dtoc.identify.noise import NoiseEstimate, difference_sigma, estimate_sigma, quiet_samples
 from dtoc.identify.twin import Twin
 from dtoc.identify.workspace import Workspace
 
@@ -96,7 +97,33 @@ def _chi2(ws: Workspace) -> float:
 
 
 def identify(data: IdentData, declared: HardwareModel | None = None, *, max_effects: int = 6, threshold: float = 10.0,
-             kinds=None, explained_ratio: float = 1.2, progress=None) -> IdentifyResult:
+             kinds=None, explained_ratio: float = 1.2, progress=None, threads: int | None = 1) -> IdentifyResult:
+    """Trace the residual of ``declared`` on ``data`` to missing effects (see module docstring).
+
+    Args:
+        data: the measurement.
+        declared: declared hardware model (None: ideal hardware).
+        max_effects: cap on added effects.
+        threshold: minimum held-out score (chi-square units) to add an effect.
+        kinds: restrict the candidate library to these kinds (default: all).
+        explained_ratio: held-out RMS / noise bound for ``explained``.
+        progress: optional callable(str) for progress lines.
+        threads: torch intra-op threads while identifying (restored afterwards; None: leave as is).  The
+            work is many medium-sized operations: one thread is as fast on an idle machine and many times
+            faster on a shared one (measured: docs/benchmarks.md).
+    """
+    old = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+    try:
+        return _identify(data, declared, max_effects=max_effects, threshold=threshold, kinds=kinds,
+                         explained_ratio=explained_ratio, progress=progress)
+    finally:
+        torch.set_num_threads(old)
+
+
+def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_effects: int = 6, threshold: float = 10.0,
+              kinds=None, explained_ratio: float = 1.2, progress=None) -> IdentifyResult:
     """Trace the residual of ``declared`` on ``data`` to missing effects (see module docstring).
 
     Args:
@@ -117,6 +144,9 @@ def identify(data: IdentData, declared: HardwareModel | None = None, *, max_effe
     noise = {}
     for c in data.channels():
         noise[c] = estimate_sigma(data.sigma.get(c), data.g, data.measured(c), ws0.res[c], data.mask(c))
+        if noise[c].method == "none":
+            raise InputError(f"measurement: too few measured samples to estimate the {c} noise floor; "
+                             f"give 'sigma_{c}' in the file")
     sigma = {c: noise[c].sigma for c in noise}
     twin.sigma = sigma
     ws = Workspace(data, sigma, folds, pred0)
@@ -152,6 +182,15 @@ def identify(data: IdentData, declared: HardwareModel | None = None, *, max_effe
     twin.set_stderr(fit)
     ws = Workspace(data, sigma, folds, twin.predict())
     res_after = ws.res
+    # The difference estimator is only ever biased upwards by model error left in the residual, so the
+    # estimate from the final (smaller) residual is the better one when it is lower.
+    for c in list(noise):
+        if noise[c].method.startswith("difference"):
+            q = quiet_samples(data.g)
+            re = difference_sigma(res_after[c], data.mask(c), quiet=q.all(axis=1) if c == "b0" else q)
+            if re is not None and re.sigma < noise[c].sigma:
+                noise[c] = NoiseEstimate(re.sigma, re.method + ", final residual", re.n_samples)
+                sigma[c] = re.sigma
     before = diagnostics.rmse(data, res_before)
     after = diagnostics.rmse(data, res_after)
     # Held-out: each fold refitted on its training samples, residual on its test samples.
@@ -159,7 +198,7 @@ def identify(data: IdentData, declared: HardwareModel | None = None, *, max_effe
     if twin.found:
         state = [copy.deepcopy(f.effect.state_dict()) for f in twin.found]
         for k in range(folds.K):
-            twin.refit(weight=folds.sample_mask(k, train=True))
+            twin.heldout_refit(fit, folds.sample_mask(k, train=True))
             r = Workspace(data, sigma, folds, twin.predict()).res
             test = folds.sample_mask(k, train=False)
             for c in r:
@@ -171,6 +210,9 @@ def identify(data: IdentData, declared: HardwareModel | None = None, *, max_effe
     else:
         held_res = res_after
     heldout_after = diagnostics.rmse(data, held_res)
+    for c in data.channels():
+        if heldout_after[c] is None or not np.isfinite(heldout_after[c]):
+            heldout_after[c] = float("inf")  # a held-out refit failed: never "explained"
     heldout_before = diagnostics.rmse(data, res_before)
     # Explained?
     remaining = []
@@ -201,10 +243,15 @@ def identify(data: IdentData, declared: HardwareModel | None = None, *, max_effe
         if fo.effect.kind == "slew_limit":
             remaining.append("a non-linear slew-rate limit was modelled: the amplifier cannot follow the demanded slew")
         if fo.effect.kind == "lti":
-            n = fo.notes
+            e = fo.effect
+            n = lti_features(e.taps.detach().numpy().reshape(-1), int(round(e.t0_s / e.dt_s)), e.dt_s)
             if n:
                 remaining.append(f"lti correction on {fo.effect.axis}: largest |dH| {n['peak_abs']:.3f} near "
                                  f"{n['peak_hz'] / 1e3:.2f} kHz (no parametric effect explained it)")
+    for i, n in fit.get("at_bound", []):
+        e = twin.found[i].effect
+        remaining.append(f"{e.kind} ({e.axis or ''}{'<-' + e.input_axis if e.input_axis else ''}) parameter {n} ended at "
+                         f"its bound: the data call for a term outside the modelled range")
     if len(twin.found) >= max_effects:
         remaining.append(f"stopped at the cap of {max_effects} added effects")
     say("done")

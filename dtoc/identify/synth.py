@@ -1,6 +1,6 @@
 """Synthetic measurements for tests, examples and benchmarks.
 
-:func:`test_waveforms` makes demanded gradients like those used to characterise gradient systems: on each
+:func:`probe_waveforms` makes demanded gradients like those used to characterise gradient systems: on each
 axis independently, a random train of trapezoids and triangles (random signed amplitude, slew between 30 %
 and 100 % of the limit, random plateau and gap lengths), starting and ending at zero.  Axes differ, so
 cross terms are identifiable.  :func:`simulate_measurement` plays them through a "true scanner"
@@ -20,7 +20,7 @@ from dtoc.identify.data import IdentData, integrate_k
 from dtoc.util.atomic import atomic_write_bytes
 
 
-def test_waveforms(M: int, N: int, dt_s: float = 10e-6, gmax_mT_per_m: float = 30.0,
+def probe_waveforms(M: int, N: int, dt_s: float = 10e-6, gmax_mT_per_m: float = 30.0,
                    smax_T_per_m_per_s: float = 150.0, seed: int = 0, axes=(0, 1, 2)) -> np.ndarray:
     """(M, 3, N) demanded test gradients in mT/m (see module docstring); unused axes are zero."""
     rng = np.random.default_rng(seed)
@@ -91,3 +91,35 @@ def measurement_npz_bytes(d: IdentData) -> bytes:
 def save_measurement(d: IdentData, path, force: bool = False):
     """Write the measurement ``.npz`` atomically."""
     return atomic_write_bytes(path, measurement_npz_bytes(d), force=force)
+
+
+def lowpass_girf(dt_s: float = 10e-6, bandwidth_hz: float = 12e3, cross: float = 0.01, cross_tau_s: float = 50e-6,
+                 b0_uT_per_mT_per_m: float | None = None, n_taps: int = 64):
+    """A self-made, smooth GIRF for tests and examples (time domain, causal, 10 us taps by default).
+
+    Self terms: a normalised gamma-shaped impulse response (second-order low-pass, -3 dB near
+    ``bandwidth_hz``) with DC gain 1, slightly different per axis; cross terms: ``cross`` x an exponential
+    of ``cross_tau_s`` (DC gain ``cross``); optional B0 row: ``b0_uT_per_mT_per_m`` x the same exponential.
+
+    Returns:
+        :class:`dtoc.hardware.girf_io.GirfData` (dt, t0 = 0, h (3, 3, L), h0 (3, L) or None).
+    """
+    from dtoc.hardware.girf_io import GirfData
+
+    t = (np.arange(n_taps) + 0.5) * dt_s
+    h = np.zeros((3, 3, n_taps))
+    for a in range(3):
+        # second-order low-pass: t exp(-t/T), |H| = 1/(1 + (2 pi f T)^2): -3 dB at f = sqrt(sqrt(2)-1)/(2 pi T).
+        T = np.sqrt(np.sqrt(2) - 1) / (2 * np.pi * bandwidth_hz * (1.0 + 0.05 * a))
+        k = t * np.exp(-t / T)
+        h[a, a] = k / k.sum()
+    e = np.exp(-t / cross_tau_s)
+    e /= e.sum()
+    for o in range(3):
+        for i in range(3):
+            if o != i:
+                h[o, i] = cross * (1.0 + 0.3 * (o - i)) * e
+    h0 = None
+    if b0_uT_per_mT_per_m is not None:
+        h0 = np.stack([b0_uT_per_mT_per_m * (1.0 + 0.2 * i) * e for i in range(3)])
+    return GirfData(dt_s=dt_s, t0_s=0.0, h=h, h0=h0, source="dtoc.identify.synth.lowpass_girf")

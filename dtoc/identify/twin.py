@@ -31,6 +31,22 @@ from dtoc.identify.workspace import Prediction
 _LOG_PARAMS = {"tau_s", "max_slew_T_per_m_per_s"}
 
 
+# Large products are taken with einsum rather than BLAS: identify runs on a few cores shared with other
+# jobs, where multi-threaded BLAS on tall-skinny products is many times slower than one thread.
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.einsum("n,n->", a, b))
+
+
+def _gram(J: np.ndarray) -> np.ndarray:
+    """J^T J of a tall (n, p) Jacobian."""
+    return np.einsum("np,nq->pq", J, J)
+
+
+def _proj(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """J^T r."""
+    return np.einsum("np,n->p", J, r)
+
+
 @dataclass
 class Found:
     """One effect added by the search, with what the report needs about it."""
@@ -76,10 +92,32 @@ class Twin:
         return m
 
     # -- prediction -------------------------------------------------------------------------------
+    def _declared_out(self):
+        """Declared chain applied to the measurement's g, computed once (it has no free parameters)."""
+        if not hasattr(self, "_decl_cache"):
+            with torch.no_grad():
+                self._decl_cache = self.declared(self.g, self.data.dt_s)
+        return self._decl_cache
+
+    def forward_own(self, model_effects=None):
+        """(callable() -> (G, b0)) evaluating the current chain on the measurement's g, reusing the cached
+        declared output when no found effect precedes the declared chain."""
+        fs = self.found if model_effects is None else model_effects
+        if any(f.position == "pre" for f in fs):
+            model = self.chain(fs)
+            return model, lambda m: m(self.g, self.data.dt_s)
+        post = [f.effect for f in fs if f.position == "post"] + [f.effect for f in fs if f.position == "lti"]
+        model = HardwareModel(post)
+        Gd, b0d = self._declared_out()
+        return model, lambda m: m(Gd, self.data.dt_s, b0=b0d)
+
     @torch.no_grad()
     def predict(self, g: np.ndarray | None = None, include=None) -> Prediction:
-        gt = self.g if g is None else torch.as_tensor(g, dtype=torch.float64)
-        G, b0 = self.chain(include)(gt, self.data.dt_s)
+        if g is None:
+            model, run = self.forward_own(include)
+            G, b0 = run(model)
+        else:
+            G, b0 = self.chain(include)(torch.as_tensor(g, dtype=torch.float64), self.data.dt_s)
         return Prediction(G.numpy().copy(), b0.numpy().copy())
 
     def predict_fn(self, include=None):
@@ -96,8 +134,8 @@ class Twin:
             out[c] = (torch.as_tensor(d.measured(c) * mask), torch.as_tensor(mask), self.sigma[c])
         return out
 
-    def residual_torch(self, model: HardwareModel, targets) -> torch.Tensor:
-        G, b0 = model(self.g, self.data.dt_s)
+    def residual_torch(self, model, targets, run=None) -> torch.Tensor:
+        G, b0 = model(self.g, self.data.dt_s) if run is None else run(model)
         parts = []
         for c, (y, mask, s) in targets.items():
             if c == "G":
@@ -131,17 +169,32 @@ class Twin:
             u.append(math.log(v) if t == "log" else (v / self.data.dt_s if t == "dt" else v))
         return np.asarray(u, dtype=np.float64)
 
-    def _to_value(self, t, u):
+    def _bounds(self, t, name=""):
+        """Box for a transformed parameter: log time constants / slew limits within [dt/4, 100 x record]
+        (resp. a generous slew range), delays within +- half the record (in dt)."""
+        T = self.data.N * self.data.dt_s
+        if t == "log" and name == "tau_s":
+            return math.log(self.data.dt_s / 4), math.log(100.0 * T)
+        if t == "log":
+            return math.log(1e-3), math.log(1e6)
+        if t == "dt":
+            return -0.5 * self.data.N, 0.5 * self.data.N
+        return -math.inf, math.inf
+
+    def _to_value(self, t, u, name=""):
+        lo, hi = self._bounds(t, name)
+        if math.isfinite(lo):
+            u = torch.clamp(u, lo, hi)
         return torch.exp(u) if t == "log" else (u * self.data.dt_s if t == "dt" else u)
 
     def _set_u(self, free, u) -> None:
         for (i, n, t), ui in zip(free, u):
             p = getattr(self.found[i].effect, n)
             with torch.no_grad():
-                p.copy_(self._to_value(t, torch.as_tensor(float(ui), dtype=torch.float64)).reshape(p.shape))
+                p.copy_(self._to_value(t, torch.as_tensor(float(ui), dtype=torch.float64), n).reshape(p.shape))
 
     def _resid_of_u(self, free, targets):
-        model = self.chain()
+        model, run = self.forward_own()
         names = {}
         for j, f in enumerate(model.effects):
             names[id(f)] = j
@@ -151,8 +204,8 @@ class Twin:
             for k, (i, n, t) in enumerate(free):
                 eff = self.found[i].effect
                 key = f"effects.{names[id(eff)]}.{n}"
-                over[key] = self._to_value(t, u[k]).reshape(getattr(eff, n).shape)
-            return self.residual_torch(_Override(model, over), targets)
+                over[key] = self._to_value(t, u[k], n).reshape(getattr(eff, n).shape)
+            return self.residual_torch(_Override(model, over), targets, run)
 
         return fn
 
@@ -194,18 +247,25 @@ class Twin:
         free = self._free()
         self._refit_lti(weight)
         if not free:
+            model, run = self.forward_own()
             with torch.no_grad():
-                r = self.residual_torch(self.chain(), targets).numpy()
-            return {"chi2": float(r @ r), "dof": int(np.count_nonzero(r)), "cov_u": np.zeros((0, 0)), "free": free}
+                r = self.residual_torch(model, targets, run).numpy()
+            return {"chi2": _dot(r, r), "dof": int(np.count_nonzero(r)), "cov_u": np.zeros((0, 0)), "free": free}
         fn = self._resid_of_u(free, targets)
         u = self._get_u(free)
         r, J = self._jacobian(fn, u)
-        chi2 = float(r @ r)
+        chi2 = _dot(r, r)
         lam = 1e-3
         for _ in range(max_iter):
-            JTJ = J.T @ J
-            g = J.T @ r
+            JTJ = _gram(J)
+            g = _proj(J, r)
             D = np.diag(np.maximum(np.diag(JTJ), 1e-30))
+            try:  # Gauss-Newton predicted decrease g^T (J^T J)^-1 g: stop when it is negligible
+                pred = float(g @ np.linalg.solve(JTJ + 1e-12 * D, g))
+            except np.linalg.LinAlgError:
+                pred = np.inf
+            if pred < max(tol * chi2, 1e-6):
+                break
             improved = False
             for _try in range(8):
                 try:
@@ -216,7 +276,7 @@ class Twin:
                 u_new = u + step
                 with torch.no_grad():
                     r_new = fn(torch.as_tensor(u_new)).numpy()
-                chi2_new = float(r_new @ r_new)
+                chi2_new = _dot(r_new, r_new)
                 if np.isfinite(chi2_new) and chi2_new < chi2:
                     improved = True
                     break
@@ -236,14 +296,39 @@ class Twin:
             self._refit_lti(weight)
             fn = self._resid_of_u(free, targets)
             r, J = self._jacobian(fn, u)
-            chi2 = float(r @ r)
+            chi2 = _dot(r, r)
         dof = max(int(np.count_nonzero(np.concatenate([t[1].numpy().reshape(-1) for t in targets.values()]))) - len(u), 1)
-        JTJ = J.T @ J
+        JTJ = _gram(J)
         try:
-            cov = np.linalg.inv(JTJ) * max(1.0, chi2 / dof)
+            cov = np.linalg.pinv(JTJ, rcond=1e-12, hermitian=True) * max(1.0, chi2 / dof)
         except np.linalg.LinAlgError:
             cov = np.full((len(u), len(u)), np.nan)
-        return {"chi2": chi2, "dof": dof, "cov_u": cov, "free": free}
+        cov[np.diag(JTJ) <= 0, :] = np.nan  # a parameter the data do not constrain (e.g. clamped at a bound)
+        at_bound = []
+        for (i, n, t), ui in zip(free, u):
+            lo, hi = self._bounds(t, n)
+            if math.isfinite(lo) and not (lo < ui < hi):
+                at_bound.append((i, n))
+        return {"chi2": chi2, "dof": dof, "cov_u": cov, "free": free, "u": u, "J": J, "r": r, "at_bound": at_bound}
+
+    def heldout_refit(self, fit: dict, weight: np.ndarray) -> None:
+        """Refit on the training samples ``weight`` (M, N) by one Gauss-Newton step from the full-data
+        optimum ``fit`` (its Jacobian, rows restricted to the training samples; exact for parameters that
+        enter linearly, second-order accurate otherwise), then re-solve lti taps on the same samples.
+        Leaves the parameters at the training-set estimate (the caller restores them)."""
+        free = fit["free"]
+        if free:
+            rows = np.concatenate([t[1].numpy().reshape(-1) for t in self._targets(weight).values()]) > 0
+            J = fit["J"][rows]
+            r = fit["r"][rows]
+            JTJ = _gram(J)
+            D = np.diag(np.maximum(np.diag(JTJ), 1e-30))
+            try:
+                step = -np.linalg.solve(JTJ + 1e-12 * D, _proj(J, r))
+            except np.linalg.LinAlgError:
+                step = np.zeros(len(free))
+            self._set_u(free, fit["u"] + step)
+        self._refit_lti(weight)
 
     def set_stderr(self, fit: dict) -> None:
         """Store standard errors (in the parameters' own units) from a full-data :meth:`refit`."""
@@ -258,57 +343,54 @@ class Twin:
 
     # -- lti taps ---------------------------------------------------------------------------------
     def _refit_lti(self, weight: np.ndarray | None) -> None:
-        """Re-solve the taps of found lti effects by linear least squares (they sit last in the chain)."""
+        """Re-solve the taps of found lti effects by linear least squares (they sit last in the chain).
+
+        Each lti acts on its own axis and G/k of different axes are independent, so the normal equations are
+        block-diagonal: one (L, L) system per lti effect, built from that axis only.
+        """
+        from dtoc.identify.data import integrate_k
+
         ltis = [f for f in self.found if f.position == "lti"]
         if not ltis:
             return
         d = self.data
         others = [f for f in self.found if f.position != "lti"]
         base = self.predict(include=others)
-        cols = []
+        w = np.ones((d.M, d.N)) if weight is None else weight
         for f in ltis:
             eff: Lti = f.effect
             a = eff._ax
             L = eff.taps.shape[-1]
             j0 = int(round(eff.t0_s / eff.dt_s))
-            x = base.G[:, a]
+            x = base.G[:, a]  # (M, N)
+            cols = np.zeros((L, d.M, d.N))
             for j in range(L):
                 lag = j + j0
-                c = np.zeros_like(base.G)
-                if lag >= 0:
-                    c[:, a, lag:] = x[:, : d.N - lag]
-                else:
-                    c[:, a, : d.N + lag] = x[:, -lag:]
-                cols.append(c)
-        w = np.ones((d.M, d.N)) if weight is None else weight
-        from dtoc.identify.data import integrate_k
-
-        rows_A = 0
-        rows_b = 0
-        for ch in d.channels():
-            if ch == "b0":
-                continue
-            mask = d.mask(ch) * w[:, None, :]
-            y = d.measured(ch)
-            pred = base.G if ch == "G" else integrate_k(base.G, d.dt_s)
-            z = ((y - pred) * mask / self.sigma[ch]).reshape(-1)
-            S = np.stack([((c if ch == "G" else integrate_k(c, d.dt_s)) * mask / self.sigma[ch]).reshape(-1) for c in cols])
-            rows_A = rows_A + S @ S.T
-            rows_b = rows_b + S @ z
-        A = np.asarray(rows_A)
-        lam = 1e-12 * max(np.trace(A) / len(A), 1e-300)
-        theta = np.linalg.solve(A + lam * np.eye(len(A)), np.asarray(rows_b))
-        try:
-            cov = np.linalg.inv(A + lam * np.eye(len(A)))
-        except np.linalg.LinAlgError:
-            cov = np.full_like(A, np.nan)
-        k = 0
-        for f in ltis:
-            L = f.effect.taps.shape[-1]
+                if 0 <= lag < d.N:
+                    cols[j, :, lag:] = x[:, : d.N - lag]
+                elif -d.N < lag < 0:
+                    cols[j, :, : d.N + lag] = x[:, -lag:]
+            A = np.zeros((L, L))
+            b = np.zeros(L)
+            for ch in d.channels():
+                if ch == "b0":
+                    continue
+                mask = d.mask(ch)[:, a] * w
+                y = d.measured(ch)[:, a]
+                pred = x if ch == "G" else integrate_k(x, d.dt_s)
+                z = ((y - pred) * mask / self.sigma[ch]).reshape(-1)
+                S = ((cols if ch == "G" else integrate_k(cols, d.dt_s)) * mask[None] / self.sigma[ch]).reshape(L, -1)
+                A += np.einsum("pn,qn->pq", S, S)
+                b += np.einsum("pn,n->p", S, z)
+            lam = 1e-12 * max(np.trace(A) / L, 1e-300)
+            theta = np.linalg.solve(A + lam * np.eye(L), b)
+            try:
+                cov = np.linalg.inv(A + lam * np.eye(L))
+            except np.linalg.LinAlgError:
+                cov = np.full_like(A, np.nan)
             with torch.no_grad():
-                f.effect.taps.copy_(torch.as_tensor(theta[k : k + L]).reshape(f.effect.taps.shape))
-            f.stderr = {"taps": [float(math.sqrt(max(cov[k + j, k + j], 0.0))) for j in range(L)]}
-            k += L
+                eff.taps.copy_(torch.as_tensor(theta).reshape(eff.taps.shape))
+            f.stderr = {"taps": [float(math.sqrt(max(cov[j, j], 0.0))) for j in range(L)]}
 
 
 class _Override(torch.nn.Module):
@@ -319,8 +401,8 @@ class _Override(torch.nn.Module):
         self.model = model
         self.over = over
 
-    def forward(self, g, dt_s):
-        return torch.func.functional_call(self.model, self.over, (g, dt_s), strict=False)
+    def forward(self, g, dt_s, b0=None):
+        return torch.func.functional_call(self.model, self.over, (g, dt_s), {"b0": b0}, strict=False)
 
-    def __call__(self, g, dt_s):
-        return self.forward(g, dt_s)
+    def __call__(self, g, dt_s, b0=None):
+        return self.forward(g, dt_s, b0)

@@ -117,10 +117,10 @@ class Workspace:
                     V = x[:, j, u.n0 : u.n1]
                     zz = self.z[c][u.m, a, u.n0 : u.n1] if a is not None else self.z[c][u.m, u.n0 : u.n1]
                     if full:
-                        A[ui] += V @ V.T
+                        A[ui] += np.einsum("pn,qn->pq", V, V)  # einsum: no BLAS threads (see docs)
                     else:
                         A[ui] += np.einsum("pn,pn->p", V, V)
-                    b[ui] += V @ zz
+                    b[ui] += np.einsum("pn,n->p", V, zz)
         return A, b
 
     @property

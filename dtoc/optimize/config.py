@@ -49,8 +49,9 @@ class OptimizeConfig(BaseModel):
         weights: loss weights (defaults per kind).
         warm_iters: iterations of the constrained least-squares warm start.
         iters: iterations of the full-loss stage.
-        optimizer: 'adam' or 'lbfgs' for the full-loss stage ('dto').
-        lr: learning rate of Adam (mT/m per step for 'dto'; the paper's value for 'adam-paper').
+        optimizer: full-loss stage of 'dto': 'pgd' (monotone projected gradient with backtracking)
+            or 'adam' (projected Adam).  'adam-paper' always uses Adam.
+        lr: Adam learning rate; for 'pgd' the largest first move of any sample, mT/m.
         restarts: Adam restart iterations (paper: 500, 1500, 3000, ... scaled to ``iters``).
         augment_rotations: number of rotated phantoms cycled through (0 = no augmentation).
         augment_max_deg: rotation range +- degrees.
@@ -72,7 +73,7 @@ class OptimizeConfig(BaseModel):
     weights: LossWeights = Field(default_factory=LossWeights)
     warm_iters: int = Field(400, ge=0)
     iters: int = Field(60, ge=0)
-    optimizer: Literal["adam", "lbfgs"] = "adam"
+    optimizer: Literal["pgd", "adam"] = "pgd"
     lr: Optional[float] = Field(None, gt=0)
     restarts: list[int] = Field(default_factory=list)
     augment_rotations: int = Field(0, ge=0)
@@ -88,8 +89,8 @@ class OptimizeConfig(BaseModel):
 
 #: Defaults per sequence kind, applied below the config file.
 KIND_DEFAULTS: dict[str, dict] = {
-    "gre": {"weights": {"image": 1.0, "kspace": 1.0, "rf": 1.0}, "lr": 0.05, "iters": 60, "n_dummies": 100},
-    "epi": {"weights": {"image": 1.0, "kspace": 4.0, "rf": 1.0}, "lr": 0.002, "iters": 30, "n_dummies": 0},
+    "gre": {"weights": {"image": 1.0, "kspace": 1.0, "rf": 1.0}, "lr": 0.05, "iters": 6, "n_dummies": 300},
+    "epi": {"weights": {"image": 1.0, "kspace": 4.0, "rf": 1.0}, "lr": 0.01, "iters": 4, "n_dummies": 0},
 }
 
 PAPER_RESTARTS = [500, 1500, 3000, 5000, 7500, 10500, 14000, 18000]

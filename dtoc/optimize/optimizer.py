@@ -78,7 +78,8 @@ def _grad(f, x: torch.Tensor, free: torch.Tensor) -> tuple[torch.Tensor, float, 
 
 
 def warm_start(twin, ctx, weights, iters: int, state: StageState | None = None,
-               progress: ProgressFn | None = None, cg_fraction: float = 0.5) -> torch.Tensor:
+               progress: ProgressFn | None = None, cg_fraction: float = 0.5, cg_tol: float = 1e-12,
+               rel_tol: float = 1e-7, x_init: torch.Tensor | None = None) -> torch.Tensor:
     """Constrained least-squares pre-compensation of k-space (and RF-period gradient).
 
     Args:
@@ -92,11 +93,11 @@ def warm_start(twin, ctx, weights, iters: int, state: StageState | None = None,
     P = twin.projector
     free = twin.free_t
     f = _linear_objective(twin, ctx, weights)
-    x0 = twin.base_edges()
+    x0 = twin.base_edges() if x_init is None else x_init.detach().clone()
     hist = state.history if state is not None else []
     if iters <= 0:
         return P.project(x0)
-    n_cg = int(iters * cg_fraction)
+    n_cg = int(iters * cg_fraction) if x_init is None else 0
     g0, f0, terms0 = _grad(f, x0, free)
     hist.append({"stage": "warm", "it": 0, "loss": f0, **terms0})
 
@@ -113,7 +114,7 @@ def warm_start(twin, ctx, weights, iters: int, state: StageState | None = None,
     it = 0
     try:
         for it in range(1, n_cg + 1):
-            if rr <= 1e-20 * max(rr0, 1e-300):
+            if rr <= cg_tol * max(rr0, 1e-300):
                 break
             Hp = hv(p)
             pHp = float((p * Hp).sum())
@@ -131,6 +132,7 @@ def warm_start(twin, ctx, weights, iters: int, state: StageState | None = None,
         if state is not None:
             state.interrupted = True
     x = P.project(x0 + d, n_iter=60)
+    f0 = f0 if n_cg == 0 else min(f0, float(f(x)[0].detach()))
     # --- projected FISTA on the constrained problem ---
     n_fista = iters - it
     if n_fista > 0 and not (state is not None and state.interrupted):
@@ -159,7 +161,10 @@ def warm_start(twin, ctx, weights, iters: int, state: StageState | None = None,
                 t_new = 0.5 * (1 + math.sqrt(1 + 4 * t * t))
                 y = x_new + ((t - 1) / t_new) * (x_new - x_prev)
                 x_prev, t = x_new, t_new
-                f_prev = fy
+                if j > 20 and j % 20 == 1:
+                    if f_prev - fy <= max(rel_tol * abs(fy), 1e-6 * f0) or fy <= 1e-14:
+                        break
+                    f_prev = fy
                 if progress:
                     progress("warm", it + j, iters, fy)
                 if j % 10 == 0 or j == n_fista:
@@ -172,6 +177,32 @@ def warm_start(twin, ctx, weights, iters: int, state: StageState | None = None,
     x = P.project(x, n_iter=60)
     fx = float(f(x)[0].detach())
     hist.append({"stage": "warm", "it": iters, "loss": fx})
+    return x
+
+
+def robust_warm_start(twin, ctx, weights, iters: int, rounds: int = 2, scale_dk: float = 0.5,
+                      state: StageState | None = None, progress: ProgressFn | None = None) -> torch.Tensor:
+    """Warm start, then ``rounds`` of iteratively reweighted least squares on the k-space term.
+
+    Samples whose k-space error stays large (unreachable within the limits) are down-weighted with
+    Cauchy weights ``1 / (1 + (err / scale_dk)^2)`` (err in dk), so the solution hits the reachable
+    samples exactly instead of spreading the error over all of them (the later discarding then skips
+    few samples).  Without active limits the first solve is already exact and no round runs.
+    """
+    x = warm_start(twin, ctx, weights, iters, state, progress)
+    for r in range(rounds):
+        if state is not None and state.interrupted:
+            break
+        with torch.no_grad():
+            err = kspace_error_dk(twin.kspace(twin.realize(twin.played(x))[0]), ctx)
+        if err.max() <= scale_dk:
+            break
+        old = ctx.sample_weight
+        ctx.sample_weight = torch.as_tensor(1.0 / (1.0 + (err / scale_dk) ** 2), dtype=x.dtype, device=x.device)
+        try:
+            x = warm_start(twin, ctx, weights, iters // 2, state, progress, x_init=x)
+        finally:
+            ctx.sample_weight = old
     return x
 
 
@@ -206,6 +237,13 @@ def full_loss(twin, imager, ctx, cfg: OptimizeConfig, edges0: torch.Tensor, stat
     if paper and not cfg.restarts and cfg.iters > 0:
         scale = cfg.iters / 22500.0  # the paper's schedule, compressed to this run's length
         restarts = {max(1, int(round(r * scale))) for r in PAPER_RESTARTS}
+    if cfg.optimizer == "pgd" and not paper:
+        try:
+            x = _pgd(twin, imager, ctx, cfg, x, state, progress, start_it, n_img, lr, checkpoint)
+        except KeyboardInterrupt:
+            state.interrupted = True
+            x = state.best_edges.detach().clone() if math.isfinite(state.best_loss) else x
+        return _finish(twin, imager, ctx, cfg, x, state, n_img)
     x.requires_grad_(True)
     opt = _make_opt(cfg, x, lr)
     try:
@@ -239,6 +277,11 @@ def full_loss(twin, imager, ctx, cfg: OptimizeConfig, edges0: torch.Tensor, stat
                 checkpoint(x.detach().clone(), it + 1)
     except KeyboardInterrupt:
         state.interrupted = True
+    return _finish(twin, imager, ctx, cfg, x.detach(), state, n_img)
+
+
+def _finish(twin, imager, ctx, cfg, x, state, n_img):
+    P = twin.projector
     last = x.detach().clone()
     if n_img > 1 or not math.isfinite(state.best_loss):
         state.best_edges = last  # with augmentation the losses of different phantoms do not compare
@@ -252,9 +295,55 @@ def full_loss(twin, imager, ctx, cfg: OptimizeConfig, edges0: torch.Tensor, stat
 
 
 def _make_opt(cfg, x, lr):
-    if cfg.optimizer == "lbfgs" and cfg.method == "dto":
-        return torch.optim.LBFGS([x], lr=1.0, max_iter=1, history_size=20, line_search_fn="strong_wolfe")
     return torch.optim.Adam([x], lr=lr)
+
+
+def _pgd(twin, imager, ctx, cfg, x, state, progress, start_it, n_img, lr, checkpoint):
+    """Monotone projected gradient descent with backtracking on the full loss.
+
+    The first trial step moves the largest coordinate by ``lr`` mT/m; a step is accepted only if it
+    lowers the loss (of the current phantom); the step grows x1.5 after a success and shrinks x0.3
+    after a failure; after 6 failures in a row the stage stops (no descent found).
+    """
+    P = twin.projector
+    free = twin.free_t
+
+    def val_grad(e, idx):
+        e = e.detach().requires_grad_(True)
+        total, terms, _ = evaluate(twin, imager, ctx, cfg.weights, e, idx)
+        (g,) = torch.autograd.grad(total, e)
+        return float(total.detach()), torch.where(free, g, torch.zeros_like(g)), terms
+
+    idx = (start_it // cfg.augment_every) % n_img
+    v, g, terms = val_grad(x, idx)
+    eta = lr / max(float(g.abs().max()), 1e-30)
+    for it in range(start_it, cfg.iters):
+        new_idx = (it // cfg.augment_every) % n_img
+        if new_idx != idx:
+            idx = new_idx
+            v, g, terms = val_grad(x, idx)
+        if n_img == 1 and v < state.best_loss:
+            state.best_loss, state.best_edges = v, x.detach().clone()
+        accepted = False
+        for _ in range(6):
+            y = P.project(x - eta * g, n_iter=8, exact=False)
+            vy, gy, ty = val_grad(y, idx)
+            if vy < v:
+                x, v, g, terms = y, vy, gy, ty
+                eta *= 1.5
+                accepted = True
+                break
+            eta *= 0.3
+        state.history.append({"stage": "full", "it": it + 1, "loss": v, "phantom": idx, "step": eta, **terms})
+        if progress:
+            progress("full", it + 1, cfg.iters, v)
+        if checkpoint is not None and (it + 1) % cfg.checkpoint_every == 0:
+            checkpoint(x.detach().clone(), it + 1)
+        if not accepted:
+            break
+    if n_img == 1 and v < state.best_loss:
+        state.best_loss, state.best_edges = v, x.detach().clone()
+    return x
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -74,7 +74,8 @@ def fit_preemphasis(hardware, g: np.ndarray, dt_s: float, n_terms: int = 2, init
     with torch.no_grad():
         after = float((resid(la, lt) * scale).sqrt())
     order = np.argsort(torch.exp(lt).detach().numpy())
-    return {"alpha": [float(torch.exp(la)[i]) for i in order], "tau_s": [float(torch.exp(lt)[i]) for i in order],
+    la_d, lt_d = torch.exp(la.detach()), torch.exp(lt.detach())
+    return {"alpha": [float(la_d[i]) for i in order], "tau_s": [float(lt_d[i]) for i in order],
             "rms_before_mT_per_m": before, "rms_after_mT_per_m": after}
 
 

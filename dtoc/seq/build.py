@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dtoc.constants import AXES, GAMMA_HZ_PER_T
+from dtoc.constants import GAMMA_HZ_PER_T
 from dtoc.errors import InputError
 from dtoc.seq.spec import BaseSpec, EpiSpec, GreSpec
 
@@ -49,8 +49,10 @@ def representable_amplitudes(amps_hz_per_m) -> np.ndarray:
     played error <= 5e-8 x |amplitude| (0.15 Hz/m at 72 mT/m) instead of 5e-6 x |amplitude|."""
     a = np.array(amps_hz_per_m, dtype=np.float64)
     if a.size and np.any(a != 0):
-        i = int(np.argmax(np.abs(a)))
-        a[i] = float(f"{a[i]:.6g}")
+        peak = float(np.max(np.abs(a)))
+        a6 = float(f"{peak:.6g}")
+        near = np.abs(a) >= min(a6, peak) * (1 - 1e-12)  # the peak vertices, and any above the rounded peak
+        a[near] = np.sign(a[near]) * a6
     return a
 
 
@@ -367,6 +369,7 @@ def build_ir(spec: BaseSpec, **kwargs):
     """
     from dtoc.seq.read import from_pypulseq, read_pypulseq
 
+    kwargs.pop("require_signature", None)  # built in memory: always signed
     data = seq_bytes(build(spec, warn=False))
     fd, tmp = tempfile.mkstemp(suffix=".seq")
     try:
@@ -399,4 +402,4 @@ def build_to_file(spec: BaseSpec, out: str | Path, force: bool = False) -> Path:
     return atomic_write_bytes(out, seq_bytes(build(spec)), force=force)
 
 
-__all__ = ["build", "build_ir", "build_to_file", "seq_bytes", "SpecLimitWarning", "AXES"]
+__all__ = ["build", "build_ir", "build_to_file", "seq_bytes", "SpecLimitWarning", "representable_amplitudes"]

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dtoc.constants import AXES, GAMMA_HZ_PER_T, mT_per_m_from_hz_per_m
+from dtoc.constants import AXES
 from dtoc.errors import InputError
 from dtoc.seq.ir import SequenceIR
 from dtoc.seq.seqtext import INTEGER_COLUMNS, parse_seq_text
@@ -43,6 +43,11 @@ class Violation:
     limit: float | None = None
     unit: str = ""
     message: str = ""
+
+    def __post_init__(self):
+        self.block = None if self.block is None else int(self.block)
+        self.value = None if self.value is None else float(self.value)
+        self.limit = None if self.limit is None else float(self.limit)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -273,8 +278,6 @@ def check_file(path: str | Path, system: SystemSpec | None = None) -> CheckResul
     st = parse_seq_text(path)
     source = "given"
     if system is None:
-        from dtoc.seq.read import _plain_definitions  # noqa: F401
-
         defs = {}
         for k, v in st.definitions().items():
             defs[k] = v.split()[0] if v.split() else v
@@ -295,5 +298,4 @@ def check_file(path: str | Path, system: SystemSpec | None = None) -> CheckResul
     return res
 
 
-__all__ = ["Violation", "CheckResult", "check_ir_limits", "check_file", "system_from_definitions", "GAMMA_HZ_PER_T",
-           "mT_per_m_from_hz_per_m"]
+__all__ = ["Violation", "CheckResult", "check_ir_limits", "check_file", "system_from_definitions"]

@@ -80,7 +80,7 @@ def diff_ir(ia, ib, rtol: float = 1e-6, atol: float = 1e-9, a: str = "A", b: str
         for i, (x, y) in enumerate(zip(la, lb)):
             for f in fields:
                 vx, vy = getattr(x, f), getattr(y, f)
-                if isinstance(vx, str) or isinstance(vx, int) and not isinstance(vx, bool) and f in ("block", "num_samples"):
+                if f in ("block", "num_samples", "use"):
                     if vx != vy:
                         add(name, f"{name} {i} (block {x.block + 1}) {f}", vx, vy)
                 elif not _close(float(vx), float(vy), rtol, atol):

@@ -20,6 +20,8 @@ Default ``free_mask`` (what an optimizer may change), documented in docs/sequenc
   the RF pulse itself (from its start to its end, all axes);
 * never on an axis that carries a slice-selection gradient (non-zero demanded gradient at the centre of an
   excitation pulse) unless ``free_slice_axis=True``;
+* never on an axis that carries no gradient at all in the sequence (e.g. z of a non-selective 2D GRE)
+  unless ``free_unused_axes=True``: the paper optimizes the axes the base sequence uses;
 * never the first and last sample of the sequence (gradients start and end at zero).
 """
 
@@ -64,7 +66,8 @@ def read_pypulseq(path: str | Path, require_signature: bool = True):
 
     p = Path(path)
     st = parse_seq_text(p)
-    verify_signature(st, require=require_signature)
+    if require_signature:
+        verify_signature(st)
     # pypulseq loops forever on a file ending inside [SHAPES] without a blank line: read a copy that
     # always ends with one (the signature was checked on the original bytes above).
     fd, tmp = tempfile.mkstemp(suffix=".seq")
@@ -88,6 +91,7 @@ def read_seq(
     path: str | Path,
     *,
     free_slice_axis: bool = False,
+    free_unused_axes: bool = False,
     rf_guard: str = "block",
     require_signature: bool = True,
 ) -> SequenceIR:
@@ -96,11 +100,13 @@ def read_seq(
     Args:
         path: the ``.seq`` file.
         free_slice_axis: let the optimizer change the slice-select axis too (outside RF).
+        free_unused_axes: let the optimizer use axes on which the sequence plays no gradient.
         rf_guard: 'block' (default) or 'pulse': what is fixed around RF pulses.
-        require_signature: reject unsigned files (default; pass False for hand-written files).
+        require_signature: reject unsigned files and files whose md5 signature does not match (default;
+            pass False for hand-edited files).
     """
     seq, _ = read_pypulseq(path, require_signature=require_signature)
-    ir = from_pypulseq(seq, free_slice_axis=free_slice_axis, rf_guard=rf_guard)
+    ir = from_pypulseq(seq, free_slice_axis=free_slice_axis, free_unused_axes=free_unused_axes, rf_guard=rf_guard)
     ir.meta["path"] = str(path)
     return ir
 
@@ -163,7 +169,9 @@ def _grad_vertices(grad, raster_s: float) -> tuple[np.ndarray, np.ndarray]:
     return t + grad.delay, v
 
 
-def from_pypulseq(seq, *, free_slice_axis: bool = False, rf_guard: str = "block") -> SequenceIR:
+def from_pypulseq(
+    seq, *, free_slice_axis: bool = False, free_unused_axes: bool = False, rf_guard: str = "block"
+) -> SequenceIR:
     """Convert a ``pypulseq.Sequence`` (read or built) into a :class:`SequenceIR`.
 
     Raises:
@@ -258,7 +266,9 @@ def from_pypulseq(seq, *, free_slice_axis: bool = False, rf_guard: str = "block"
         source=seq,
     )
     _apply_metadata(ir)
-    ir.free_mask = default_free_mask(ir, free_slice_axis=free_slice_axis, rf_guard=rf_guard)
+    ir.free_mask = default_free_mask(
+        ir, free_slice_axis=free_slice_axis, free_unused_axes=free_unused_axes, rf_guard=rf_guard
+    )
     ir.meta["block_ids"] = [int(k) for k in keys]
     if off_grid:
         ir.meta["off_grid_vertices"] = off_grid
@@ -325,7 +335,9 @@ def slice_axes(ir: SequenceIR, tol_mT_per_m: float = 1e-6) -> list[int]:
     return sorted(out)
 
 
-def default_free_mask(ir: SequenceIR, *, free_slice_axis: bool = False, rf_guard: str = "block") -> np.ndarray:
+def default_free_mask(
+    ir: SequenceIR, *, free_slice_axis: bool = False, free_unused_axes: bool = False, rf_guard: str = "block"
+) -> np.ndarray:
     """(3, 2N+1) bool: where an optimizer may change the demanded gradient (module doc)."""
     n = ir.n_fine
     dtf = ir.dt_fine_s
@@ -343,4 +355,8 @@ def default_free_mask(ir: SequenceIR, *, free_slice_axis: bool = False, rf_guard
     if not free_slice_axis:
         for a in slice_axes(ir):
             mask[a, :] = False
+    if not free_unused_axes:
+        for a in range(3):
+            if not np.any(ir.grad_mT_per_m[a]):
+                mask[a, :] = False
     return mask

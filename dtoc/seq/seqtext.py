@@ -263,3 +263,20 @@ def verify_signature(st: SeqText, require: bool = True) -> None:
     got = st.content_md5()
     if got != st.signature_hash:
         raise _err(st.path, f"signature mismatch: md5 of content is {got}, file says {st.signature_hash} (modified after writing?)")
+
+
+def sign_text(body: str | bytes) -> bytes:
+    """Append a Pulseq md5 ``[SIGNATURE]`` section to ``body`` (any old signature is removed first)."""
+    b = body.encode("utf-8") if isinstance(body, str) else body
+    i = b.find(b"\n[SIGNATURE]")
+    if i >= 0:
+        b = b[:i]
+    md5 = hashlib.md5(b).hexdigest()
+    return b + (
+        "\n[SIGNATURE]\n"
+        "# This is the hash of the Pulseq file, calculated right before the [SIGNATURE] section was added\n"
+        "# It can be reproduced/verified with md5sum if the file trimmed to the position right above [SIGNATURE]\n"
+        "# The new line character preceding [SIGNATURE] BELONGS to the signature (and needs to be stripped away for "
+        "recalculating/verification)\n"
+        f"Type md5\nHash {md5}\n"
+    ).encode("utf-8")

@@ -19,7 +19,7 @@ from typing import Annotated, Literal, Union
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
 from dtoc.errors import InputError
-from dtoc.seq.system import SystemSpec, format_validation_error
+from dtoc.seq.system import SystemSpec
 
 
 class BaseSpec(BaseModel):
@@ -145,4 +145,4 @@ def load_spec(path: str | Path) -> BaseSpec:
     return parse_spec(data, str(p))
 
 
-__all__ = ["BaseSpec", "GreSpec", "EpiSpec", "SystemSpec", "load_spec", "parse_spec", "format_validation_error"]
+__all__ = ["BaseSpec", "GreSpec", "EpiSpec", "SystemSpec", "load_spec", "parse_spec"]

@@ -82,7 +82,8 @@ class SystemSpec(BaseModel):
 
 
 def load_system(path: str | Path) -> SystemSpec:
-    """Read a :class:`SystemSpec` from YAML (a mapping of its fields; unknown keys are errors)."""
+    """Read a :class:`SystemSpec` from YAML: a mapping of its fields (unknown keys are errors), a
+    mapping ``{system: {...}}``, or a sequence spec (its ``system`` block)."""
     import yaml
 
     p = Path(path)
@@ -96,6 +97,10 @@ def load_system(path: str | Path) -> SystemSpec:
         data = {}
     if not isinstance(data, dict):
         raise InputError(f"{p}: expected a mapping of SystemSpec fields")
+    if "kind" in data:  # a sequence spec: use the system it is designed for
+        from dtoc.seq.spec import parse_spec
+
+        return parse_spec(data, str(p)).system
     if "system" in data and isinstance(data["system"], dict) and len(data) == 1:
         data = data["system"]
     try:

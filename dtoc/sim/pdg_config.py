@@ -37,6 +37,9 @@ class PDGConfig:
         window_samples: ADC samples per window of the 'separable' method.
         voxel_size_z_m: slab thickness for the box voxel attenuation along z (None: no z
             attenuation, the 2D phantom is a sheet).
+        object_spectrum: estimate a dephased state's signal with the phantom's PD spectrum at its
+            k (True, default; much stronger pruning of spoiled states) instead of the per-voxel
+            bound only (False: strict bound, many more states).
     """
 
     min_magnitude: float = 1e-6
@@ -50,3 +53,4 @@ class PDGConfig:
     taylor_tol: float = 1e-9
     window_samples: int = 16
     voxel_size_z_m: float | None = None
+    object_spectrum: bool = True

@@ -143,6 +143,16 @@ def rf_edge_magnitude_bounds(flip_rad: float, b1_samples: np.ndarray) -> np.ndar
     return np.array([c2.max(), s2.max(), s.max(), 0.5 * s.max(), 0.5 * s.max(), c.max()])
 
 
+def rf_edge_coefficients_np(flip_rad: float, phase_rad: float, b1: np.ndarray) -> np.ndarray:
+    """(6, P) complex edge coefficients (module table) for relative B1 values ``b1`` (P,)."""
+    a = flip_rad * np.asarray(b1, dtype=np.float64)
+    e1 = np.exp(1j * phase_rad)
+    return np.stack([
+        np.cos(a / 2) ** 2 + 0j, e1 * e1 * np.sin(a / 2) ** 2, -1j * np.conj(e1) * np.sin(a),
+        -0.5j * e1 * np.sin(a), -0.5j * e1 * np.sin(a), np.cos(a) + 0j,
+    ])
+
+
 def voxel_envelope(k_rad_per_m: np.ndarray, voxel_m: tuple, shape: str) -> np.ndarray:
     """Upper bound of the voxel-shape attenuation for dephasing k (..., 3) -> (...).
 
@@ -166,7 +176,12 @@ def voxel_envelope(k_rad_per_m: np.ndarray, voxel_m: tuple, shape: str) -> np.nd
 
 @dataclass
 class _Bounds:
-    """Relaxation bounds used for pruning (longest times of the phantom)."""
+    """Relaxation bounds used for pruning (longest times of the phantom) and probe voxels.
+
+    Probe voxels (T1, T2, B1) are simulated with complex amplitudes in the pre-pass, so that the
+    amplitude estimate of a merged state includes the cancellation of its contributions (RF
+    spoiling); the estimate is the largest magnitude over the probes.
+    """
 
     t1: float = np.inf
     t2: float = np.inf
@@ -174,12 +189,50 @@ class _Bounds:
     b1: np.ndarray = field(default_factory=lambda: np.ones(1))
     voxel_m: tuple = (None, None, None)
     voxel_shape: str = "box"
+    probe_t1: np.ndarray = field(default_factory=lambda: np.array([np.inf]))
+    probe_t2: np.ndarray = field(default_factory=lambda: np.array([np.inf]))
+    probe_b1: np.ndarray = field(default_factory=lambda: np.ones(1))
 
     def e1(self, dt):
         return np.exp(-np.asarray(dt) / self.t1)
 
     def e2(self, dt):
         return np.exp(-np.asarray(dt) / self.t2)
+
+
+class ObjectSpectrum:
+    """Estimate of how much signal a state of dephasing k can give, relative to k = 0.
+
+    |sum_v pd(v) exp(-i k.r_v)| / sum_v pd(v), times the voxel-shape factor, from a 2x zero-padded
+    FFT of the PD map (nearest grid point, max over the 2x2 neighbours; periodic beyond the voxel
+    Nyquist, as the voxel sum is).  This is an *estimate* (the state's amplitude map is not PD), used
+    only for pruning; docs/simulator.md quantifies the resulting error.
+    """
+
+    def __init__(self, phantom, floor: float = 0.0):
+        ny, nx = phantom.pd.shape
+        pad = 2
+        F = np.abs(np.fft.fft2(phantom.pd, s=(pad * ny, pad * nx)))
+        tot = float(phantom.pd.sum()) or 1.0
+        F = F / tot
+        # conservative: max over each point and its +1 neighbours
+        F = np.maximum.reduce([F, np.roll(F, 1, 0), np.roll(F, 1, 1), np.roll(np.roll(F, 1, 0), 1, 1)])
+        self.F = np.maximum(F, floor)
+        self.dx, self.dy = phantom.fov_m[0] / nx, phantom.fov_m[1] / ny
+        self.step_x = 2 * np.pi / (pad * nx * self.dx)
+        self.step_y = 2 * np.pi / (pad * ny * self.dy)
+        self.shape = phantom.voxel_shape
+
+    def __call__(self, k: np.ndarray) -> np.ndarray:
+        """k (..., 3) rad/m -> (...) estimate in [0, 1]."""
+        ix = np.round(k[..., 0] / self.step_x).astype(np.int64) % self.F.shape[1]
+        iy = np.round(k[..., 1] / self.step_y).astype(np.int64) % self.F.shape[0]
+        val = self.F[iy, ix]
+        if self.shape == "box":
+            val = val * np.abs(np.sinc(k[..., 0] * self.dx / (2 * np.pi)) * np.sinc(k[..., 1] * self.dy / (2 * np.pi)))
+        elif self.shape == "sinc":
+            val = val * ((np.abs(k[..., 0]) <= np.pi / self.dx) & (np.abs(k[..., 1]) <= np.pi / self.dy))
+        return np.minimum(val, 1.0)
 
 
 def _bounds(ir: SequenceIR, config: PDGConfig, phantom) -> _Bounds:
@@ -194,6 +247,14 @@ def _bounds(ir: SequenceIR, config: PDGConfig, phantom) -> _Bounds:
         b.t2d = float(np.max(phantom.t2dash_s[m]))
         lo, hi = float(np.min(phantom.b1[m])), float(np.max(phantom.b1[m]))
         b.b1 = np.linspace(lo, hi, 9) if hi > lo else np.array([lo])
+        w = phantom.pd[m]
+        with np.errstate(divide="ignore"):
+            mt1 = 1.0 / np.average(1.0 / phantom.t1_s[m], weights=w)
+            mt2 = 1.0 / np.average(1.0 / phantom.t2_s[m], weights=w)
+        mb1 = float(np.average(phantom.b1[m], weights=w))
+        b.probe_t1 = np.array([mt1, b.t1, b.t1, b.t1, mt1, mt1])
+        b.probe_t2 = np.array([mt2, b.t2, b.t2, b.t2, mt2, mt2])
+        b.probe_b1 = np.array([mb1, mb1, lo, hi, lo, hi])
         ny, nx = phantom.shape
         b.voxel_m = (phantom.fov_m[0] / nx, phantom.fov_m[1] / ny, zsize)
         b.voxel_shape = phantom.voxel_shape
@@ -261,6 +322,8 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
     is_z = np.array([True])
     k = np.zeros((1, 3))
     tau = np.zeros(1)
+    P = bnd.probe_t1.size
+    amp = np.ones((1, P), dtype=np.complex128)
     mag = np.ones(1)
     eq = 0
     e_child = e_par = e_kind = e_cand = np.zeros(0, dtype=np.int64)
@@ -273,16 +336,21 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
         tr = ~is_z
         k_end = k + tr[:, None] * m_int[n][None, :]
         tau_end = tau + tr * dt
-        mag_end = np.where(tr, mag * bnd.e2(dt), mag * bnd.e1(dt))
-        mag_end[eq] = min(1.0, mag[eq] * bnd.e1(dt) + (1.0 - bnd.e1(dt)))
+        pe1 = np.exp(-dt / bnd.probe_t1)
+        pe2 = np.exp(-dt / bnd.probe_t2)
+        amp_end = amp * np.where(tr[:, None], pe2[None, :], pe1[None, :])
+        amp_end[eq] += 1.0 - pe1
         rf = ir.rf[rf_order[n]]
-        cm = rf_edge_magnitude_bounds(rf.flip_angle_rad, bnd.b1)
+        pc = rf_edge_coefficients_np(rf.flip_angle_rad, rf.phase_rad, bnd.probe_b1)  # (6, P)
         S = is_z.size
         par = np.repeat(np.arange(S), 3)
         kind = np.tile(np.arange(3), S) + 3 * is_z[par]
-        cand = cm[kind] * mag_end[par]
+        src = amp_end[par]
+        src = np.where(CONJ[kind][:, None], np.conj(src), src)
+        ccand = pc[kind] * src  # (E, P)
+        cand = np.abs(ccand).max(axis=1)
         keep = cand >= cfg.min_magnitude
-        par, kind, cand = par[keep], kind[keep], cand[keep]
+        par, kind, cand, ccand = par[keep], kind[keep], cand[keep], ccand[keep]
         conj = CONJ[kind]
         sgn = np.where(conj, -1.0, 1.0)
         ck = k_end[par] * sgn[:, None]
@@ -294,7 +362,9 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
         inv = inv.ravel()
         inv_e, eq_new = inv[:-1], int(inv[-1])
         nU = uniq.shape[0]
-        cmag = np.bincount(inv_e, weights=cand, minlength=nU)
+        camp = np.zeros((nU, P), dtype=np.complex128)
+        np.add.at(camp, inv_e, ccand)
+        cmag = np.abs(camp).max(axis=1)
         # representative edge per child: largest cand
         order = np.lexsort((-cand, inv_e))
         first = np.ones(order.size, dtype=bool)
@@ -326,10 +396,16 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
         tau[eq] = 0.0
         is_z[eq] = True
         mag = cmag[sel]
-        mag[eq] = max(mag[eq], 0.0)
+        amp = camp[sel]
 
     # --- emission and latent bounds (backward) --------------------------------------------------
     vm = bnd.voxel_m
+    spec = ObjectSpectrum(phantom) if (phantom is not None and cfg.object_spectrum) else None
+
+    def envelope(kk):
+        e = voxel_envelope(kk, vm, bnd.voxel_shape)
+        return e if spec is None else np.minimum(e, spec(kk))
+
     emit_b = []
     for n in range(NI):
         R = raw[n]
@@ -344,13 +420,13 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
             for s0 in range(0, tr.size, step):
                 idx = tr[s0 : s0 + step]
                 kt = R["k"][idx][:, None, :] + mt[None, :, :]
-                env = voxel_envelope(kt, vm, bnd.voxel_shape)
+                env = envelope(kt)
                 tt = np.abs(R["tau"][idx][:, None] + dtt[None, :])
                 env = env * bnd.e2(dtt)[None, :] * np.exp(-tt / bnd.t2d)
                 e[idx] = env.max(axis=1)
         if final_z_readout and n == NI - 1:
             zi = np.where(R["is_z"])[0]
-            e[zi] = voxel_envelope(R["k"][zi], vm, bnd.voxel_shape) * np.exp(-np.abs(R["tau"][zi]) / bnd.t2d)
+            e[zi] = envelope(R["k"][zi]) * np.exp(-np.abs(R["tau"][zi]) / bnd.t2d)
         emit_b.append(e)
     latent = [None] * NI
     for n in range(NI - 1, -1, -1):

@@ -66,39 +66,63 @@ def _prepare(ir: SequenceIR, phantom, graph: PDGGraph | None, cfg: PDGConfig, gr
 
 
 def _evolve(iv, A, K, mom, n, vox, dt, tr_t):
-    """Free evolution over interval n: relaxation, recovery, diffusion, dephasing of transverse states."""
+    """Free evolution over interval n: relaxation, diffusion, dephasing of transverse states.
+
+    Returns the amplitudes at the interval end *without* the T1 recovery of the equilibrium state,
+    and that recovery term (V,) separately (it is added where the equilibrium state is read, in
+    :func:`_apply_rf` / at the end), which saves a full copy of the (S, V) amplitudes per interval.
+    States are ordered transverse first (the graph's key order), so relaxation is two row blocks.
+    """
     E1 = torch.exp(-dt * vox.r1)
     E2 = torch.exp(-dt * vox.r2)
-    fac = torch.where(tr_t[:, None], E2[None, :], E1[None, :])
+    nT = int(tr_t.sum())
     dM = (mom.I_bound[n + 1] - mom.I_bound[n]).to(K.dtype)
     K_end = K + tr_t[:, None].to(K.dtype) * dM[None, :]
     if vox.has_diffusion:
-        k3 = K[:, :3].to(torch.float64)
+        k3 = K[:, :3]
         u = k3 - mom.I_bound[n][:3][None, :]
         dJ1 = mom.J1_bound[n + 1] - mom.J1_bound[n]
         dJ2 = mom.J2_bound[n + 1] - mom.J2_bound[n]
         b_tr = (u * u).sum(1) * dt + 2.0 * (u * dJ1[None, :]).sum(1) + dJ2
         b_z = (k3 * k3).sum(1) * dt
         b = torch.where(tr_t, b_tr, b_z).to(vox.r1.dtype)
-        fac = fac * torch.exp(-b[:, None] * vox.d[None, :])
-    A_end = A * fac.to(A.dtype)
-    rec = (vox.pd * (1.0 - E1)).to(A.dtype)
-    A_end = A_end.index_add(0, torch.tensor([iv.eq_index], device=A.device), rec[None, :])
-    return A_end, K_end
+        facT = E2[None, :] * torch.exp(-b[:nT, None] * vox.d[None, :])
+        facZ = E1[None, :] * torch.exp(-b[nT:, None] * vox.d[None, :])
+    else:
+        facT, facZ = E2[None, :], E1[None, :]
+    if nT == A.shape[0]:
+        A_end = A * facT
+    elif nT == 0:
+        A_end = A * facZ
+    else:
+        A_end = torch.cat([A[:nT] * facT, A[nT:] * facZ], 0)
+    rec = vox.pd * (1.0 - E1)
+    return A_end, K_end, rec
 
 
-def _apply_rf(nxt, A_end, K_end, coefs):
-    """Split the states at an RF pulse into the next interval's states."""
+def _edge_groups(nxt):
+    """Edges of an interval grouped by kind: list of (kind, parent idx, child idx) numpy arrays."""
+    out = []
+    for q in range(6):
+        m = nxt.edge_kind == q
+        if m.any():
+            out.append((q, nxt.edge_parent[m], nxt.edge_child[m]))
+    return out
+
+
+def _apply_rf(nxt, A_end, rec, eq_prev, K_end, coefs):
+    """Split the states at an RF pulse into the next interval's states (edges grouped by kind)."""
     dev = A_end.device
-    par = torch.as_tensor(nxt.edge_parent, device=dev)
-    kind = torch.as_tensor(nxt.edge_kind, device=dev)
-    src = A_end.index_select(0, par)
-    conj = torch.as_tensor(CONJ[nxt.edge_kind], device=dev)
-    if bool(conj.any()):
-        src = torch.where(conj[:, None], src.conj(), src)
-    contrib = coefs.index_select(0, kind) * src
     A_new = torch.zeros((nxt.n_states, A_end.shape[1]), dtype=A_end.dtype, device=dev)
-    A_new = A_new.index_add(0, torch.as_tensor(nxt.edge_child, device=dev), contrib)
+    rec_c = rec.to(A_end.dtype)
+    for q, par, child in _edge_groups(nxt):
+        src = A_end.index_select(0, torch.as_tensor(par, device=dev))
+        at_eq = np.where(par == eq_prev)[0]
+        if at_eq.size:
+            src = src.index_add(0, torch.as_tensor(at_eq, device=dev), rec_c[None, :].expand(at_eq.size, -1))
+        if CONJ[q]:
+            src = src.conj()
+        A_new = A_new.index_add(0, torch.as_tensor(child, device=dev), coefs[q][None, :] * src)
     rep = nxt.rep_parent
     sgn = np.where(rep < 0, 0.0, np.where(nxt.rep_conj, -1.0, 1.0))
     K_new = K_end.index_select(0, torch.as_tensor(np.maximum(rep, 0), device=dev)) * torch.as_tensor(sgn, dtype=K_end.dtype, device=dev)[:, None]
@@ -112,6 +136,7 @@ def _loop(ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_sign
     A = A.index_add(0, torch.tensor([iv0.eq_index], device=device), vox.mz0.to(cdtype)[None, :])
     K = torch.zeros((iv0.n_states, 4), dtype=torch.float64, device=device)
     pieces = []
+    coef_cache: dict = {}
     NI = len(graph.intervals)
     for n, iv in enumerate(graph.intervals):
         if with_signal and iv.emit.size and iv.adc_stop > iv.adc_start:
@@ -119,13 +144,21 @@ def _loop(ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_sign
         if n == NI - 1 and not final_state:
             break
         dt = float(bounds_t[n + 1] - bounds_t[n])
+        nT = int((~iv.is_z).sum())
+        if iv.is_z[:nT].any():
+            raise RuntimeError("PDG graph states must be ordered transverse first")
         tr_t = torch.as_tensor(~iv.is_z, device=device)
-        A, K = _evolve(iv, A, K, mom, n, vox, dt, tr_t)
+        A, K, rec = _evolve(iv, A, K, mom, n, vox, dt, tr_t)
         if n == NI - 1:
+            eq = torch.tensor([iv.eq_index], device=device)
+            A = A.index_add(0, eq, rec.to(A.dtype)[None, :])
             break
         rf = ir.rf[graph.rf_order[n]]
-        coefs = rf_coefficients(rf.flip_angle_rad, rf.phase_rad, vox.b1, cdtype)
-        A, K = _apply_rf(graph.intervals[n + 1], A, K, coefs)
+        key = (rf.flip_angle_rad, rf.phase_rad)
+        coefs = coef_cache.get(key)
+        if coefs is None:
+            coefs = coef_cache[key] = rf_coefficients(rf.flip_angle_rad, rf.phase_rad, vox.b1, cdtype)
+        A, K = _apply_rf(graph.intervals[n + 1], A, rec, iv.eq_index, K, coefs)
     return pieces, A, K
 
 
@@ -151,8 +184,28 @@ def run_main_pass(ir, phantom, graph, cfg, grad, b0_uT, initial_mz, dtype, devic
 # ------------------------------------------------------------------------------------------------
 # Dummy cycles
 # ------------------------------------------------------------------------------------------------
-def _dummy_train(ir: SequenceIR, n: int, block_range) -> SequenceIR:
-    """IR of ``n`` repetitions (block ranges) played back to back, without ADC."""
+def detect_rf_spoiling(ir: SequenceIR) -> float:
+    """Quadratic RF-spoiling increment (rad) of the excitations of ``ir``; 0 when the phases are not quadratic.
+
+    RF spoiling sets phi_j = phi_0 + c j (j + 1) / 2: the second difference of consecutive excitation
+    phases is the constant c (e.g. 117 deg).
+    """
+    p = np.array([r.phase_rad for r in sorted(ir.rf, key=lambda r: r.t_center_s) if r.use == "excitation"])
+    if p.size < 3:
+        return 0.0
+    d2 = np.angle(np.exp(1j * (p[2:] - 2 * p[1:-1] + p[:-2])))
+    if np.all(np.abs(np.angle(np.exp(1j * (d2 - d2[0])))) < 1e-6) and abs(d2[0]) > 1e-9:
+        return float(d2[0])
+    return 0.0
+
+
+def _dummy_train(ir: SequenceIR, n: int, block_range, rf_spoil_rad: float = 0.0) -> SequenceIR:
+    """IR of ``n`` repetitions (block ranges) played back to back, without ADC.
+
+    With ``rf_spoil_rad`` = c, the RF phases of repetition d are shifted by q(d) - q(d mod n_template)
+    (cycled base repetitions) or q(d) (a single block range), q(j) = c j (j+1)/2, so that quadratic RF
+    spoiling continues through the whole train instead of restarting.
+    """
     from dataclasses import replace as _replace
 
     from dtoc.seq.ir import SequenceIR as _IR
@@ -178,9 +231,12 @@ def _dummy_train(ir: SequenceIR, n: int, block_range) -> SequenceIR:
         m1 = int(round(edges[b1] / dtf))
         segs.append(ir.grad_mT_per_m[:, m0:m1])
         shift = t_off - m0 * dtf
+        q = lambda j: rf_spoil_rad * j * (j + 1) / 2.0  # noqa: E731
+        dphi = q(d) - (q(d % len(reps)) if block_range is None else 0.0)
         for r in ir.rf:
             if b0 <= r.block < b1:
-                rfs.append(_replace(r, block=len(bedges) - 1 + (r.block - b0), t_start_s=r.t_start_s + shift, t_center_s=r.t_center_s + shift))
+                rfs.append(_replace(r, block=len(bedges) - 1 + (r.block - b0), t_start_s=r.t_start_s + shift,
+                                    t_center_s=r.t_center_s + shift, phase_rad=float(np.angle(np.exp(1j * (r.phase_rad + dphi))))))
         for b in range(b0 + 1, b1 + 1):
             bedges.append(edges[b] + shift)
         t_off += (m1 - m0) * dtf
@@ -190,11 +246,13 @@ def _dummy_train(ir: SequenceIR, n: int, block_range) -> SequenceIR:
                kind=ir.kind, readout_axis=ir.readout_axis, phase_axis=ir.phase_axis)
 
 
-def run_dummies(ir, phantom, n_dummies, block_range, cfg, dtype, device):
+def run_dummies(ir, phantom, n_dummies, block_range, cfg, dtype, device, rf_spoil_rad=None):
     """Voxel-mean Mz (ny, nx) after ``n_dummies`` repetitions (see :func:`dtoc.sim.pdg.steady_state_mz`)."""
     if n_dummies <= 0:
         return torch.as_tensor(phantom.pd, dtype=dtype, device=device)
-    train = _dummy_train(ir, n_dummies, block_range)
+    if rf_spoil_rad is None:
+        rf_spoil_rad = detect_rf_spoiling(ir)
+    train = _dummy_train(ir, n_dummies, block_range, rf_spoil_rad)
     with torch.no_grad():
         graph, vox, mom, bounds_t = _prepare(train, phantom, None, cfg, None, None, None, dtype, device, final_z=True)
         _, A, K = _loop(train, graph, vox, mom, bounds_t, cfg, dtype, device, False, True)

@@ -1,0 +1,231 @@
+"""The paper's experiments as one command: regenerates docs/results.md (published numbers beside ours)
+and the `optimize` section of docs/benchmarks.md (time per scenario on this machine).
+
+    python -m bench.paper                 # everything (GRE 10 us raster + 7 EPI echo spacings)
+    python -m bench.paper --only epi      # one family
+    python -m bench.paper --quick         # fewer iterations (smoke run)
+
+Scenarios (paper Sections 3.2-3.3, BRIEF section 4):
+* GRE (sequences/gre_paper.yaml), exponential eddy currents alpha 0.1 with tau 1 ms (short), 100 ms
+  (long) or both: unconstrained (50 mT/m, 500 T/m/s); amplitude-limited gmax 10/15/20/25/30 mT/m
+  with the pre-emphasis comparison; fully constrained 13 mT/m, 130 T/m/s.
+* EPI (sequences/epi_esp*.yaml, 64x64, FOV 250 mm): the measured 7 T GIRF
+  (../shared/data/girf/kcl_7T_terra_2023, imported with dtoc.hardware.girf_import), 72 mT/m,
+  180 T/m/s; the 0.73 ms base violates slew before optimization.
+Every exported file is written and checked with the full validator (limit rules counted).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "docs" / "results.md"
+SHARED_GIRF = REPO.parent / "shared" / "data" / "girf" / "kcl_7T_terra_2023" / "7T_1pcterms.mat"
+
+PUBLISHED_FIG5 = {  # gmax: (PE NRMSE %, DTO NRMSE %, PE skipped %, DTO skipped %)
+    10: (9.31, 3.83, 49.2, 14.3), 15: (6.63, 2.86, 34.4, 6.64), 20: (6.19, 2.21, 26.4, 3.13),
+    25: (2.76, 0.72, 9.18, 0.0), 30: (2.76, 0.72, 9.18, 0.0),
+}
+EDDY = {"short": ([0.1], [1e-3]), "long": ([0.1], [0.1]), "both": ([0.1, 0.1], [1e-3, 0.1])}
+EPI_ESP = ["073", "081", "117", "153", "189", "225", "261"]
+LIMIT_RULES = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector"}
+
+
+def eddy_model(kind: str):
+    from dtoc.hardware.model import HardwareModel, build_effect
+
+    a, t = EDDY[kind]
+    return HardwareModel([build_effect("exp_eddy", {"alpha": a, "tau_s": t})], description=f"exp eddy {kind}")
+
+
+def kcl_girf_model(tmpdir: Path):
+    from dtoc.hardware.girf_import import import_girf
+    from dtoc.hardware.girf_io import save_girf
+    from dtoc.hardware.model import model_from_girf
+
+    p = tmpdir / "kcl_7T_terra_2023.npz"
+    save_girf(import_girf([SHARED_GIRF]), p, force=True)
+    return model_from_girf(p)
+
+
+def scenarios(only: str | None):
+    out = []
+    if only in (None, "gre"):
+        gre = REPO / "sequences" / "gre_paper.yaml"
+        for ek in ("short", "long", "both"):
+            out.append(dict(name=f"gre_{ek}_unconstrained", family="gre", base=gre, eddy=ek, gmax=50.0, smax=500.0, method="dto"))
+        for g in (10, 15, 20, 25, 30):
+            for m in ("dto", "preemphasis"):
+                out.append(dict(name=f"gre_both_g{g}_{m}", family="gre-amp", base=gre, eddy="both", gmax=float(g), smax=500.0, method=m))
+        for m in ("dto", "preemphasis"):
+            out.append(dict(name=f"gre_both_full_{m}", family="gre-full", base=gre, eddy="both", gmax=13.0, smax=130.0, method=m))
+    if only in (None, "epi"):
+        for e in EPI_ESP:
+            out.append(dict(name=f"epi_esp{e}", family="epi", base=REPO / "sequences" / f"epi_esp{e}.yaml",
+                            eddy=None, gmax=72.0, smax=180.0, method="dto", esp_ms=int(e) / 100))
+    return out
+
+
+def run_one(sc: dict, tmpdir: Path, girf_model, quick: bool, threads: int) -> dict:
+    from dtoc.optimize.config import load_config
+    from dtoc.optimize.run import optimize_sequence
+    from dtoc.seq.check import check_file
+    from dtoc.seq.read import load_sequence
+    from dtoc.seq.system import SystemSpec
+
+    t0 = time.time()
+    ir = load_sequence(sc["base"])
+    over = {"method": sc["method"], "gmax_mT_per_m": sc["gmax"], "smax_T_per_m_per_s": sc["smax"], "threads": threads}
+    if quick:
+        over.update({"warm_iters": 60, "iters": 2})
+    cfg = load_config(ir.kind, None, over)
+    hw = girf_model if sc["eddy"] is None else eddy_model(sc["eddy"])
+    out = tmpdir / f"{sc['name']}.seq"
+    res = optimize_sequence(ir, out=out, config=cfg, hardware=hw, force=True, base_path=sc["base"])
+    m = res.manifest
+    sysspec = SystemSpec(max_grad_mT_per_m=sc["gmax"], max_slew_T_per_m_per_s=sc["smax"], grad_raster_s=ir.raster_s)
+    chk = check_file(out, sysspec)
+    base_viol = [v for v in __import__("dtoc.seq.check", fromlist=["check_ir_limits"]).check_ir_limits(ir, sysspec)]
+    return {
+        **{k: (str(v) if isinstance(v, Path) else v) for k, v in sc.items()},
+        "before": m["before"], "after": m["after"],
+        "skipped_pct": 100.0 * m["samples_discarded_fraction"],
+        "limit_violations": sum(1 for v in chk.violations if v.rule in LIMIT_RULES),
+        "other_check_rules": sorted({v.rule for v in chk.violations} - LIMIT_RULES),
+        "base_limit_violations": len(base_viol),
+        "preemphasis": m.get("preemphasis"),
+        "stage_times_s": m["stage_times_s"], "time_s": time.time() - t0, "n_adc": ir.n_adc_samples,
+    }
+
+
+def _f(v, pct=False, nd=2):
+    if v is None:
+        return "-"
+    return f"{100 * v:.{nd}f}" if pct else f"{v:.{nd}f}"
+
+
+def write_results(rows: list[dict], quick: bool, machine: str) -> None:
+    by = {r["name"]: r for r in rows if "error" not in r}
+    L = ["# Results: the paper's experiments with dtoc", "",
+         "Generated by `python -m bench.paper` (do not edit by hand). " + machine,
+         ("**Quick (smoke) run: reduced iterations; not the reference numbers.**" if quick else ""), "",
+         "NRMSE = ||abs(I) - abs(I0)|| / ||abs(I0)|| of the plain-iFFT image against the ideal-hardware image "
+         "(docs/metrics.md); skipped = samples left out by the post-hoc discarding (threshold chosen to "
+         "minimise NRMSE). k errors are over all ADC samples. Every exported file was checked with "
+         "`dtoc check` rules at the scenario's limits: column *viol.* counts amplitude/slew violations.", ""]
+    L += ["## GRE, unconstrained (50 mT/m, 500 T/m/s)", "",
+          "| eddy currents | NRMSE before % | NRMSE after % | k rmse before (rad/m) | k rmse after (rad/m) | max k err after (dk) | skipped % | viol. | time (s) |",
+          "|---|---|---|---|---|---|---|---|---|"]
+    for ek in ("short", "long", "both"):
+        r = by.get(f"gre_{ek}_unconstrained")
+        if r:
+            L.append(f"| {ek} | {_f(r['before']['nrmse'], True)} | {_f(r['after']['nrmse'], True)} | "
+                     f"{_f(r['before']['kspace_rmse_rad_per_m'])} | {_f(r['after']['kspace_rmse_rad_per_m'])} | "
+                     f"{_f(r['after']['kspace_max_dk'], nd=3)} | {r['skipped_pct']:.2f} | {r['limit_violations']} | {r['time_s']:.0f} |")
+    L += ["", "## GRE, amplitude-limited (both eddy currents, smax 500 T/m/s): Figure 5", "",
+          "Published (paper Figure 5) beside ours. PE = first-order pre-emphasis (Eq. 2, coefficients fitted here); "
+          "its constant-TE fallback here is *projection onto the limits + optimal sample skipping* (see docs/optimize.md), "
+          "not the paper's k-extent rescaling.", "",
+          "| gmax mT/m | PE NRMSE % (paper) | PE NRMSE % (ours) | DTO NRMSE % (paper) | DTO NRMSE % (ours) | PE skipped % (paper) | PE skipped % (ours) | DTO skipped % (paper) | DTO skipped % (ours) | DTO <= paper | viol. | DTO time (s) |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for g, (pe_n, dto_n, pe_s, dto_s) in PUBLISHED_FIG5.items():
+        d, p = by.get(f"gre_both_g{g}_dto"), by.get(f"gre_both_g{g}_preemphasis")
+        if not d:
+            continue
+        ok = d["after"]["nrmse"] is not None and 100 * d["after"]["nrmse"] <= dto_n
+        L.append(f"| {g} | {pe_n} | {_f(p['after']['nrmse'], True) if p else '-'} | {dto_n} | {_f(d['after']['nrmse'], True)} | "
+                 f"{pe_s} | {p['skipped_pct']:.2f} | {dto_s} | {d['skipped_pct']:.2f} | {'yes' if ok else 'NO'} | "
+                 f"{d['limit_violations'] + (p['limit_violations'] if p else 0)} | {d['time_s']:.0f} |" if p else
+                 f"| {g} | {pe_n} | - | {dto_n} | {_f(d['after']['nrmse'], True)} | {pe_s} | - | {dto_s} | {d['skipped_pct']:.2f} | {'yes' if ok else 'NO'} | {d['limit_violations']} | {d['time_s']:.0f} |")
+    pe_rows = [by.get(f"gre_both_g{g}_preemphasis") for g in PUBLISHED_FIG5]
+    vte = [(g, r["preemphasis"].get("variable_te")) for g, r in zip(PUBLISHED_FIG5, pe_rows) if r and r.get("preemphasis")]
+    if vte:
+        L += ["", "Pre-emphasis coefficients fitted to the model (alpha, tau): " +
+              ", ".join(f"{a:.4f} / {t * 1e3:.3g} ms" for a, t in zip(pe_rows[0]["preemphasis"]["coefficients"]["alpha"],
+                                                                   pe_rows[0]["preemphasis"]["coefficients"]["tau_s"]))
+              + " (paper: 0.1392 / 0.89 ms and 0.1108 / 90 ms).", "",
+              "Variable-TE fallback (TE, TR for which pre-emphasis meets gmax; paper: 10 -> 4.23/13.14 ms, 15 -> 3.68/11.34 ms, 20 -> 3.4/10.4 ms): " +
+              "; ".join(f"gmax {g}: " + (f"TE {v['te_ms']:.2f} ms, TR {v['tr_ms']:.2f} ms" if v and v.get("te_ms") else "within limits / n.a.")
+                        for g, v in vte)]
+    L += ["", "## GRE, fully constrained (13 mT/m, 130 T/m/s, both eddy currents)", "",
+          "| method | NRMSE before % | NRMSE after % | max k err (dk) | skipped % | viol. | time (s) |", "|---|---|---|---|---|---|---|"]
+    for m in ("dto", "preemphasis"):
+        r = by.get(f"gre_both_full_{m}")
+        if r:
+            L.append(f"| {m} | {_f(r['before']['nrmse'], True)} | {_f(r['after']['nrmse'], True)} | {_f(r['after']['kspace_max_dk'], nd=3)} | "
+                     f"{r['skipped_pct']:.2f} | {r['limit_violations']} | {r['time_s']:.0f} |")
+    L += ["", "## EPI with the measured 7 T GIRF (kcl_7T_terra_2023), 72 mT/m, 180 T/m/s", "",
+          "Target: ghost-to-signal ratio < 1 % after optimization at every echo spacing; the base at 0.73 ms violates slew.", "",
+          "| echo spacing (ms) | base limit violations | ghost before % | ghost after % | NRMSE before % | NRMSE after % | max k err before (dk) | after (dk) | viol. (exported) | ghost < 1 % | time (s) |",
+          "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for e in EPI_ESP:
+        r = by.get(f"epi_esp{e}")
+        if r:
+            gr = r["after"]["ghost_ratio"]
+            L.append(f"| {int(e) / 100:.2f} | {r['base_limit_violations']} | {_f(r['before']['ghost_ratio'], True, 3)} | {_f(gr, True, 3)} | "
+                     f"{_f(r['before']['nrmse'], True)} | {_f(r['after']['nrmse'], True)} | {_f(r['before']['kspace_max_dk'], nd=3)} | "
+                     f"{_f(r['after']['kspace_max_dk'], nd=3)} | {r['limit_violations']} | {'yes' if gr is not None and gr < 0.01 else 'NO'} | {r['time_s']:.0f} |")
+    errs = [r for r in rows if "error" in r]
+    if errs:
+        L += ["", "## Scenarios that failed", ""] + [f"- {r['name']}: {r['error']}" for r in errs]
+    RESULTS.write_text("\n".join(L) + "\n")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m bench.paper", description=__doc__.splitlines()[0])
+    ap.add_argument("--only", choices=["gre", "epi"], default=None)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--names", nargs="*", default=None, help="run only these scenario names")
+    ap.add_argument("--json", type=Path, default=None, help="also dump all rows as JSON here")
+    a = ap.parse_args(argv)
+    from bench._report import machine_line, write_section
+
+    rows = []
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        girf = kcl_girf_model(tmp) if a.only in (None, "epi") and SHARED_GIRF.exists() else None
+        for sc in scenarios(a.only):
+            if a.names and sc["name"] not in a.names:
+                continue
+            if sc["family"] == "epi" and girf is None:
+                rows.append({**{k: str(v) for k, v in sc.items()}, "error": "../shared/data GIRF absent"})
+                continue
+            sys.stderr.write(f"[bench.paper] {sc['name']} ...\n")
+            try:
+                r = run_one(sc, tmp, girf, a.quick, a.threads)
+                sys.stderr.write(f"[bench.paper] {sc['name']}: NRMSE {r['before']['nrmse']} -> {r['after']['nrmse']}, "
+                                 f"skipped {r['skipped_pct']:.2f} %, viol {r['limit_violations']}, {r['time_s']:.0f} s\n")
+            except Exception as e:  # noqa: BLE001 - a failing scenario is reported, not hidden
+                traceback.print_exc()
+                r = {**{k: str(v) for k, v in sc.items()}, "error": f"{type(e).__name__}: {e}"}
+            rows.append(r)
+    machine = machine_line()
+    write_results(rows, a.quick, machine)
+    body = ["| scenario | method | time (s) | warm start (s) | full loss (s) | discard (s) |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        if "error" in r:
+            body.append(f"| {r['name']} | {r['method']} | failed | | | |")
+            continue
+        st = r["stage_times_s"]
+        body.append(f"| {r['name']} | {r['method']} | {r['time_s']:.1f} | {st.get('warm_start_s', 0):.1f} | "
+                    f"{st.get('full_loss_s', 0):.1f} | {st.get('discard_s', 0):.1f} |")
+    body.append("")
+    body.append("Targets (issue 5): < 120 s per GRE scenario, < 60 s per EPI scenario on this 2-core CPU. "
+                "Time includes loading the spec, building the PDG graph, target images and the final check."
+                + (" Quick run." if a.quick else ""))
+    write_section("optimize", "dtoc optimize: paper scenarios", "\n".join(body), "python -m bench.paper" + (" --quick" if a.quick else ""))
+    if a.json:
+        a.json.write_text(json.dumps(rows, indent=2, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,209 @@
+"""The identify report: JSON (BRIEF §2.3 plus extras), a rich table, a PNG of residuals.
+
+JSON keys (minimum, exactly as the contract): ``before``, ``after``, ``heldout_before``, ``heldout_after``
+(each {"G_rmse", "k_rmse", "b0_rmse"}, null for unmeasured channels), ``noise`` ({"G", "k", "b0"}),
+``effects`` (kind, axis, input_axis, params, stderr, score; in the order added), ``explained``,
+``remaining``.  Extras: ``relative_to_noise`` (every rmse divided by its noise floor), ``per_axis``
+(rmse per axis), ``noise_method``, ``heldout`` (how folds were made), ``declared`` (description),
+``screening`` (top candidates per round with their scores), ``n_samples``, ``dtoc_version``.
+Units: G mT/m, k rad/m, b0 uT; scores in chi-square units (held-out BIC decrease).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+
+import numpy as np
+
+from dtoc import __version__
+from dtoc.constants import AXES
+from dtoc.identify.candidates import lti_features
+from dtoc.identify.search import IdentifyResult
+
+CH = ("G", "k", "b0")
+UNITS = {"G": "mT/m", "k": "rad/m", "b0": "uT"}
+
+
+def _num(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _rm(d: dict) -> dict:
+    return {f"{c}_rmse": _num(d.get(c)) for c in CH}
+
+
+def _effect_entry(f) -> dict:
+    e = f.effect
+    params = e.params_dict()
+    entry = {
+        "kind": e.kind,
+        "axis": e.axis,
+        "input_axis": e.input_axis,
+        "params": params,
+        "stderr": {k: (v if isinstance(v, list) else _num(v)) for k, v in f.stderr.items()},
+        "score": _num(f.score),
+    }
+    if e.kind == "lti":
+        taps = np.asarray(params["taps"], dtype=np.float64).reshape(-1)
+        j0 = int(round(params["t0_s"] / params["dt_s"]))
+        entry["features"] = lti_features(taps, j0, params["dt_s"])
+    return entry
+
+
+def report_dict(r: IdentifyResult) -> dict:
+    """The JSON report as a dict (deterministic for deterministic inputs)."""
+    noise = {c: (_num(r.noise[c].sigma) if c in r.noise else None) for c in CH}
+    rel = {}
+    for name, d in (("before", r.before), ("after", r.after), ("heldout_before", r.heldout_before),
+                    ("heldout_after", r.heldout_after)):
+        rel[name] = {c: (_num(d[c] / noise[c]) if d.get(c) is not None and noise[c] else None) for c in CH}
+    per_axis = {}
+    for name, d in (("before", r.before), ("after", r.after), ("heldout_after", r.heldout_after)):
+        per_axis[name] = {f"{c}_{ax}": _num(d.get(f"{c}_{ax}")) for c in ("G", "k") for ax in AXES
+                          if d.get(f"{c}_{ax}") is not None}
+    return {
+        "before": _rm(r.before),
+        "after": _rm(r.after),
+        "heldout_before": _rm(r.heldout_before),
+        "heldout_after": _rm(r.heldout_after),
+        "noise": noise,
+        "effects": [_effect_entry(f) for f in r.twin.found],
+        "explained": bool(r.explained),
+        "remaining": list(r.remaining),
+        "relative_to_noise": rel,
+        "per_axis": per_axis,
+        "noise_method": {c: r.noise[c].method for c in r.noise},
+        "heldout": r.folds.describe(),
+        "declared": r.twin.declared.description or ("ideal hardware" if not r.twin.declared.effects else "declared model"),
+        "screening": [[{"candidate": n, "score": s} for n, s in rnd] for rnd in r.history],
+        "n_samples": int(sum(np.sum(r.data.mask(c) > 0) for c in r.data.channels())),
+        "dtoc_version": __version__,
+    }
+
+
+def report_json(r: IdentifyResult) -> str:
+    return json.dumps(report_dict(r), indent=2, sort_keys=False) + "\n"
+
+
+def _fmt_params(entry: dict) -> str:
+    parts = []
+    for k, v in entry["params"].items():
+        if isinstance(v, list):
+            continue
+        if entry["kind"] == "lti" and k in ("dt_s", "t0_s"):
+            continue
+        se = entry["stderr"].get(k)
+        parts.append(f"{k}={v:.6g}" + (f" ± {se:.2g}" if isinstance(se, float) else ""))
+    if entry["kind"] == "lti":
+        ft = entry["features"]
+        n = len(np.asarray(entry["params"]["taps"]).reshape(-1))
+        parts.append(f"{n} taps; peak |dH|={ft['peak_abs']:.3g} at {ft['peak_hz'] / 1e3:.2f} kHz; DC {ft['dc_change']:+.3g}")
+    return ", ".join(parts)
+
+
+def print_table(r: IdentifyResult, console=None) -> None:
+    """Rich tables on stdout: errors before/after (absolute and x noise), effects found, verdict."""
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    con = console or Console(highlight=False)
+    d = report_dict(r)
+    t = Table(title=f"dtoc identify — residual vs {d['declared']} ({d['heldout']})")
+    for col in ("channel", "noise", "before", "after", "held-out before", "held-out after"):
+        t.add_column(col, justify="right" if col != "channel" else "left")
+    for c in r.data.channels():
+        n = d["noise"][c]
+
+        def cell(key):
+            v = d[key][f"{c}_rmse"]
+            return "—" if v is None else f"{v:.4g} ({v / n:.2f}x)"
+
+        t.add_row(f"{c} ({UNITS[c]})", f"{n:.3g}", cell("before"), cell("after"),
+                  cell("heldout_before"), cell("heldout_after"))
+    con.print(t)
+    for c in r.data.channels():
+        con.print(f"noise floor {c}: {d['noise_method'][c]}; values in brackets are multiples of it", markup=False)
+    e = Table(title="effects added (in order)")
+    for col in ("#", "kind", "axis", "input", "parameters ± stderr", "score"):
+        e.add_column(col)
+    for i, entry in enumerate(d["effects"]):
+        axis = "b0" if entry["kind"] == "b0_eddy" else (entry["axis"] or "all")
+        e.add_row(str(i + 1), entry["kind"], axis, str(entry["input_axis"] or "—"), escape(_fmt_params(entry)),
+                  f"{entry['score']:.4g}")
+    if not d["effects"]:
+        e.add_row("—", "none", "", "", "no candidate is significant", "")
+    con.print(e)
+    con.print(f"explained: {'yes' if d['explained'] else 'NO'}")
+    for note in d["remaining"]:
+        con.print(f"  - {note}", markup=False)
+
+
+def _psd(x: np.ndarray, dt_s: float, seg: int = 512):
+    """Welch PSD (Hann, 50 % overlap) averaged over the leading axes of x (..., N); units^2/Hz."""
+    x2 = x.reshape(-1, x.shape[-1])
+    seg = min(seg, x2.shape[-1])
+    win = np.hanning(seg)
+    acc = np.zeros(seg // 2 + 1)
+    n = 0
+    for row in x2:
+        if not np.any(row):
+            continue
+        for s in range(0, row.size - seg + 1, seg // 2):
+            acc += np.abs(np.fft.rfft(row[s : s + seg] * win)) ** 2
+            n += 1
+    f = np.fft.rfftfreq(seg, dt_s)
+    scale = 2.0 * dt_s / np.sum(win**2)
+    return f, acc * scale / max(n, 1)
+
+
+def residual_png(r: IdentifyResult) -> bytes:
+    """PNG bytes: per measured channel, residual before/after in time (worst waveform) and frequency (PSD)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    chans = r.data.channels()
+    fig, axs = plt.subplots(len(chans), 2, figsize=(12, 3.2 * len(chans)), squeeze=False)
+    t_ms = np.arange(r.data.N) * r.data.dt_s * 1e3
+    for i, c in enumerate(chans):
+        rb, ra = r.residual_before[c], r.residual_after[c]
+        s = r.noise[c].sigma
+        energy = (rb**2).reshape(r.data.M, -1).sum(1)
+        m = int(np.argmax(energy))
+        ax = axs[i, 0]
+        if c == "b0":
+            ax.plot(t_ms, rb[m], lw=0.6, label="before")
+            ax.plot(t_ms, ra[m], lw=0.6, label="after")
+        else:
+            for a in range(3):
+                if r.data.axes_measured[m, a]:
+                    ax.plot(t_ms, rb[m, a], lw=0.6, label=f"before {AXES[a]}")
+                    ax.plot(t_ms, ra[m, a], lw=0.6, label=f"after {AXES[a]}")
+        ax.axhspan(-s, s, color="0.8", alpha=0.5, label="±noise")
+        ax.set_xlabel("t [ms]")
+        ax.set_ylabel(f"{c} residual [{UNITS[c]}]")
+        ax.set_title(f"{c}: waveform {r.data.labels[m]} (largest residual)")
+        ax.legend(fontsize=7, ncol=2)
+        ax = axs[i, 1]
+        fb, pb = _psd(rb, r.data.dt_s)
+        fa, pa = _psd(ra, r.data.dt_s)
+        ax.semilogy(fb / 1e3, pb, lw=0.8, label="before")
+        ax.semilogy(fa / 1e3, pa, lw=0.8, label="after")
+        ax.axhline(2.0 * s * s * r.data.dt_s, color="k", ls="--", lw=0.8, label="white noise level")
+        ax.set_xlabel("f [kHz]")
+        ax.set_ylabel(f"PSD [({UNITS[c]})²/Hz]")
+        ax.set_title(f"{c}: residual spectrum")
+        ax.legend(fontsize=7)
+    fig.suptitle("explained" if r.explained else "NOT explained: " + "; ".join(r.remaining[:2])[:150], fontsize=9)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, metadata={"Software": None})
+    plt.close(fig)
+    return buf.getvalue()
