@@ -20,7 +20,51 @@ girf_app = typer.Typer(help="GIRF files: import published ones, fit from measure
 def _console():
     from rich.console import Console
 
-    return Console(stderr=True)
+    con = Console(stderr=True)
+    return con if con.is_terminal else Console(stderr=True, width=160)
+
+
+def _finite(name: str, v: float | None, positive: bool = False) -> None:
+    """Reject NaN/inf (and <= 0 when ``positive``) option values with one line."""
+    import math
+
+    from dtoc.errors import InputError
+
+    if v is None:
+        return
+    if not math.isfinite(v) or (positive and v <= 0):
+        raise InputError(f"{name} must be a finite number{' > 0' if positive else ''}, got {v}")
+
+
+def _json(obj) -> str:
+    """Strict JSON (NaN/inf become null, so every consumer can parse it)."""
+    import math
+
+    def clean(x):
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        return x
+
+    return json.dumps(clean(obj), indent=2, allow_nan=False) + "\n"
+
+
+def _check_device(device: str) -> None:
+    import torch
+
+    from dtoc.errors import InputError
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, ValueError):
+        raise InputError(f"--device {device!r} is not a torch device (use cpu or cuda)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise InputError(f"--device {device}: CUDA is not available on this machine")
+    if dev.type not in ("cpu", "cuda"):
+        raise InputError(f"--device {device!r}: only cpu and cuda are supported")
 
 
 def _fmt(v, scale=1.0, digits=4):
@@ -48,7 +92,7 @@ def _emit_girf(gd, out: Path, force: bool, as_json: bool):
     p = save_girf(gd, out, force=force)
     rows = girf_summary(gd)
     if as_json:
-        sys.stdout.write(json.dumps({"output": str(p), "notes": gd.notes, "terms": rows}, indent=2) + "\n")
+        sys.stdout.write(_json({"output": str(p), "notes": gd.notes, "terms": rows}))
     else:
         _console().print(_summary_table(rows, f"{p}"))
         for n in gd.notes:
@@ -67,7 +111,10 @@ def import_cmd(
 ):
     """Convert a published GIRF (MATLAB v5 or v7.3) into the dtoc GIRF .npz (conventions: docs/hardware.md)."""
     from dtoc.hardware.girf_import import import_girf
+    from dtoc.util.atomic import check_output_path
 
+    _finite("--shift-us", shift_us)
+    check_output_path(out, force)
     gd = import_girf(files, include_b0=b0, shift_s=shift_us * 1e-6)
     _emit_girf(gd, out, force, as_json)
 
@@ -89,6 +136,13 @@ def fit_cmd(
     from dtoc.hardware.measurement import load_measurement
     from dtoc.identify.girf_fit import fit_girf
 
+    from dtoc.util.atomic import check_output_path
+
+    _finite("--reg", reg, positive=True)
+    _finite("--fmax-khz", fmax_khz, positive=True)
+    _finite("--tmin-ms", tmin_ms)
+    _finite("--tmax-ms", tmax_ms)
+    check_output_path(out, force)
     m = load_measurement(measured)
     tw = None
     if tmin_ms is not None or tmax_ms is not None:
@@ -113,12 +167,16 @@ def show_cmd(
     from dtoc.hardware.girf_io import load_girf
     from dtoc.hardware.girf_plot import plot_girf
 
+    if png is not None:
+        from dtoc.util.atomic import check_output_path
+
+        check_output_path(png, force)
     gd = load_girf(girf)
     rows = girf_summary(gd)
     if png is not None:
         plot_girf(gd, png, title=girf.name, force=force)
     if as_json:
-        sys.stdout.write(json.dumps({"file": str(girf), "notes": gd.notes, "terms": rows}, indent=2) + "\n")
+        sys.stdout.write(_json({"file": str(girf), "notes": gd.notes, "terms": rows}))
     else:
         _console().print(_summary_table(rows, str(girf)))
         if png is not None:
@@ -139,6 +197,11 @@ def predict_cmd(
     from dtoc.hardware.predict import plot_prediction, predict
     from dtoc.seq.read import load_sequence
 
+    _check_device(device)
+    if png is not None:
+        from dtoc.util.atomic import check_output_path
+
+        check_output_path(png, force)
     m = resolve_model(girf=girf, model=model)
     ir = load_sequence(seq)
     res = predict(ir, m, device=device)
@@ -148,7 +211,7 @@ def predict_cmd(
     res["sequence"] = str(seq)
     res["model"] = str(girf or model or "ideal")
     if as_json:
-        sys.stdout.write(json.dumps(res, indent=2) + "\n")
+        sys.stdout.write(_json(res))
         return
     _print_prediction(res)
 

@@ -19,7 +19,10 @@ Recognised layouts (the three in ``../shared/data/girf`` and files laid out like
    ``b0ec_FT`` B0 term on a frequency axis ``freq`` in **kHz**.  The stored ``freq`` vector is a linspace
    that misses f = 0 by half a bin; the data are the standard ``fftshift`` DFT bins ``(k - N/2) df`` with
    ``df = 2 * max|freq| / N`` (verified: the bin N/2 is real and the rest Hermitian about it).  Sample 0
-   (the -Nyquist bin) is an underflow and is dropped, leaving a symmetric odd-length grid.  Cross terms
+   (the -Nyquist bin) is an underflow and is set to zero; the N-point grid is kept, so the taps are
+   exactly ``1 / (N df)`` = 5 us apart.  Beyond the band of the file's own ``GIRF_Temporal`` (|f| <= 63.4 kHz
+   for the Prisma files) ``GIRF_FT`` is measurement noise (|H| up to ~3e3 near 100 kHz) and would
+   dominate the taps; the response is set to zero there, exactly as the publishers' time-domain kernel.  Cross terms
    are zero (not measured).  The system delays (~4-8 us) are **kept** (not removed).  The B0 term unit is
    undocumented (GIRFReco.jl treats its prediction as a k0 phase in rad): imported only when
    ``include_b0=True`` and flagged in ``notes``.
@@ -123,27 +126,55 @@ def _import_gmtf(s, path: Path, include_b0: bool) -> GirfData:
 
 
 def _import_prisma_axis(path: Path):
+    """(f (N,) Hz, H (N,), H0 (N,) or None, band_hz or None) of one GIRFReco-style HDF5 file."""
     import h5py
 
-    with h5py.File(path, "r") as z:
+    try:
+        z = h5py.File(path, "r")
+    except Exception as e:  # noqa: BLE001
+        raise InputError(f"{path}: not a readable MATLAB v7.3 (HDF5) file ({type(e).__name__})") from None
+    with z:
         for key in ("GIRF_FT", "freq"):
             if key not in z:
                 raise InputError(f"{path}: HDF5 GIRF file lacks variable {key!r}")
         H = _h5_complex(z["GIRF_FT"])
         fk = np.asarray(z["freq"], dtype=np.float64).ravel()
         b0 = _h5_complex(z["b0ec_FT"]) if "b0ec_FT" in z else None
+        ht = _h5_complex(z["GIRF_Temporal"]) if "GIRF_Temporal" in z else None
     N = H.size
-    if fk.size != N or N % 2:
+    if fk.size != N or N % 2 or N < 8:
         raise InputError(f"{path}: 'GIRF_FT' and 'freq' must have the same even length")
+    if not np.all(np.isfinite(fk)) or np.max(np.abs(fk)) <= 0:
+        raise InputError(f"{path}: 'freq' must be a finite frequency axis in kHz")
     fmax_hz = np.max(np.abs(fk)) * 1e3  # kHz -> Hz
     df = 2 * fmax_hz / N
     c = N // 2
-    Hs = H[1:]  # drop the underflow sample 0 (the -Nyquist bin)
+    Hs = H[1:]  # without the underflow sample 0 (the -Nyquist bin)
+    if not np.all(np.isfinite(Hs)):
+        raise InputError(f"{path}: 'GIRF_FT' contains NaN or inf")
     herm = np.max(np.abs(Hs - np.conj(Hs[::-1]))) / max(np.max(np.abs(Hs[c - 50:c + 50])), 1e-30)
     if herm > 1e-6 or abs(H[c].imag) > 1e-9 * abs(H[c]):
         raise InputError(f"{path}: 'GIRF_FT' is not Hermitian about bin N/2; unknown layout")
-    f = (np.arange(1, N) - c) * df
-    return f, Hs, (None if b0 is None else b0[1:])
+    # keep the full N-point DFT grid (dt = 1 / (N df) exactly), with the underflow -Nyquist bin set to 0
+    f = (np.arange(N) - c) * df
+    H = H.copy()
+    H[0] = 0.0
+    b0 = None if b0 is None else np.where(np.arange(N) == 0, 0.0, np.nan_to_num(b0, nan=0.0, posinf=0.0, neginf=0.0))
+    band = None
+    if ht is not None and ht.size == N and np.all(np.isfinite(ht)):
+        # the publishers' own time-domain kernel is GIRF_FT restricted to a band; beyond it GIRF_FT is
+        # measurement noise (|H| up to ~3e3 near 100 kHz): use the same band (symmetric about f = 0)
+        spec = np.abs(np.fft.fftshift(np.fft.fft(np.fft.ifftshift(ht))))
+        sup = np.flatnonzero(spec > 1e-9 * spec.max())
+        if sup.size and sup[0] < c < sup[-1]:
+            nb = int(min(c - sup[0], sup[-1] - c))
+            if nb < c - 1:
+                band = nb * df
+                out = np.abs(np.arange(N) - c) > nb
+                H[out] = 0.0
+                if b0 is not None:
+                    b0[out] = 0.0
+    return f, H, b0, band
 
 
 def import_girf(files: list[str | os.PathLike], include_b0: bool = False, shift_s: float = 0.0) -> GirfData:
@@ -192,7 +223,7 @@ def _import_prisma(paths: list[Path], include_b0: bool) -> GirfData:
             raise InputError(f"{p}: axis {AXES[a]} given twice")
         got[a] = _import_prisma_axis(p)
     f = None
-    for a, (fa, _, _) in got.items():
+    for a, (fa, _, _, _) in got.items():
         if f is None:
             f = fa
         elif fa.shape != f.shape or np.max(np.abs(fa - f)) > 1e-6 * np.max(np.abs(f)):
@@ -208,8 +239,18 @@ def _import_prisma(paths: list[Path], include_b0: bool) -> GirfData:
         else:
             H[a, a] = 1.0  # ideal: unit response, zero delay
     notes = [f"per-axis HDF5 files {', '.join(p.name for p in paths)}: self terms only (cross terms zero, not measured)",
-             f"frequency axis rebuilt as fftshift DFT bins, df = {f[1] - f[0]:.6g} Hz; underflow sample 0 dropped",
+             f"frequency axis rebuilt as fftshift DFT bins, df = {f[1] - f[0]:.6g} Hz (tap spacing "
+             f"{1 / (f.size * (f[1] - f[0])):.6g} s); underflow sample 0 (-Nyquist bin) set to 0",
              "system delays kept (not removed)"]
+    bands = sorted({g[3] for g in got.values() if g[3] is not None})
+    if bands:
+        notes.append(f"band-limited to |f| <= {bands[0]:.6g} Hz, the band of the files' own GIRF_Temporal "
+                     "(beyond it GIRF_FT is measurement noise)")
+        if len(bands) > 1:
+            for a in got:
+                got[a][1][np.abs(f) > bands[0]] = 0.0
+                if got[a][2] is not None:
+                    got[a][2][np.abs(f) > bands[0]] = 0.0
     missing = [AXES[a] for a in range(3) if a not in got]
     if missing:
         notes.append(f"axis {','.join(missing)} not given: ideal unit response")

@@ -150,8 +150,71 @@ def _scalar(z, name: str, path, positive: bool = False) -> float:
     return v
 
 
-def validate_girf_arrays(z, path: str = "GIRF") -> GirfData:
-    """Validate a mapping of contract keys (an opened npz) and build :class:`GirfData`."""
+#: Plausible range of a GIRF's tap spacing, s (anything else is a unit mistake: ms or us given as s).
+DT_RANGE_S = (1e-8, 1e-3)
+#: Longest accepted kernel, s (a GIRF decays within milliseconds; longer is a unit or layout mistake).
+MAX_SPAN_S = 2.0
+#: Accepted DC gain of a self term (x->x ...): a real gradient chain is within a few % of 1.
+SELF_DC_RANGE = (0.5, 2.0)
+#: Largest accepted |DC gain| of a cross term and of a B0 term (uT per mT/m).
+CROSS_DC_MAX = 0.5
+B0_DC_MAX = 100.0
+
+
+def check_plausible(gd: "GirfData", path: str = "GIRF") -> None:
+    """Reject a GIRF whose magnitudes are physically implausible (unit mistakes), one line naming the key.
+
+    Checks: ``dt`` within :data:`DT_RANGE_S`, kernel span at most :data:`MAX_SPAN_S`, self-term DC gain
+    ``sum(h[a, a])`` within :data:`SELF_DC_RANGE` (a kernel stored as a density in 1/s has a DC gain of
+    ~1/dt; one scaled by 1e3 has 1000), cross-term |DC gain| <= :data:`CROSS_DC_MAX`, B0-term |DC gain|
+    <= :data:`B0_DC_MAX` uT per mT/m.
+    """
+    from dtoc.constants import AXES
+
+    td = gd.to_time_domain()
+    key_dt = "dt" if gd.is_time_domain else "f"
+    if not DT_RANGE_S[0] <= td.dt_s <= DT_RANGE_S[1]:
+        what = f"'dt' = {td.dt_s:g} s" if gd.is_time_domain else f"'f' spacing gives a tap spacing of {td.dt_s:g} s"
+        raise InputError(f"{path}: key {what} is implausible for a GIRF (expected {DT_RANGE_S[0]:g} to "
+                         f"{DT_RANGE_S[1]:g} s; given in ms or us instead of s, or f in kHz instead of Hz?)")
+    span = td.h.shape[-1] * td.dt_s
+    if abs(td.t0_s) > MAX_SPAN_S:
+        raise InputError(f"{path}: key 't0' = {td.t0_s:g} s is implausible (more than {MAX_SPAN_S:g} s; given in us or ms?)")
+    if span > MAX_SPAN_S:
+        raise InputError(f"{path}: key {key_dt!r}: kernel spans {span:g} s (more than {MAX_SPAN_S:g} s): implausible for a GIRF")
+    hk = "h" if gd.is_time_domain else "H"
+    dc = td.h.sum(axis=-1)
+    for a in range(3):
+        v = float(dc[a, a])
+        if not SELF_DC_RANGE[0] <= v <= SELF_DC_RANGE[1]:
+            hint = " (taps stored as a density in 1/s? multiply by dt)" if abs(v * td.dt_s - 1) < 0.5 else (
+                " (units off by 1e3?)" if 200 < abs(v) < 5000 or 2e-4 < abs(v) < 5e-3 else "")
+            raise InputError(f"{path}: key {hk!r}: DC gain of self term {AXES[a]}->{AXES[a]} is {v:.4g}, expected about 1 "
+                             f"({SELF_DC_RANGE[0]:g} to {SELF_DC_RANGE[1]:g}){hint}")
+    for o in range(3):
+        for i in range(3):
+            if o != i and abs(dc[o, i]) > CROSS_DC_MAX:
+                raise InputError(f"{path}: key {hk!r}: DC gain of cross term {AXES[i]}->{AXES[o]} is {dc[o, i]:.4g}; "
+                                 f"|gain| above {CROSS_DC_MAX:g} is implausible (axes swapped or units off?)")
+    if td.h0 is not None:
+        d0 = td.h0.sum(axis=-1)
+        for i in range(3):
+            if abs(d0[i]) > B0_DC_MAX:
+                raise InputError(f"{path}: key {'h0' if gd.is_time_domain else 'H0'!r}: DC gain of B0 term {AXES[i]}->b0 is "
+                                 f"{d0[i]:.4g} uT per mT/m; above {B0_DC_MAX:g} is implausible (units off?)")
+
+
+def validate_girf_arrays(z, path: str = "GIRF", plausible: bool = True) -> GirfData:
+    """Validate a mapping of contract keys (an opened npz) and build :class:`GirfData`.
+
+    ``plausible``: also reject physically implausible magnitudes (:func:`check_plausible`)."""
+    gd = _validate_girf_arrays(z, path)
+    if plausible:
+        check_plausible(gd, path)
+    return gd
+
+
+def _validate_girf_arrays(z, path: str) -> GirfData:
     keys = set(z.keys()) if hasattr(z, "keys") else set(z.files)
     text = {}
     for k in ("source", "notes"):
@@ -212,8 +275,12 @@ def validate_girf_arrays(z, path: str = "GIRF") -> GirfData:
 def load_girf(path: str | os.PathLike) -> GirfData:
     """Read and validate a contract GIRF ``.npz`` (one-line InputError naming the key on failure)."""
     p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{p}: is a directory, expected a GIRF .npz file")
     if not p.is_file():
         raise InputError(f"{p}: GIRF file not found")
+    if p.suffix.lower() == ".mat":
+        raise InputError(f"{p}: a MATLAB file; convert it first with 'dtoc girf import {p.name} -o h.npz'")
     try:
         with np.load(p, allow_pickle=False) as z:
             return validate_girf_arrays(z, str(p))

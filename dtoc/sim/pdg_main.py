@@ -122,7 +122,7 @@ def _apply_rf(nxt, A_end, rec, eq_prev, K_end, coefs):
             src = src.index_add(0, torch.as_tensor(at_eq, device=dev), rec_c[None, :].expand(at_eq.size, -1))
         if CONJ[q]:
             src = src.conj()
-        A_new = A_new.index_add(0, torch.as_tensor(child, device=dev), coefs[q][None, :] * src)
+        A_new.index_add_(0, torch.as_tensor(child, device=dev), coefs[q][None, :] * src)  # fresh tensor: in place is safe
     rep = nxt.rep_parent
     sgn = np.where(rep < 0, 0.0, np.where(nxt.rep_conj, -1.0, 1.0))
     K_new = K_end.index_select(0, torch.as_tensor(np.maximum(rep, 0), device=dev)) * torch.as_tensor(sgn, dtype=K_end.dtype, device=dev)[:, None]

@@ -306,37 +306,46 @@ def _apply_kernel_separable(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg) ->
     """(M, T) = Cm (M, V) @ Kern(t, v)^T without forming Kern (voxels on the full Cartesian grid).
 
     Kern(t, v) = exp(-dt lam(v)) exp(-i mx(t) x_v) exp(-i my(t) y_v), lam = 1/T2 + sgn/T2' + i omega.
-    Samples are taken in windows of ``cfg.window_samples``; inside a window with centre time tc,
-    exp(-dt lam) = exp(-tc lam) sum_r (-(dt - tc) lam)^r / r! (R terms for a remainder below
-    ``cfg.taylor_tol``), and the voxel sum factorises per axis: for each term, a (W x nx) @ (nx x ny)
-    product followed by a sum over y with the (W x ny) y-phase factors.
+    Samples are grouped in windows of ``cfg.window_samples``; inside a window with centre tc,
+    exp(-dt lam) = exp(-tc lam) sum_r (-(dt - tc) lam)^r / r! with R terms (remainder below
+    ``cfg.taylor_tol``), and the voxel sum factorises per axis: batched (W x nx) @ (nx x M R ny)
+    products, then a sum over y with the (W x ny) y-phase factors.  Cost T V M R complex
+    multiply-adds as matrix products, no T x V exponentials.
     """
     dev = Cm.device
     ny, nx = vox.shape
     M = Cm.shape[0]
     cdt = Cm.dtype
-    full = torch.zeros((M, ny * nx), dtype=cdt, device=dev)
-    full = full.index_copy(1, vox.index, Cm)
+    rdt = mt_r.dtype
+    full = torch.zeros((M, ny * nx), dtype=cdt, device=dev).index_copy(1, vox.index, Cm)
     lam_v = torch.complex(vox.r2 + (sgn * vox.r2d if use_t2d else 0.0), vox.omega)  # (V,)
     lam = torch.zeros(ny * nx, dtype=cdt, device=dev).index_copy(0, vox.index, lam_v)
-    lam_max = float(lam_v.abs().max()) if lam_v.numel() else 0.0
+    lam_max = float(lam_v.detach().abs().max()) if lam_v.numel() else 0.0
     T = dtt.size
-    W = max(1, int(cfg.window_samples))
+    W = max(1, min(int(cfg.window_samples), T))
+    nW = -(-T // W)
+    pad = nW * W - T
+    dt_p = np.concatenate([dtt, np.full(pad, dtt[-1])]).reshape(nW, W)
+    tc = 0.5 * (dt_p.min(1) + dt_p.max(1))  # (nW,)
+    dl = dt_p - tc[:, None]  # (nW, W)
+    R = _taylor_terms(float(np.abs(dl).max()) * lam_max, cfg.taylor_tol)
+    fact = np.cumprod([1.0] + [1.0 / r for r in range(1, R)])
+    powers = torch.stack([(-lam) ** r * float(fact[r]) for r in range(R)], 0)  # (R, V)
+    mt_p = torch.cat([mt_r, mt_r[-1:].expand(pad, -1)], 0) if pad else mt_r
+    mx = mt_p[:, 0].reshape(nW, W, 1)
+    my = mt_p[:, 1].reshape(nW, W, 1)
+    X = torch.exp(torch.complex(torch.zeros_like(mx * vox.xg), -mx * vox.xg))  # (nW, W, nx)
+    Y = torch.exp(torch.complex(torch.zeros_like(my * vox.yg), -my * vox.yg))  # (nW, W, ny)
+    dlp = torch.as_tensor(np.stack([dl**r for r in range(R)], -1), dtype=rdt, device=dev).to(cdt)  # (nW, W, R)
+    tc_t = torch.as_tensor(tc, dtype=rdt, device=dev).to(cdt)
+    # batches of windows bounded by chunk_elems for the (b, M, R, V) tensor
+    per_w = max(1, M * R * ny * nx)
+    bs = max(1, int(cfg.chunk_elems // per_w))
     out = []
-    for w0 in range(0, T, W):
-        sl = slice(w0, min(T, w0 + W))
-        tw = dtt[sl]
-        tc = 0.5 * (tw.min() + tw.max())
-        dl = tw - tc
-        R = _taylor_terms(float(np.abs(dl).max()) * lam_max, cfg.taylor_tol)
-        base = full * torch.exp(-tc * lam)[None]  # (M, V)
-        terms = [base]
-        for r in range(1, R):
-            terms.append(terms[-1] * (-lam / r)[None])
-        D = torch.stack(terms, 1).reshape(M * R * ny, nx)  # (M R ny, nx)
-        X = torch.exp(torch.complex(torch.zeros_like(mt_r[sl, 0:1]) * vox.xg[None], -mt_r[sl, 0:1] * vox.xg[None]))  # (W, nx)
-        Y = torch.exp(torch.complex(torch.zeros_like(mt_r[sl, 1:2]) * vox.yg[None], -mt_r[sl, 1:2] * vox.yg[None]))  # (W, ny)
-        U = (X @ D.T).reshape(-1, M, R, ny)  # (W, M, R, ny)
-        dlp = torch.as_tensor(np.stack([dl**r for r in range(R)], 1), dtype=mt_r.dtype, device=dev).to(cdt)  # (W, R)
-        out.append(torch.einsum("ty,tmry,tr->mt", Y, U, dlp))
-    return torch.cat(out, 1)
+    for b0 in range(0, nW, bs):
+        b1 = min(nW, b0 + bs)
+        base = full[None] * torch.exp(-tc_t[b0:b1, None] * lam[None])[:, None, :]  # (b, M, V)
+        D = (base[:, :, None, :] * powers[None, None]).reshape(b1 - b0, M * R * ny, nx)  # (b, M R ny, nx)
+        U = (X[b0:b1] @ D.transpose(1, 2)).reshape(b1 - b0, W, M, R, ny)
+        out.append(torch.einsum("bty,btmry,btr->mbt", Y[b0:b1], U, dlp[b0:b1]).reshape(M, -1))
+    return torch.cat(out, 1)[:, :T]
