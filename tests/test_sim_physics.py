@@ -421,3 +421,20 @@ def test_raster_independence_and_checkpointed_chunks():
         (s.abs() ** 2).sum().backward()
         grads.append(g.grad.numpy())
     assert np.abs(grads[0] - grads[1]).max() < 1e-10 * np.abs(grads[0]).max()
+
+
+def test_bad_inputs_give_one_line_input_errors():
+    """Shape mismatches name the argument and the expected shape (dtoc InputError, one line)."""
+    from dtoc.errors import InputError
+
+    ir = _small_gre()
+    ph = _rich_phantom()
+    with pytest.raises(InputError, match=r"grad_mT_per_m has shape \(3, 5\)"):
+        simulate(ir, ph, torch.zeros(3, 5))
+    with pytest.raises(InputError, match="b0_uT"):
+        simulate(ir, ph, b0_uT=torch.zeros(7))
+    with pytest.raises(InputError, match="initial_mz"):
+        simulate(ir, ph, initial_mz=torch.zeros(3, 3))
+    g_other = build_graph(_small_gre(n_rep=2), PDGConfig(), ph)
+    with pytest.raises(InputError, match="graph was built"):
+        simulate(ir, ph, graph=g_other)

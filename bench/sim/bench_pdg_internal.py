@@ -100,11 +100,17 @@ def main(argv=None):
         else:
             rows.append(json.loads(p.stdout.strip().splitlines()[-1]))
         print(json.dumps(rows[-1]), flush=True)
+        if not a.no_write:  # after every case, so that a long run leaves its finished rows
+            _write(rows)
+
+
+def _write(rows):
     body = [
         "dtoc PDG simulator alone (default `PDGConfig`, float64, CPU, 2 torch threads, best of 2).  Loss for backward: "
         "sum |s|^2 w.r.t. the fine-grid gradient.  Peak memory = peak RSS of the case's process.  "
         "Brain phantom 3 T with B1 map (GRE also B0).  NOTE: the machine was shared with other jobs (load ~8 on "
-        "2 cores) when these were measured; treat the times as upper bounds.",
+        "2 cores, several other benchmarks running; the same operation varied 10x between runs) when these "
+        "were measured: treat the times as upper bounds, not as the machine's speed.",
         "",
         "| case | phantom | ADC samples | states (max/interval) | emitting | graph s | forward s | forward+backward s | peak RSS GB |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -117,11 +123,10 @@ def main(argv=None):
             f"| {r['case']} | {r['phantom']}x{r['phantom']} | {r['n_adc']} | {r['states_total']} ({r['states_max']}) | "
             f"{r['emitting_total']} | {r['graph_s']:.2f} | {r['fwd_s']:.3f} | {r['fwd_bwd_s']:.3f} | {r['peak_rss_gb']:.2f} |"
         )
-    if not a.no_write:
-        sys.path.insert(0, str(REPO))
-        from bench._report import write_section
+    sys.path.insert(0, str(REPO))
+    from bench._report import write_section
 
-        write_section("pdg_internal", "PDG internal (dtoc.sim.pdg)", "\n".join(body), "python -m bench.sim.bench_pdg_internal")
+    write_section("pdg_internal", "PDG internal (dtoc.sim.pdg)", "\n".join(body), "python -m bench.sim.bench_pdg_internal")
 
 
 if __name__ == "__main__":

@@ -106,16 +106,22 @@ def import_cmd(
     out: Path = typer.Option(..., "-o", "--out", help="output GIRF .npz (contract format)"),
     b0: bool = typer.Option(False, "--b0", help="also import the B0 (zeroth-order) term (unit undocumented in the published files)"),
     shift_us: float = typer.Option(0.0, "--shift-us", help="add a pure delay to every term, us (positive = later)"),
+    as_published: bool = typer.Option(False, "--as-published",
+                                      help="keep a GMTF's declared ADC/gradient convention shift (default: undo it)"),
     force: bool = typer.Option(False, "--force", help="overwrite an existing output"),
     as_json: bool = typer.Option(False, "--json", help="print figures as JSON on stdout"),
 ):
-    """Convert a published GIRF (MATLAB v5 or v7.3) into the dtoc GIRF .npz (conventions: docs/hardware.md)."""
+    """Convert a published GIRF (MATLAB v5 or v7.3) into the dtoc GIRF .npz (conventions: docs/hardware.md).
+
+    Reads per-term kernels h<in><out> + t (s), a GMTF struct (freq in Hz) or GIRFReco-style per-axis
+    GIRF_X/Y/Z.mat (freq in kHz); prints DC gain, -3 dB bandwidth (kHz) and group delay (us) per term.
+    """
     from dtoc.hardware.girf_import import import_girf
     from dtoc.util.atomic import check_output_path
 
     _finite("--shift-us", shift_us)
     check_output_path(out, force)
-    gd = import_girf(files, include_b0=b0, shift_s=shift_us * 1e-6)
+    gd = import_girf(files, include_b0=b0, shift_s=shift_us * 1e-6, as_published=as_published)
     _emit_girf(gd, out, force, as_json)
 
 
@@ -123,15 +129,20 @@ def import_cmd(
 def fit_cmd(
     measured: Path = typer.Argument(..., help="measurement .npz (g and G or k, optional b0)"),
     out: Path = typer.Option(..., "-o", "--out", help="output GIRF .npz"),
-    reg: float = typer.Option(1e-6, "--reg", help="relative Tikhonov weight lambda / max input power"),
+    reg: float = typer.Option(1e-6, "--reg", help="Tikhonov weight relative to the peak input power (dimensionless, > 0)"),
     fmax_khz: Optional[float] = typer.Option(None, "--fmax-khz", help="frequency window: taper to zero at this frequency, kHz"),
-    tmin_ms: Optional[float] = typer.Option(None, "--tmin-ms", help="time window start (taps kept from here), ms"),
-    tmax_ms: Optional[float] = typer.Option(None, "--tmax-ms", help="time window end, ms"),
+    tmin_ms: Optional[float] = typer.Option(None, "--tmin-ms", help="time window start: taps kept from this time after the impulse, ms (give with --tmax-ms)"),
+    tmax_ms: Optional[float] = typer.Option(None, "--tmax-ms", help="time window end: taps kept up to this time after the impulse, ms"),
     no_b0: bool = typer.Option(False, "--no-b0", help="do not fit the B0 row even when b0 was measured"),
     force: bool = typer.Option(False, "--force", help="overwrite an existing output"),
     as_json: bool = typer.Option(False, "--json", help="print figures as JSON on stdout"),
 ):
-    """Estimate a 3x3 GIRF (+ B0 row) from measured input/output pairs by regularised least squares."""
+    """Estimate a 3x3 GIRF (+ B0 row) from measured input/output pairs by regularised least squares.
+
+    Input: measurement .npz with dt (s), g and G (mT/m, (M, 3, N)) or k (rad/m), optional b0 (uT).
+    Output: time-domain GIRF .npz on the measurement's dt; the notes say up to which frequency the
+    inputs support the fit.
+    """
     from dtoc.errors import InputError
     from dtoc.hardware.measurement import load_measurement
     from dtoc.identify.girf_fit import fit_girf
@@ -158,11 +169,15 @@ def fit_cmd(
 @girf_app.command("show")
 def show_cmd(
     girf: Path = typer.Argument(..., help="GIRF .npz"),
-    png: Optional[Path] = typer.Option(None, "--png", help="write magnitude / phase / impulse-response plots"),
+    png: Optional[Path] = typer.Option(None, "--png", help="write a PNG: self-term magnitude and phase, cross/B0 terms, impulse responses"),
     force: bool = typer.Option(False, "--force", help="overwrite an existing PNG"),
     as_json: bool = typer.Option(False, "--json", help="print figures as JSON on stdout"),
 ):
-    """Print DC gain, -3 dB bandwidth and group delay per term; optionally plot the GIRF."""
+    """Print DC gain, -3 dB bandwidth and group delay per term; optionally plot the GIRF.
+
+    DC gain is dimensionless (uT per mT/m for B0 terms); bandwidth in kHz and group delay (phase slope over
+    0-4 kHz, positive = output lags) in us in the table; --json gives SI units (Hz, s).
+    """
     from dtoc.hardware.girf_analysis import girf_summary
     from dtoc.hardware.girf_io import load_girf
     from dtoc.hardware.girf_plot import plot_girf
@@ -186,13 +201,19 @@ def show_cmd(
 def predict_cmd(
     seq: Path = typer.Argument(..., help="base sequence: .seq file or spec .yaml"),
     girf: Optional[Path] = typer.Option(None, "--girf", help="GIRF .npz (shortcut for a one-effect model)"),
-    model: Optional[Path] = typer.Option(None, "--model", help="hardware model JSON"),
+    model: Optional[Path] = typer.Option(None, "--model", help="hardware model JSON (effects chain, docs/hardware.md)"),
     as_json: bool = typer.Option(False, "--json", help="print the figures as JSON on stdout"),
-    png: Optional[Path] = typer.Option(None, "--png", help="write demanded/realized waveforms and k error plot"),
+    png: Optional[Path] = typer.Option(None, "--png", help="write a PNG: demanded vs realized gradients (whole and zoomed), gradient error, k error in dk"),
     force: bool = typer.Option(False, "--force", help="overwrite an existing PNG"),
     device: str = typer.Option("cpu", "--device", help="torch device (cpu, cuda)"),
 ):
-    """Realized vs demanded: gradient error, k error at ADC samples, B0 phase, EPI odd/even offsets."""
+    """Realized vs demanded: gradient error, k error at ADC samples, B0 phase, EPI odd/even offsets.
+
+    Per axis: max and RMS of realized - demanded gradient (mT/m); k-space error at the ADC samples
+    (rad/m and in dk = 2 pi / FOV); peak B0 (uT) and accrued B0 phase at the ADC samples (rad); for EPI
+    the mean k offset of odd and even readout lines and their difference (rad/m, dk).
+    Without --girf/--model the hardware is ideal (all errors 0).
+    """
     from dtoc.hardware.model import resolve_model
     from dtoc.hardware.predict import plot_prediction, predict
     from dtoc.seq.read import load_sequence

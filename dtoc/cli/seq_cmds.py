@@ -19,16 +19,22 @@ def _console():
 
 
 def build_cmd(
-    spec: Path = typer.Argument(..., help="spec YAML (sequences/*.yaml)"),
-    out: Path = typer.Option(..., "-o", "--out", help="output .seq"),
+    spec: Path = typer.Argument(..., help="spec YAML (kind gre or epi; examples in sequences/*.yaml)"),
+    out: Path = typer.Option(..., "-o", "--out", help="output .seq (its folder must exist)"),
     force: bool = typer.Option(False, "--force", help="overwrite an existing output"),
 ):
-    """Build a base sequence from a spec and write a signed Pulseq 1.5 .seq (deterministic)."""
+    """Build a base sequence from a spec and write a signed Pulseq 1.5 .seq (deterministic).
+
+    Spec fields carry their units in the name (fov_mm, dwell_us, te_ms, ...; docs/sequences.md). A spec
+    whose ideal waveforms exceed its system limits still builds (an optimization target) with a warning
+    giving the worst violation; 'dtoc check' then rejects the file.
+    """
+    from dtoc.errors import InputError
     from dtoc.seq.build import SpecLimitWarning, build_to_file
     from dtoc.seq.spec import load_spec
 
-    from dtoc.errors import InputError
-
+    if out.suffix.lower() != ".seq":
+        raise InputError(f"{out}: the output must be a .seq file (Pulseq interpreters expect the .seq extension)")
     s = load_spec(spec)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", SpecLimitWarning)
@@ -49,7 +55,7 @@ def check_cmd(
     gmax: Optional[float] = typer.Option(None, "--gmax", help="per-axis gradient limit, mT/m (overrides)"),
     smax: Optional[float] = typer.Option(None, "--smax", help="per-axis slew limit, T/m/s (overrides)"),
     as_json: bool = typer.Option(False, "--json", help="print the result as JSON on stdout"),
-    max_rows: int = typer.Option(20, "--max-rows", help="rows shown in the table"),
+    max_rows: int = typer.Option(20, "--max-rows", help="violations shown in the table (all are in --json)"),
 ):
     """Validate a .seq before upload; exit 1 on any violation, 0 when clean.
 
@@ -60,29 +66,49 @@ def check_cmd(
     from dtoc.seq.seqtext import parse_seq_text
     from dtoc.seq.system import SystemSpec, load_system
 
-    sysspec = load_system(system) if system else None
-    if gmax is not None or smax is not None:
-        if gmax is not None and gmax <= 0 or smax is not None and smax <= 0:
-            from dtoc.errors import InputError
+    import math
 
-            raise InputError("--gmax and --smax must be > 0")
+    from dtoc.errors import InputError
+
+    for name, v in (("--gmax", gmax), ("--smax", smax)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise InputError(f"{name} must be a finite number > 0, got {v}")
+    if max_rows < 0:
+        raise InputError(f"--max-rows must be >= 0, got {max_rows}")
+    sysspec = load_system(system) if system else None
+    base = f"--system {system}" if system else None
+    if gmax is not None or smax is not None:
         if sysspec is None:
             st = parse_seq_text(seq)
             defs = {k: (v.split()[0] if v.split() else v) for k, v in st.definitions().items()}
-            sysspec = system_from_definitions(defs) or SystemSpec()
+            try:
+                sysspec = system_from_definitions(defs)
+            except InputError as e:
+                if gmax is None or smax is None:  # the file's other limit is needed but invalid
+                    raise InputError(f"{seq}: {e}") from None
+                sysspec = None
+            base = "file definitions" if sysspec is not None else "defaults"
+            sysspec = sysspec or SystemSpec()
         upd = {}
         if gmax is not None:
             upd["max_grad_mT_per_m"] = gmax
         if smax is not None:
             upd["max_slew_T_per_m_per_s"] = smax
-        sysspec = sysspec.model_copy(update=upd)
+        from pydantic import ValidationError
+
+        from dtoc.seq.system import format_validation_error
+
+        try:
+            sysspec = SystemSpec(**{**sysspec.model_dump(), **upd})
+        except ValidationError as e:
+            raise InputError(f"--gmax/--smax: {format_validation_error(e)} (mT/m and T/m/s)") from None
     res = check_file(seq, sysspec)
-    if system:
-        res.limits_source = f"--system {system}"
+    if base is not None:
+        res.limits_source = base
     if gmax is not None or smax is not None:
-        res.limits_source += " + command line"
+        res.limits_source += " + " + " ".join(f"{n} {v:g}" for n, v in (("--gmax", gmax), ("--smax", smax)) if v is not None)
     if as_json:
-        sys.stdout.write(json.dumps(res.to_dict(), indent=2) + "\n")
+        sys.stdout.write(json.dumps(res.to_dict(), indent=2, allow_nan=False) + "\n")
     else:
         _print_check(res, max_rows)
     if not res.ok:
@@ -127,12 +153,23 @@ def diff_cmd(
     atol: float = typer.Option(1e-9, "--atol", help="absolute tolerance (mT/m, s, rad, Hz)"),
     as_json: bool = typer.Option(False, "--json", help="print the result as JSON on stdout"),
 ):
-    """Semantic comparison of two .seq files; exit 0 same, 1 different."""
+    """Semantic comparison of two .seq files; exit 0 same, 1 different.
+
+    Numbers match when |a - b| <= atol + rtol * |b| (gradients: rtol x the largest |g| of the axis);
+    atol is in each quantity's own unit (mT/m, s, rad, Hz).
+    """
+    import math
+
+    from dtoc.errors import InputError
     from dtoc.seq.diff import diff_files
+
+    for name, v in (("--rtol", rtol), ("--atol", atol)):
+        if not (math.isfinite(v) and v >= 0):
+            raise InputError(f"{name} must be a finite number >= 0, got {v}")
 
     res = diff_files(a, b, rtol=rtol, atol=atol)
     if as_json:
-        sys.stdout.write(json.dumps(res.to_dict(), indent=2) + "\n")
+        sys.stdout.write(json.dumps(res.to_dict(), indent=2, allow_nan=False) + "\n")
     else:
         from rich.table import Table
 
@@ -140,7 +177,9 @@ def diff_cmd(
         if res.same:
             con.print(f"[green]same[/green] within rtol {rtol:g}, atol {atol:g}")
         else:
-            t = Table(title=f"{len(res.differences)} difference(s)")
+            shown = len(res.differences)
+            total = res.n_differences
+            t = Table(title=f"{total} difference(s)" + (f", first {shown} listed" if total > shown else ""))
             for c in ("what", "where", "A", "B"):
                 t.add_column(c)
             for d in res.differences:

@@ -12,8 +12,10 @@ Recognised layouts (the three in ``../shared/data/girf`` and files laid out like
 2. **Frequency-domain 3x3 struct** (KCL 2024 ``GMTF``): ``GMTF1<i><o>`` first-order terms and
    ``GMTF0<i>`` zeroth-order (B0) terms on ``freq`` (Hz).  Imported as a frequency-domain GIRF (converted
    to taps on use).  Its phase equals that of the time-domain 2024 file times exp(+2 pi i f 10 us): the
-   struct's ``info`` says a -10 us ADC/gradient shift was added; we keep the file's phase as is (use
-   ``shift_s`` to add a delay) and copy ``info`` and ``GRDdelays_us`` (not applied) into ``notes``.
+   struct's ``info`` says a -10 us ADC/gradient shift was added.  That shift belongs to the publishers'
+   ADC timing convention, not to the gradient chain, so the importer **undoes the shift the ``info``
+   declares** (delays the response by 10 us; the result matches ``7T_GIRF.mat`` of the same scanner);
+   ``as_published=True`` keeps the file's phase.  ``info`` and ``GRDdelays_us`` (not applied) go to ``notes``.
    The B0 term's unit is undocumented: it is imported as given and flagged in ``notes``.
 3. **Siemens/GIRFReco per-axis HDF5** (Prisma 3 T 2020, ``GIRF_{X,Y,Z}.mat``): ``GIRF_FT`` self term and
    ``b0ec_FT`` B0 term on a frequency axis ``freq`` in **kHz**.  The stored ``freq`` vector is a linspace
@@ -100,7 +102,17 @@ def _import_time_terms(m: dict, path: Path) -> GirfData:
     return GirfData(dt_s=float(dt), t0_s=float(t[0]), h=h, source=path.name, notes=notes)
 
 
-def _import_gmtf(s, path: Path, include_b0: bool) -> GirfData:
+def gmtf_convention_shift_s(info: str | None) -> float:
+    """The ADC/gradient shift a GMTF struct's ``info`` declares ("Added -10us shift to ADC wrt GRD"), s."""
+    import re
+
+    if not info:
+        return 0.0
+    m = re.search(r"added\s*([+-]?\d+(?:\.\d+)?)\s*us\s*shift", str(info), flags=re.IGNORECASE)
+    return float(m.group(1)) * 1e-6 if m else 0.0
+
+
+def _import_gmtf(s, path: Path, include_b0: bool, as_published: bool = False) -> GirfData:
     f = np.asarray(s.freq, dtype=np.float64).ravel()
     F = f.size
     H = np.zeros((3, 3, F), dtype=np.complex128)
@@ -111,10 +123,16 @@ def _import_gmtf(s, path: Path, include_b0: bool) -> GirfData:
                 raise InputError(f"{path}: struct GMTF lacks field {name!r}")
             H[o, i] = np.asarray(getattr(s, name)).ravel()
     H0 = None
-    notes = [f"GMTF struct from {path.name}: frequency domain, H[o, i] = GMTF1{{i}}{{o}}, f from 'freq' (Hz)",
-             "phase kept as published (includes the struct's -10 us ADC/gradient convention shift)"]
-    if hasattr(s, "info"):
-        notes.append(f"info: {str(s.info)}")
+    notes = [f"GMTF struct from {path.name}: frequency domain, H[o, i] = GMTF1{{i}}{{o}}, f from 'freq' (Hz)"]
+    info = str(s.info) if hasattr(s, "info") else None
+    if info:
+        notes.append(f"info: {info}")
+    undo = -gmtf_convention_shift_s(info)
+    if undo and not as_published:
+        notes.append(f"the declared ADC/gradient convention shift is undone: delayed by {undo * 1e6:g} us, so that "
+                     "the response is on the gradient's own clock (matches the group's time-domain 7T_GIRF.mat)")
+    elif undo:
+        notes.append("phase kept as published (includes the declared ADC/gradient convention shift)")
     if hasattr(s, "GRDdelays_us"):
         notes.append(f"GRDdelays_us = {np.asarray(s.GRDdelays_us).ravel().tolist()} (recorded, not applied)")
     if include_b0:
@@ -122,6 +140,10 @@ def _import_gmtf(s, path: Path, include_b0: bool) -> GirfData:
         notes.append("H0 from GMTF0x/y/z: unit undocumented, imported as given (assumed uT per mT/m)")
     if not np.all(np.isfinite(H)) or (H0 is not None and not np.all(np.isfinite(H0))):
         raise InputError(f"{path}: GMTF contains NaN or inf")
+    if undo and not as_published:
+        ph = np.exp(-2j * np.pi * f * undo)
+        H = H * ph
+        H0 = None if H0 is None else H0 * ph
     return GirfData(f_hz=f, H=H, H0=H0, source=path.name, notes=notes)
 
 
@@ -177,7 +199,8 @@ def _import_prisma_axis(path: Path):
     return f, H, b0, band
 
 
-def import_girf(files: list[str | os.PathLike], include_b0: bool = False, shift_s: float = 0.0) -> GirfData:
+def import_girf(files: list[str | os.PathLike], include_b0: bool = False, shift_s: float = 0.0,
+                as_published: bool = False) -> GirfData:
     """Read one published GIRF (one file, or the per-axis X/Y/Z files) into :class:`GirfData`.
 
     Args:
@@ -185,15 +208,24 @@ def import_girf(files: list[str | os.PathLike], include_b0: bool = False, shift_
         include_b0: import the zeroth-order (B0) term when present (off by default: in the published
             files its unit is undocumented, so it is only imported on request and flagged).
         shift_s: extra pure delay added to every term, s (positive = later).
+        as_published: keep a GMTF's declared ADC/gradient convention shift in its phase (default: undo it).
     """
     paths = [Path(f) for f in files]
+    if not paths:
+        raise InputError("no GIRF file given")
     for p in paths:
+        if p.is_dir():
+            raise InputError(f"{p}: is a directory, expected a MATLAB .mat GIRF file")
         if not p.is_file():
             raise InputError(f"{p}: file not found")
+        if p.suffix.lower() == ".npz":
+            raise InputError(f"{p}: already a .npz: dtoc GIRF files need no import (use it with --girf; 'dtoc girf show' checks it)")
+        if p.stat().st_size == 0:
+            raise InputError(f"{p}: empty file")
     if len(paths) == 1:
         m = _loadmat(paths[0])
         if "GMTF" in m:
-            gd = _import_gmtf(m["GMTF"], paths[0], include_b0)
+            gd = _import_gmtf(m["GMTF"], paths[0], include_b0, as_published)
         elif m and "t" in m and any(k.startswith("h") and len(k) == 3 for k in m):
             gd = _import_time_terms(m, paths[0])
         elif not m:

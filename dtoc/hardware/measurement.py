@@ -174,9 +174,54 @@ def measurement_from_arrays(z, path: str = "measurement") -> Measurement:
     return Measurement(dt_s, g, G, k, b0, sig["sigma_G"], sig["sigma_k"], sig["sigma_b0"], labels, axes, str(path))
 
 
+#: Plausible sample spacing of a measurement, s.
+DT_RANGE_S = (1e-8, 1e-3)
+#: Plausible largest |g| of a measurement's demanded gradients, mT/m (outside: T/m or uT/m given).
+G_RANGE_MT_PER_M = (0.1, 1000.0)
+#: Accepted median ratio rms(measured) / rms(predicted from g) over measured, driven axes.
+RATIO_RANGE = (0.4, 2.5)
+
+
+def check_plausible(m: Measurement) -> None:
+    """Reject unit mistakes with one line naming the key: ``dt`` outside :data:`DT_RANGE_S`, demanded
+    ``g`` peaking outside :data:`G_RANGE_MT_PER_M`, and measured ``G`` (or ``k``) whose size differs from
+    the demanded one (``g``, or ``gamma * integral g``) by more than :data:`RATIO_RANGE` (median over the
+    measured axes of the waveforms that drive them): e.g. G in T/m, k in 1/m or cycles/m."""
+    path = m.source or "measurement"
+    if not DT_RANGE_S[0] <= m.dt_s <= DT_RANGE_S[1]:
+        raise InputError(f"{path}: key 'dt' = {m.dt_s:g} s is implausible for gradient measurements (expected "
+                         f"{DT_RANGE_S[0]:g} to {DT_RANGE_S[1]:g} s; given in us or ms?)")
+    gpk = float(np.max(np.abs(m.g)))
+    if not G_RANGE_MT_PER_M[0] <= gpk <= G_RANGE_MT_PER_M[1]:
+        raise InputError(f"{path}: key 'g' peaks at {gpk:.4g} mT/m: implausible (expected {G_RANGE_MT_PER_M[0]:g} to "
+                         f"{G_RANGE_MT_PER_M[1]:g} mT/m; given in T/m or uT/m?)")
+    rms_g = np.sqrt(np.mean(m.g ** 2, axis=-1))  # (M, 3)
+    driven = m.axes_measured & (rms_g > 0.05 * rms_g.max())
+    if not driven.any():
+        return
+    checks = []
+    if m.G is not None:
+        checks.append(("G", "mT/m", m.G, m.g))
+    if m.k is not None:
+        checks.append(("k", "rad/m", m.k, k_from_G(m.g, m.dt_s)))
+    for key, unit, meas, ref in checks:
+        r_meas = np.sqrt(np.mean(np.where(m.axes_measured[..., None], meas, 0.0) ** 2, axis=-1))
+        r_ref = np.sqrt(np.mean(ref ** 2, axis=-1))
+        ok = driven & (r_ref > 0)
+        if not ok.any():
+            continue
+        ratio = float(np.median(r_meas[ok] / r_ref[ok]))
+        if not RATIO_RANGE[0] <= ratio <= RATIO_RANGE[1]:
+            want = "demanded 'g'" if key == "G" else "gamma x integral of the demanded 'g'"
+            raise InputError(f"{path}: key {key!r} is {ratio:.3g} times the {want} (median rms ratio over measured "
+                             f"axes): units off? ({key!r} must be in {unit})")
+
+
 def load_measurement(path: str | os.PathLike) -> Measurement:
     """Read and validate a measurement ``.npz`` (one-line InputError naming the key on any problem)."""
     p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{p}: is a directory, expected a measurement .npz file")
     if not p.is_file():
         raise InputError(f"{p}: measurement file not found")
     try:
@@ -184,7 +229,9 @@ def load_measurement(path: str | os.PathLike) -> Measurement:
     except Exception as e:  # noqa: BLE001
         raise InputError(f"{p}: not a readable .npz measurement file ({type(e).__name__})") from None
     with z:
-        return measurement_from_arrays(z, str(p))
+        m = measurement_from_arrays(z, str(p))
+    check_plausible(m)
+    return m
 
 
 def save_measurement(m: Measurement, path: str | os.PathLike, force: bool = False) -> Path:

@@ -182,9 +182,42 @@ def model_from_spec(spec: dict[str, Any] | ModelSpec, base_dir: str | os.PathLik
     return HardwareModel(effects, ms.description)
 
 
+#: Plausible ranges of scalar parameters in a model *file* (outside: a unit mistake, e.g. us given as s).
+PLAUSIBLE = {
+    ("gain", "factor"): (0.1, 10.0, "dimensionless"),
+    ("delay", "seconds"): (-1e-3, 1e-3, "s"),
+    ("offset", "mT_per_m"): (-100.0, 100.0, "mT/m"),
+    ("exp_eddy", "alpha"): (-1.0, 1.0, "dimensionless"),
+    ("exp_eddy", "tau_s"): (1e-7, 10.0, "s"),
+    ("cross_eddy", "alpha"): (-1.0, 1.0, "dimensionless"),
+    ("cross_eddy", "tau_s"): (1e-7, 10.0, "s"),
+    ("b0_eddy", "alpha_uT_per_mT_per_m"): (-100.0, 100.0, "uT per mT/m"),
+    ("b0_eddy", "tau_s"): (1e-7, 10.0, "s"),
+    ("slew_limit", "max_slew_T_per_m_per_s"): (1.0, 1e5, "T/m/s"),
+}
+
+
+def check_plausible_spec(ms: "ModelSpec", where: str = "model") -> None:
+    """Reject model-file parameters outside :data:`PLAUSIBLE` (one line naming ``effects[i]``)."""
+    for i, es in enumerate(ms.effects):
+        for name, value in es.params.items():
+            rng = PLAUSIBLE.get((es.kind, name))
+            if rng is None:
+                continue
+            vals = value if isinstance(value, (list, tuple)) else [value]
+            for v in vals:
+                if (isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+                        and not rng[0] <= v <= rng[1]):  # NaN/inf: the effect's own check names them
+                    raise InputError(f"{where}: effects[{i}] ({es.kind}): {name} = {v:g} is implausible (expected "
+                                     f"{rng[0]:g} to {rng[1]:g} {rng[2]}; units off?)")
+
+
 def load_model(path: str | os.PathLike) -> HardwareModel:
-    """Read a JSON model file (GIRF files relative to it)."""
+    """Read a JSON model file (GIRF files relative to it); implausible parameters are rejected
+    (:func:`check_plausible_spec`)."""
     p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{p}: is a directory, expected a model .json file")
     if not p.is_file():
         raise InputError(f"{p}: model file not found")
     try:
@@ -193,7 +226,14 @@ def load_model(path: str | os.PathLike) -> HardwareModel:
         raise InputError(f"{p}: not valid JSON ({e.msg if hasattr(e, 'msg') else e})") from None
     if not isinstance(spec, dict):
         raise InputError(f"{p}: model file must be a JSON object with key 'effects'")
-    return model_from_spec(spec, base_dir=p.parent, where=str(p))
+    try:
+        ms = ModelSpec.model_validate(spec)
+    except ValidationError as e:
+        err = e.errors()[0]
+        loc = ".".join(str(x) for x in err["loc"])
+        raise InputError(f"{p}: key {loc!r}: {err['msg']}") from None
+    check_plausible_spec(ms, str(p))
+    return model_from_spec(ms, base_dir=p.parent, where=str(p))
 
 
 def save_model(model: HardwareModel, path: str | os.PathLike, force: bool = False) -> Path:

@@ -6,7 +6,7 @@ Figures (all realized minus demanded/nominal, per physical axis x, y, z):
 - k-space error at every ADC sample (k counted from the last excitation, refocusing negates it,
   :mod:`dtoc.seq.kspace`): max and RMS in rad/m and in units of dk = 2 pi / FOV;
 - accrued B0 phase at ADC samples: ``phi = -gamma * integral b0 dt`` from the last excitation (rad), max |phi|;
-- EPI (more than one ADC event, readout axis known): per ADC line the mean readout-axis k error
+- EPI (``kind`` 'epi', or readout polarity alternating between consecutive ADC events): per ADC line the mean readout-axis k error
   ``dk_line`` (rad/m); odd and even lines' means, their difference (the Nyquist-ghost-driving offset,
   rad/m and in dk) and the spread within each parity; the same for the phase-encode axis.
 """
@@ -77,8 +77,18 @@ def predict(ir: SequenceIR, model: HardwareModel, device: str = "cpu") -> dict[s
     return out
 
 
+def _is_epi(ir: SequenceIR) -> bool:
+    """An echo train: the IR says ``kind == 'epi'``, or (kind unknown) the readout gradient at the centres
+    of consecutive ADC events alternates in sign (a GRE's repeated readouts do not)."""
+    if ir.kind is not None:
+        return ir.kind == "epi"
+    tc = np.array([a.t_start_s + 0.5 * a.num_samples * a.dwell_s for a in ir.adc])
+    gc = np.interp(tc, ir.t_fine_s, ir.grad_mT_per_m[ir.readout_axis])
+    return bool(np.all(gc != 0) and np.all(gc[1:] * gc[:-1] < 0))
+
+
 def _epi_offsets(ir: SequenceIR, k: np.ndarray, k0: np.ndarray) -> dict[str, Any] | None:
-    if len(ir.adc) < 2 or ir.readout_axis is None:
+    if len(ir.adc) < 2 or ir.readout_axis is None or not _is_epi(ir):
         return None
     dk = ir.dk_rad_per_m
     ro, pe = ir.readout_axis, ir.phase_axis
@@ -100,8 +110,27 @@ def _epi_offsets(ir: SequenceIR, k: np.ndarray, k0: np.ndarray) -> dict[str, Any
     return res
 
 
+def _zoom_window_ms(ir: SequenceIR) -> tuple[float, float]:
+    """A window showing the waveform detail: three ADC events around the middle one (EPI: the k = 0
+    line and its neighbours), else the first 2 ms after the first ADC start."""
+    if ir.adc:
+        j = len(ir.adc) // 2
+        a0 = ir.adc[max(j - 1, 0)]
+        a1 = ir.adc[min(j + 1, len(ir.adc) - 1)]
+        lo = a0.t_start_s - 0.2e-3
+        hi = a1.t_start_s + a1.num_samples * a1.dwell_s + 0.2e-3
+        if len(ir.adc) < 3 or hi - lo > 6e-3:  # GRE-like: one TR's readout neighbourhood
+            a = ir.adc[j]
+            lo = a.t_start_s - 1.0e-3
+            hi = a.t_start_s + a.num_samples * a.dwell_s + 1.0e-3
+        return max(lo, 0.0) * 1e3, min(hi, ir.duration_s) * 1e3
+    return 0.0, min(ir.duration_s, 2e-3) * 1e3
+
+
 def plot_prediction(ir: SequenceIR, res: dict[str, Any], path, title: str = "", force: bool = False):
-    """PNG: demanded vs realized gradients (top), k error at ADC samples (bottom)."""
+    """PNG, 4 panels: demanded (dashed) vs realized (solid) gradients over the whole sequence and in a
+    zoom around the middle ADC events (ADC windows shaded); realized minus demanded gradient; k error at
+    the ADC samples in units of dk = 2 pi / FOV (rad/m when the FOV is unknown), EPI line means marked."""
     import io
 
     import matplotlib
@@ -109,27 +138,71 @@ def plot_prediction(ir: SequenceIR, res: dict[str, Any], path, title: str = "", 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from dtoc.util.atomic import atomic_write_bytes
+    from dtoc.util.atomic import atomic_write_bytes, check_output_path
 
+    check_output_path(path, force)
     arr = res["_arrays"]
     t_ms = ir.t_fine_s * 1e3
-    fig, axs = plt.subplots(2, 1, figsize=(10, 6.5))
-    for a, c in zip(range(3), ("C0", "C1", "C2")):
-        axs[0].plot(t_ms, ir.grad_mT_per_m[a], color=c, lw=0.8, ls="--", label=f"g{AXES[a]} demanded")
-        axs[0].plot(t_ms, arr["G"][a], color=c, lw=0.8, label=f"G{AXES[a]} realized")
-    axs[0].set_xlabel("t (ms)")
-    axs[0].set_ylabel("gradient (mT/m)")
-    axs[0].legend(ncol=3, fontsize=7)
+    g, G = ir.grad_mT_per_m, arr["G"]
+    cols = ("C0", "C1", "C2")
+    used = [a for a in range(3) if np.any(g[a]) or np.any(G[a])] or [0, 1, 2]
+    fig, axs = plt.subplots(2, 2, figsize=(13, 8))
+    ax_full, ax_zoom, ax_err, ax_k = axs[0, 0], axs[0, 1], axs[1, 0], axs[1, 1]
+    lo, hi = _zoom_window_ms(ir)
+    zsel = (t_ms >= lo) & (t_ms <= hi)
+    for a in used:
+        for ax, sel in ((ax_full, slice(None)), (ax_zoom, zsel)):
+            ax.plot(t_ms[sel], g[a, sel], color=cols[a], lw=0.9, ls="--", label=f"g{AXES[a]} demanded")
+            ax.plot(t_ms[sel], G[a, sel], color=cols[a], lw=0.9, alpha=0.8, label=f"G{AXES[a]} realized")
+        ax_err.plot(t_ms, G[a] - g[a], color=cols[a], lw=0.7,
+                    label=f"G{AXES[a]} - g{AXES[a]} (max {res['grad_error'][AXES[a]]['max_mT_per_m']:.3g})")
+    ax_full.axvspan(lo, hi, color="0.85", zorder=0)
+    for ev in ir.adc:
+        t0 = ev.t_start_s * 1e3
+        t1 = t0 + ev.num_samples * ev.dwell_s * 1e3
+        if t1 >= lo and t0 <= hi:
+            ax_zoom.axvspan(max(t0, lo), min(t1, hi), color="0.9", zorder=0)
+    ax_full.set_title("whole sequence (grey: zoomed window)", fontsize=9)
+    ax_zoom.set_title("zoom around the middle ADC events (shaded: ADC)", fontsize=9)
+    for ax in (ax_full, ax_zoom):
+        ax.set_xlabel("t (ms)")
+        ax.set_ylabel("gradient (mT/m)")
+        ax.grid(alpha=0.3)
+    ax_zoom.set_xlim(lo, hi)
+    ax_full.legend(ncol=3, fontsize=7, loc="lower right")
+    ax_err.set_xlabel("t (ms)")
+    ax_err.set_ylabel("realized - demanded (mT/m)")
+    ax_err.set_title("gradient error", fontsize=9)
+    ax_err.legend(fontsize=7)
+    ax_err.grid(alpha=0.3)
     if arr["k"] is not None:
+        dk = ir.dk_rad_per_m
         ta = ir.adc_times_s * 1e3
-        for a, c in zip(range(3), ("C0", "C1", "C2")):
-            axs[1].plot(ta, arr["k"][a] - arr["k0"][a], ".", ms=2, color=c, label=f"k{AXES[a]} error")
-        axs[1].set_xlabel("ADC sample time (ms)")
-        axs[1].set_ylabel("k - k0 (rad/m)")
-        axs[1].legend(fontsize=7)
-    fig.suptitle(title, fontsize=9)
+        for a in used:
+            scale = dk[a] if dk is not None and np.isfinite(dk[a]) and dk[a] > 0 else 1.0
+            unit = "dk" if scale != 1.0 else "rad/m"
+            e = (arr["k"][a] - arr["k0"][a]) / scale
+            ax_k.plot(ta, e, ".", ms=1.5, color=cols[a], label=f"k{AXES[a]} error ({unit})")
+        epi = res.get("epi") or {}
+        ro = epi.get("readout")
+        if ro and dk is not None and ir.readout_axis is not None:
+            bounds = np.cumsum([0] + [ev.num_samples for ev in ir.adc])
+            tm = np.array([ta[bounds[i]:bounds[i + 1]].mean() for i in range(len(ir.adc))])
+            lm = np.asarray(ro["line_offsets_rad_per_m"]) / dk[ir.readout_axis]
+            ax_k.plot(tm[0::2], lm[0::2], "v", ms=4, color="k", label="readout line mean, even lines")
+            ax_k.plot(tm[1::2], lm[1::2], "^", ms=4, color="0.5",
+                      label=f"odd lines (odd - even {ro['odd_minus_even_dk']:.3g} dk)")
+        ax_k.set_xlabel("ADC sample time (ms)")
+        ax_k.set_ylabel("k - k nominal (dk = 2 pi / FOV)")
+        ax_k.set_title("k-space error at the ADC samples", fontsize=9)
+        ax_k.legend(fontsize=7)
+        ax_k.grid(alpha=0.3)
+    else:
+        ax_k.text(0.5, 0.5, "no ADC samples", ha="center", va="center", transform=ax_k.transAxes)
+        ax_k.set_axis_off()
+    fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
+    fig.savefig(buf, format="png", dpi=100, metadata={"Software": None})
     plt.close(fig)
     return atomic_write_bytes(path, buf.getvalue(), force=force)

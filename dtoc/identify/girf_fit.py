@@ -30,6 +30,20 @@ from dtoc.hardware.girf_io import GirfData
 from dtoc.hardware.measurement import Measurement
 
 
+def _describe_source(source: str | None) -> str:
+    """File name and content hash of the measurement (independent of the working directory)."""
+    from pathlib import Path
+
+    if not source:
+        return "measurement"
+    p = Path(source)
+    if p.is_file():
+        from dtoc.util.atomic import sha256_file
+
+        return f"{p.name} (sha256 {sha256_file(p)[:16]})"
+    return p.name
+
+
 def _taper(f: np.ndarray, fmax_hz: float | None) -> np.ndarray:
     if fmax_hz is None:
         return np.ones_like(f)
@@ -76,9 +90,22 @@ def fit_girf(meas: Measurement, reg: float = 1e-6, fmax_hz: float | None = None,
     I = np.fft.fft(meas.g, n=nfft, axis=-1)  # (M, 3, F)
     lam = reg * float(np.max(np.mean(np.sum(np.abs(I) ** 2, axis=0), axis=0)))
     w = _taper(f, fmax_hz)
+    # where the weakest driven input axis carries less than 10x lambda, the fit is pulled towards 0 by the
+    # regularisation (bias > ~10 %): report the band in which the fitted H is supported by the data
+    S_axis = np.sum(np.abs(I) ** 2, axis=0)  # (3, F)
+    driven = [a for a in range(3) if np.any(meas.g[:, a])]
+    supported = np.min(S_axis[driven], axis=0) >= 10 * lam if driven else np.zeros(nfft, bool)
+    pos = (f >= 0) & ~supported
+    f_sup = float(np.min(f[pos])) if pos.any() else float(np.max(f))
+    undriven = [("x", "y", "z")[a] for a in range(3) if a not in driven]
     H = np.zeros((3, 3, nfft), dtype=np.complex128)
-    notes = [f"fitted from {meas.source}: {M} waveforms, dt {dt:.6g} s, reg {reg:g} (lambda {lam:.3g}), "
-             f"fmax {'Nyquist' if fmax_hz is None else f'{fmax_hz:g} Hz'}"]
+    src = _describe_source(meas.source)
+    notes = [f"fitted from {src}: {M} waveforms, dt {dt:.6g} s, reg {reg:g} (lambda {lam:.3g}), "
+             f"fmax {'Nyquist' if fmax_hz is None else f'{fmax_hz:g} Hz'}",
+             f"data support the fit up to {f_sup:.6g} Hz (input power of every driven axis >= 10 lambda); "
+             "above it H is pulled towards 0 by the regularisation: use broadband inputs (triangles, chirps)"]
+    if undriven:
+        notes.append(f"input axis {','.join(undriven)} never driven: its column of H is 0 (not identifiable)")
     for o in range(3):
         use = meas.axes_measured[:, o]
         if not use.any():
@@ -100,4 +127,4 @@ def fit_girf(meas: Measurement, reg: float = 1e-6, fmax_hz: float | None = None,
         raise InputError(f"time window ({tmin}, {tmax}) s keeps no taps")
     k0 = int(np.flatnonzero(keep)[0])
     return GirfData(dt_s=dt, t0_s=float(t[k0]), h=taps[..., keep], h0=None if taps0 is None else taps0[..., keep],
-                    source=f"dtoc girf fit {meas.source}", notes=notes)
+                    source=f"dtoc girf fit {src}", notes=notes)

@@ -89,8 +89,8 @@ class OptimizeConfig(BaseModel):
 
 #: Defaults per sequence kind, applied below the config file.
 KIND_DEFAULTS: dict[str, dict] = {
-    "gre": {"weights": {"image": 1.0, "kspace": 1.0, "rf": 1.0}, "lr": 0.05, "iters": 6, "n_dummies": 300},
-    "epi": {"weights": {"image": 1.0, "kspace": 4.0, "rf": 1.0}, "lr": 0.01, "iters": 4, "n_dummies": 0},
+    "gre": {"weights": {"image": 1.0, "kspace": 1.0, "rf": 1.0}, "lr": 0.05, "iters": 0, "n_dummies": 300, "warm_iters": 300},
+    "epi": {"weights": {"image": 1.0, "kspace": 4.0, "rf": 1.0}, "lr": 0.01, "iters": 2, "n_dummies": 0},
 }
 
 PAPER_RESTARTS = [500, 1500, 3000, 5000, 7500, 10500, 14000, 18000]

@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from pydantic import ValidationError
 
 from dtoc.constants import AXES
 from dtoc.errors import InputError
@@ -141,7 +142,13 @@ def system_from_definitions(defs: dict) -> SystemSpec | None:
             kw[f] = float(defs[key])
         except (KeyError, TypeError, ValueError):
             pass
-    return SystemSpec(**kw)
+    try:
+        return SystemSpec(**kw)
+    except ValidationError as e:
+        from dtoc.seq.system import format_validation_error
+
+        raise InputError(f"the limits recorded in the file's definitions are invalid ({format_validation_error(e)}); "
+                         "give them with --gmax/--smax or --system") from None
 
 
 def _on_raster(t: float, r: float) -> bool:
@@ -281,7 +288,10 @@ def check_file(path: str | Path, system: SystemSpec | None = None) -> CheckResul
         defs = {}
         for k, v in st.definitions().items():
             defs[k] = v.split()[0] if v.split() else v
-        system = system_from_definitions(defs)
+        try:
+            system = system_from_definitions(defs)
+        except InputError as e:
+            raise InputError(f"{path}: {e}") from None
         source = "file definitions" if system is not None else "defaults"
         if system is None:
             system = SystemSpec()

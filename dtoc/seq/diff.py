@@ -24,6 +24,7 @@ class DiffResult:
     rtol: float
     atol: float
     differences: list[dict] = field(default_factory=list)
+    n_differences: int = 0  # all differences found (``differences`` lists at most ``max_items``)
 
     @property
     def same(self) -> bool:
@@ -31,7 +32,8 @@ class DiffResult:
 
     def to_dict(self) -> dict:
         return {"a": self.a, "b": self.b, "rtol": self.rtol, "atol": self.atol, "same": self.same,
-                "n_differences": len(self.differences), "differences": self.differences}
+                "n_differences": self.n_differences, "n_listed": len(self.differences),
+                "differences": self.differences}
 
 
 def _close(x: float, y: float, rtol: float, atol: float) -> bool:
@@ -44,6 +46,7 @@ def diff_ir(ia, ib, rtol: float = 1e-6, atol: float = 1e-9, a: str = "A", b: str
     d = res.differences
 
     def add(kind, where, va, vb):
+        res.n_differences += 1
         if len(d) < max_items:
             d.append({"what": kind, "where": where, "a": va, "b": vb})
 
@@ -67,8 +70,8 @@ def diff_ir(ia, ib, rtol: float = 1e-6, atol: float = 1e-9, a: str = "A", b: str
         add("block_count", "", len(ea) - 1, len(eb) - 1)
     else:
         dur_a, dur_b = np.diff(ea), np.diff(eb)
-        for i in np.flatnonzero(np.abs(dur_a - dur_b) > atol + rtol * np.abs(dur_b))[:max_items]:
-            add("block_duration", f"block {i + 1}", float(dur_a[i]), float(dur_b[i]))
+        for i in np.flatnonzero(np.abs(dur_a - dur_b) > atol + rtol * np.abs(dur_b)):
+            add("block_duration", f"block {i + 1} (s)", float(f"{dur_a[i]:.9g}"), float(f"{dur_b[i]:.9g}"))
     # RF / ADC events
     for name, la, lb, fields in (
         ("rf", ia.rf, ib.rf, ("block", "t_start_s", "t_center_s", "duration_s", "flip_angle_rad", "phase_rad", "freq_offset_hz", "use")),

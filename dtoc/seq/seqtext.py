@@ -135,6 +135,8 @@ def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
             st.section_order.append(current)
             continue
         if current is None:
+            if p.suffix.lower() in (".yaml", ".yml") or re.match(r"^[A-Za-z_]\w*:(\s|$)", s):
+                raise _err(p, "a spec YAML, not a Pulseq .seq file: build it first with 'dtoc build SPEC.yaml -o base.seq'")
             raise _err(p, f"line {i}: content before the first section: {s[:40]!r}")
         st.sections[current].append(SeqLine(i, s))
     if "[VERSION]" not in st.sections:
@@ -161,8 +163,26 @@ def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
                 st.signature_hash = t[1].lower()
             elif len(t) == 2 and t[0] == "Type":
                 st.signature_type = t[1].lower()
+    _check_definitions(st, p)
     _check_structure(st, p)
     return st
+
+
+#: Definitions that must be a positive time in s when present (pypulseq divides by them).
+RASTER_DEFINITIONS = ("GradientRasterTime", "RadiofrequencyRasterTime", "AdcRasterTime", "BlockDurationRaster")
+
+
+def _check_definitions(st: SeqText, p: Path) -> None:
+    for ln in st.sections.get("[DEFINITIONS]", []):
+        parts = ln.text.split()
+        if parts and parts[0] in RASTER_DEFINITIONS:
+            try:
+                v = float(parts[1]) if len(parts) == 2 else float("nan")
+            except ValueError:
+                v = float("nan")
+            if not (0 < v < 1):
+                raise _err(p, f"line {ln.lineno}: definition {parts[0]} must be one positive time in s (below 1 s), "
+                              f"got {' '.join(parts[1:])[:30]!r}")
 
 
 def _check_structure(st: SeqText, p: Path) -> None:

@@ -25,10 +25,10 @@ from dtoc.seq.system import SystemSpec
 class BaseSpec(BaseModel):
     """Fields shared by every spec."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     name: str = Field(..., min_length=1, description="written as the 'Name' definition")
-    fov_mm: float = Field(..., gt=0, description="in-plane field of view (readout = phase), mm")
+    fov_mm: float = Field(..., gt=0, le=1000, description="in-plane field of view (readout = phase), mm")
     matrix: int = Field(..., ge=2, le=1024, description="image matrix (readout = phase lines)")
     slice_thickness_mm: float = Field(5.0, gt=0, description="slice thickness, mm (FOV z in the definitions)")
     dwell_us: float = Field(..., gt=0, description="ADC dwell time, us")
@@ -61,7 +61,7 @@ class GreSpec(BaseSpec):
     """
 
     kind: Literal["gre"] = "gre"
-    fov_mm: float = Field(32.0, gt=0)
+    fov_mm: float = Field(32.0, gt=0, le=1000)
     matrix: int = Field(32, ge=2, le=1024)
     dwell_us: float = Field(100.0, gt=0)
     flip_angle_deg: float = Field(15.0, gt=0, le=180)
@@ -70,7 +70,7 @@ class GreSpec(BaseSpec):
     rf_period_ms: float = Field(2.0, gt=0, description="RF block at the start of each TR (no gradients), ms")
     rf_duration_ms: float | None = Field(None, gt=0, description="block pulse length; default centred in the RF period")
     rf_spoiling_inc_deg: float = Field(117.0, ge=0, lt=360)
-    repetitions: int = Field(32, ge=1, description="number of TRs (phase-encode lines, sequential order)")
+    repetitions: int = Field(32, ge=1, le=4096, description="number of TRs (phase-encode lines, sequential order)")
     spoiler_mT_per_m: float = Field(17.6, ge=0, description="readout spoiler amplitude, mT/m")
     spoiler_duration_ms: float = Field(2.0, ge=0, description="spoiler lobe duration from the ADC end, ms")
     rewind_phase: bool = Field(True, description="phase-encode rewinder in the spoiler block")
@@ -84,7 +84,7 @@ class EpiSpec(BaseSpec):
     """
 
     kind: Literal["epi"] = "epi"
-    fov_mm: float = Field(250.0, gt=0)
+    fov_mm: float = Field(250.0, gt=0, le=1000)
     matrix: int = Field(64, ge=2, le=1024)
     dwell_us: float = Field(10.0, gt=0)
     flip_angle_deg: float = Field(90.0, gt=0, le=180)
@@ -111,7 +111,9 @@ def parse_spec(data: dict, source: str = "<spec>") -> BaseSpec:
     try:
         return _ADAPTER.validate_python(data)
     except ValidationError as e:
-        err = e.errors()[0]
+        errs = e.errors()
+        # an unknown key is usually a typo of the missing one: name it first
+        err = next((x for x in errs if x.get("type") == "extra_forbidden"), errs[0])
         loc = [str(x) for x in err.get("loc", ())]
         if loc and loc[0] in ("gre", "epi"):
             loc = loc[1:]
@@ -132,8 +134,12 @@ def load_spec(path: str | Path) -> BaseSpec:
     import yaml
 
     p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{p}: is a directory, expected a spec .yaml file")
     if not p.is_file():
         raise InputError(f"{p}: spec file not found")
+    if p.suffix.lower() == ".seq":
+        raise InputError(f"{p}: a Pulseq .seq file, not a spec: 'dtoc build' takes a spec .yaml (sequences/*.yaml)")
     try:
         data = yaml.safe_load(p.read_text(encoding="utf-8"))
     except UnicodeDecodeError:

@@ -20,11 +20,12 @@ from dtoc.errors import InputError
 class SystemSpec(BaseModel):
     """Hardware limits and timing rules of one scanner (all values > 0 unless stated)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     name: str = "siemens-7T-terra"
-    max_grad_mT_per_m: float = Field(72.0, gt=0, description="per-axis gradient amplitude limit, mT/m")
-    max_slew_T_per_m_per_s: float = Field(180.0, gt=0, description="per-axis slew-rate limit, T/m/s")
+    #: upper bounds catch unit mistakes (uT/m or Hz/m given as mT/m); preclinical systems reach ~1-3 T/m
+    max_grad_mT_per_m: float = Field(72.0, gt=0, le=5000.0, description="per-axis gradient amplitude limit, mT/m")
+    max_slew_T_per_m_per_s: float = Field(180.0, gt=0, le=100000.0, description="per-axis slew-rate limit, T/m/s")
     max_grad_vector_mT_per_m: float | None = Field(
         None, gt=0, description="limit on |g| (vector norm over x, y, z), mT/m; None: sqrt(3) x per-axis limit"
     )

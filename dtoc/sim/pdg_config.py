@@ -30,9 +30,12 @@ class PDGConfig:
         chunk_elems: largest number of (state x sample x voxel) complex elements formed at once in
             the signal evaluation (memory bound: ~ 16 bytes x 4 x chunk_elems in float64 with
             autograd).  Default 2**22.
-        signal_method: 'auto', 'direct' (exact exponentials per state, sample and voxel) or
-            'separable' (per-axis phase factors and a low-order Taylor expansion of the in-window
-            relaxation/off-resonance, evaluated as matrix products; needs a Cartesian voxel grid).
+        signal_method: 'auto' (per interval: 'separable' for >= 256 ADC samples of <= 8 emitting
+            states, else 'gemm'), 'gemm' (one shared sample x voxel kernel, states as a matrix
+            product), 'direct' (exact exponentials per state, sample and voxel; the reference) or
+            'separable' (per-axis phase factors and a windowed Taylor expansion of the in-window
+            relaxation/off-resonance, evaluated as matrix products on the Cartesian voxel grid).
+            All agree to <= 1e-8 relative (tests/test_sim_physics.py).
         taylor_tol: target relative truncation error of the 'separable' method's Taylor expansion.
         window_samples: ADC samples per window of the 'separable' method.
         voxel_size_z_m: slab thickness for the box voxel attenuation along z (None: no z
@@ -40,6 +43,10 @@ class PDGConfig:
         object_spectrum: estimate a dephased state's signal with the phantom's PD spectrum at its
             k (True, default; much stronger pruning of spoiled states) instead of the per-voxel
             bound only (False: strict bound, many more states).
+        probe_weighting: amplitude estimate of the pre-pass: 'max' (default: the largest
+            magnitude over six probe voxels: mean and longest T1/T2, B1 range) or 'pd' (PD-weighted
+            mean magnitude over up to 16 (T1, T2) clusters of the phantom: a pathway living only in
+            CSF counts with the CSF fraction; fewer states, an estimate of the object-level signal).
     """
 
     min_magnitude: float = 1e-6
@@ -51,6 +58,7 @@ class PDGConfig:
     chunk_elems: int = 2**22
     signal_method: str = "auto"
     taylor_tol: float = 1e-9
-    window_samples: int = 16
+    window_samples: int = 64
     voxel_size_z_m: float | None = None
     object_spectrum: bool = True
+    probe_weighting: str = "max"

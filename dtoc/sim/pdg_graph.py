@@ -192,6 +192,13 @@ class _Bounds:
     probe_t1: np.ndarray = field(default_factory=lambda: np.array([np.inf]))
     probe_t2: np.ndarray = field(default_factory=lambda: np.array([np.inf]))
     probe_b1: np.ndarray = field(default_factory=lambda: np.ones(1))
+    probe_w: np.ndarray | None = None  # PD weights of the probes ('pd' weighting), else None (max)
+
+    def amp_estimate(self, amp: np.ndarray) -> np.ndarray:
+        """(S,) amplitude estimate from (S, P) complex probe amplitudes."""
+        if self.probe_w is None:
+            return np.abs(amp).max(axis=1)
+        return np.abs(amp) @ self.probe_w
 
     def e1(self, dt):
         return np.exp(-np.asarray(dt) / self.t1)
@@ -252,9 +259,26 @@ def _bounds(ir: SequenceIR, config: PDGConfig, phantom) -> _Bounds:
             mt1 = 1.0 / np.average(1.0 / phantom.t1_s[m], weights=w)
             mt2 = 1.0 / np.average(1.0 / phantom.t2_s[m], weights=w)
         mb1 = float(np.average(phantom.b1[m], weights=w))
-        b.probe_t1 = np.array([mt1, b.t1, b.t1, b.t1, mt1, mt1])
-        b.probe_t2 = np.array([mt2, b.t2, b.t2, b.t2, mt2, mt2])
-        b.probe_b1 = np.array([mb1, mb1, lo, hi, lo, hi])
+        if config.probe_weighting == "pd":
+            # PD-weighted clusters: 4 x 4 quantile bins of (T1, T2), B1 = bin mean
+            t1v, t2v, b1v = phantom.t1_s[m], phantom.t2_s[m], phantom.b1[m]
+            q1 = np.quantile(t1v, [0.25, 0.5, 0.75])
+            q2 = np.quantile(t2v, [0.25, 0.5, 0.75])
+            lab = np.searchsorted(q1, t1v) * 4 + np.searchsorted(q2, t2v)
+            T1s, T2s, B1s, Ws = [], [], [], []
+            for c in np.unique(lab):
+                sel = lab == c
+                ww = w[sel]
+                T1s.append(1.0 / np.average(1.0 / t1v[sel], weights=ww))
+                T2s.append(1.0 / np.average(1.0 / t2v[sel], weights=ww))
+                B1s.append(np.average(b1v[sel], weights=ww))
+                Ws.append(ww.sum())
+            b.probe_t1, b.probe_t2, b.probe_b1 = np.array(T1s), np.array(T2s), np.array(B1s)
+            b.probe_w = np.array(Ws) / np.sum(Ws)
+        else:
+            b.probe_t1 = np.array([mt1, b.t1, b.t1, b.t1, mt1, mt1])
+            b.probe_t2 = np.array([mt2, b.t2, b.t2, b.t2, mt2, mt2])
+            b.probe_b1 = np.array([mb1, mb1, lo, hi, lo, hi])
         ny, nx = phantom.shape
         b.voxel_m = (phantom.fov_m[0] / nx, phantom.fov_m[1] / ny, zsize)
         b.voxel_shape = phantom.voxel_shape
@@ -348,7 +372,7 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
         src = amp_end[par]
         src = np.where(CONJ[kind][:, None], np.conj(src), src)
         ccand = pc[kind] * src  # (E, P)
-        cand = np.abs(ccand).max(axis=1)
+        cand = bnd.amp_estimate(ccand)
         keep = cand >= cfg.min_magnitude
         par, kind, cand, ccand = par[keep], kind[keep], cand[keep], ccand[keep]
         conj = CONJ[kind]
@@ -364,7 +388,7 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
         nU = uniq.shape[0]
         camp = np.zeros((nU, P), dtype=np.complex128)
         np.add.at(camp, inv_e, ccand)
-        cmag = np.abs(camp).max(axis=1)
+        cmag = bnd.amp_estimate(camp)
         # representative edge per child: largest cand
         order = np.lexsort((-cand, inv_e))
         first = np.ones(order.size, dtype=bool)
@@ -493,10 +517,6 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
         )
         prev_keep = keepm
         prev_newi = newi
-    if final_z_readout:
-        last = intervals[-1]
-        zk = np.where(last.is_z)[0]
-        last.meta_final_z = zk  # type: ignore[attr-defined]
     return PDGGraph(
         intervals=intervals, rf_order=rf_order, adc_times_s=adc_t, adc_order=adc_order, adc_phase_rad=adc_ph,
         tau_ignored=tau_ignored, config=cfg, n_fine=ir.n_fine,

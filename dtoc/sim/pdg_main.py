@@ -11,11 +11,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from dtoc.errors import InputError
 from dtoc.seq.ir import SequenceIR
 from dtoc.sim.pdg_config import PDGConfig
 from dtoc.sim.pdg_graph import CONJ, PDGGraph, build_graph
 from dtoc.sim.pdg_moments import compute_moments
-from dtoc.sim.pdg_signal import VoxelData, emit_signal, voxel_factor
+from dtoc.sim.pdg_signal import VoxelData, emit_signal
 
 
 def _complex_dtype(dtype):
@@ -23,7 +24,7 @@ def _complex_dtype(dtype):
         return torch.complex64
     if dtype == torch.float64:
         return torch.complex128
-    raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+    raise InputError(f"simulate: dtype must be torch.float32 or torch.float64, got {dtype}")
 
 
 def rf_coefficients(flip_rad: float, phase_rad: float, b1: torch.Tensor, cdtype) -> torch.Tensor:
@@ -42,24 +43,27 @@ def rf_coefficients(flip_rad: float, phase_rad: float, b1: torch.Tensor, cdtype)
 
 def _prepare(ir: SequenceIR, phantom, graph: PDGGraph | None, cfg: PDGConfig, grad, b0_uT, initial_mz, dtype, device, final_z=False):
     if phantom is None:
-        raise ValueError("simulate: a phantom is required")
+        raise InputError("simulate: a phantom is required")
     if graph is None:
         graph = build_graph(ir, cfg, phantom, final_z_readout=final_z)
-    if graph.n_fine != ir.n_fine:
-        raise ValueError(f"graph was built for a sequence with {graph.n_fine} fine samples, this one has {ir.n_fine}")
+    if graph.n_fine != ir.n_fine or graph.adc_times_s.size != ir.n_adc_samples or len(graph.rf_order) != len(ir.rf):
+        raise InputError(
+            f"simulate: graph was built for a sequence with {graph.n_fine} fine samples, {len(graph.rf_order)} RF, "
+            f"{graph.adc_times_s.size} ADC samples; this one has {ir.n_fine}, {len(ir.rf)}, {ir.n_adc_samples}"
+        )
     vox = VoxelData.from_phantom(phantom, initial_mz, dtype, device, cfg)
     if graph.tau_ignored and (vox.has_b0 or vox.has_t2d):
-        raise ValueError("graph was built for a phantom without B0 and T2' (tau merged); rebuild it for this phantom")
+        raise InputError("simulate: graph was built for a phantom without B0 and T2' (tau merged); rebuild it for this phantom")
     if grad is None:
         grad = torch.as_tensor(ir.grad_mT_per_m, dtype=torch.float64, device=device)
     else:
         if tuple(grad.shape) != tuple(ir.grad_mT_per_m.shape):
-            raise ValueError(f"grad_mT_per_m has shape {tuple(grad.shape)}, expected {tuple(ir.grad_mT_per_m.shape)} (3, 2N+1)")
+            raise InputError(f"simulate: grad_mT_per_m has shape {tuple(grad.shape)}, expected {tuple(ir.grad_mT_per_m.shape)} (3, 2N+1)")
         grad = grad.to(device)
     if b0_uT is not None:
         b0_uT = torch.as_tensor(b0_uT, device=device)
         if b0_uT.reshape(-1).shape[0] != ir.n_fine:
-            raise ValueError(f"b0_uT has {b0_uT.numel()} samples, expected {ir.n_fine} (2N+1)")
+            raise InputError(f"simulate: b0_uT has {b0_uT.numel()} samples, expected {ir.n_fine} (2N+1)")
     bounds_t = np.array([iv.t_start_s for iv in graph.intervals] + [graph.intervals[-1].t_end_s])
     mom = compute_moments(grad, b0_uT, ir.dt_fine_s, bounds_t, graph.adc_times_s, vox.has_diffusion)
     return graph, vox, mom, bounds_t
@@ -90,12 +94,14 @@ def _evolve(iv, A, K, mom, n, vox, dt, tr_t):
         facZ = E1[None, :] * torch.exp(-b[nT:, None] * vox.d[None, :])
     else:
         facT, facZ = E2[None, :], E1[None, :]
-    if nT == A.shape[0]:
-        A_end = A * facT
+    S, V = A.shape
+    if nT == S:
+        fac = facT
     elif nT == 0:
-        A_end = A * facZ
-    else:
-        A_end = torch.cat([A[:nT] * facT, A[nT:] * facZ], 0)
+        fac = facZ
+    else:  # one (S, V) factor: slicing A would cost two (S, V) zero-filled gradients in backward
+        fac = torch.cat([facT.expand(nT, V), facZ.expand(S - nT, V)], 0)
+    A_end = A * fac
     rec = vox.pd * (1.0 - E1)
     return A_end, K_end, rec
 
@@ -194,7 +200,7 @@ def detect_rf_spoiling(ir: SequenceIR) -> float:
     if p.size < 3:
         return 0.0
     d2 = np.angle(np.exp(1j * (p[2:] - 2 * p[1:-1] + p[:-2])))
-    if np.all(np.abs(np.angle(np.exp(1j * (d2 - d2[0])))) < 1e-6) and abs(d2[0]) > 1e-9:
+    if np.all(np.abs(np.angle(np.exp(1j * (d2 - d2[0])))) < 1e-3) and abs(d2[0]) > 1e-6:  # file phases are rounded
         return float(d2[0])
     return 0.0
 
@@ -215,12 +221,12 @@ def _dummy_train(ir: SequenceIR, n: int, block_range, rf_spoil_rad: float = 0.0)
     if block_range is not None:
         b0, b1 = int(block_range[0]), int(block_range[1])
         if not (0 <= b0 < b1 <= nb):
-            raise ValueError(f"block_range {block_range} outside 0..{nb}")
+            raise InputError(f"steady_state_mz: block_range {block_range} outside 0..{nb}")
         reps = [(b0, b1)]
     else:
         exc = sorted({r.block for r in ir.rf if r.use == "excitation"} or {r.block for r in ir.rf})
         if not exc:
-            raise ValueError("steady_state_mz: the sequence has no RF pulse")
+            raise InputError("steady_state_mz: the sequence has no RF pulse")
         reps = [(exc[i], exc[i + 1] if i + 1 < len(exc) else nb) for i in range(len(exc))]
     dtf = ir.dt_fine_s
     segs, rfs, bedges = [], [], [0.0]

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from dtoc.errors import InputError
 
 @dataclass
 class VoxelData:
@@ -71,7 +72,7 @@ class VoxelData:
         else:
             m = initial_mz.detach().cpu().numpy() if isinstance(initial_mz, torch.Tensor) else np.asarray(initial_mz)
             if m.shape != (ny, nx):
-                raise ValueError(f"initial_mz has shape {m.shape}, expected {(ny, nx)}")
+                raise InputError(f"simulate: initial_mz has shape {m.shape}, expected {(ny, nx)}")
             mz0 = T(m)
         coil = None
         if ph.coil_sens is not None:
@@ -127,13 +128,15 @@ def emit_signal(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -> torch
     """(C, T) signal of the emitting states of interval ``n`` at its ADC samples (before ADC phase)."""
     method = cfg.signal_method
     if method == "auto":
-        method = "gemm"
+        # long readouts of few states (single-shot EPI): no T x V exponentials; else one shared kernel
+        n_t = iv.adc_stop - iv.adc_start
+        method = "separable" if (n_t >= 256 and iv.emit.size <= 8) else "gemm"
     if method == "gemm":
         return emit_signal_gemm(iv, A, K, mom, n, vox, graph, bounds_t, cfg)
     if method == "separable":
         return emit_signal_gemm(iv, A, K, mom, n, vox, graph, bounds_t, cfg, separable=True)
     if method != "direct":
-        raise ValueError(f"signal_method {cfg.signal_method!r}: expected 'auto', 'gemm', 'direct' or 'separable'")
+        raise InputError(f"PDGConfig.signal_method {cfg.signal_method!r}: expected 'auto', 'gemm', 'direct' or 'separable'")
     return emit_signal_direct(iv, A, K, mom, n, vox, graph, bounds_t, cfg)
 
 
@@ -289,7 +292,8 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
 def _kernel_product(Cm, mt_r, dtr, rate, vox: VoxelData) -> torch.Tensor:
     """Cm (M, V) @ Kern^T for one chunk of samples: Kern(t, v) = exp(-dt rate - i (m(t).r + omega dt))."""
     kph = -(mt_r[:, 0:1] * vox.x[None] + mt_r[:, 1:2] * vox.y[None] + dtr[:, None] * vox.omega[None])
-    Kern = torch.exp(torch.complex(-dtr[:, None] * rate[None], kph))  # (t, V)
+    # clamp: the mirrored (tau < 0) kernel grows as exp(+dt/T2'); only masked-out samples can get there
+    Kern = torch.exp(torch.complex(torch.clamp(-dtr[:, None] * rate[None], max=80.0), kph))  # (t, V)
     return Cm @ Kern.T
 
 
@@ -347,5 +351,7 @@ def _apply_kernel_separable(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg) ->
         base = full[None] * torch.exp(-tc_t[b0:b1, None] * lam[None])[:, None, :]  # (b, M, V)
         D = (base[:, :, None, :] * powers[None, None]).reshape(b1 - b0, M * R * ny, nx)  # (b, M R ny, nx)
         U = (X[b0:b1] @ D.transpose(1, 2)).reshape(b1 - b0, W, M, R, ny)
-        out.append(torch.einsum("bty,btmry,btr->mbt", Y[b0:b1], U, dlp[b0:b1]).reshape(M, -1))
+        V_ = (U * Y[b0:b1, :, None, None, :]).sum(-1)  # (b, W, M, R)
+        sw = (V_ * dlp[b0:b1, :, None, :]).sum(-1)  # (b, W, M)
+        out.append(sw.permute(2, 0, 1).reshape(M, -1))
     return torch.cat(out, 1)[:, :T]
