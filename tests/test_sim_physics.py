@@ -438,3 +438,24 @@ def test_bad_inputs_give_one_line_input_errors():
     g_other = build_graph(_small_gre(n_rep=2), PDGConfig(), ph)
     with pytest.raises(InputError, match="graph was built"):
         simulate(ir, ph, graph=g_other)
+
+
+def test_graph_structure_and_dummy_modes():
+    """Pre-pass contracts: one excitation without refocusing -> one emitting state; states ordered
+    transverse first; the default dummy train (cycled repetitions) equals the explicit block range
+    for identical TRs (1e-12); the RF-spoiling increment is detected from the phases (117 deg)."""
+    from dtoc.sim.pdg_main import detect_rf_spoiling
+
+    ir = make_ir(10e-3, traps=[(0, 2e-3, 0.1e-3, 3e-3, 5.0)], rfs=[(1e-3, np.pi / 2, 0.0, "excitation")], adcs=[(2e-3, 32, 0.1e-3, 0.0)])
+    g = build_graph(ir, PDGConfig(), phantom(n=4, fov=0.02))
+    assert [iv.emit.size for iv in g.intervals] == [0, 1]
+    gre = _spoiled_gre(60, 10e-3, 3e-3, np.deg2rad(20), 0.01)
+    for iv in build_graph(gre, PDGConfig(), phantom()).intervals:
+        nT = int((~iv.is_z).sum())
+        assert not iv.is_z[:nT].any() and iv.is_z[nT:].all()
+    assert abs(np.rad2deg(detect_rf_spoiling(gre)) - 117.0) < 1e-9
+    ph = phantom(fov=0.01, t1=0.3, t2=0.05)
+    m_cycle = steady_state_mz(gre, ph, 30).numpy()
+    m_range = steady_state_mz(gre, ph, 30, block_range=(0, 1)).numpy()
+    assert abs(m_cycle[0, 0] - m_range[0, 0]) < 1e-12
+    assert 0.05 < m_cycle[0, 0] < 0.9  # between saturation and equilibrium

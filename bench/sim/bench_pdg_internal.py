@@ -32,6 +32,8 @@ CASES = {
     "epi64_phantom128": dict(seq="epi_esp081.seq", n=128, b0=False),
     "epi64_phantom256": dict(seq="epi_esp081.seq", n=256, b0=False),
     "epi128_phantom256": dict(seq=None, epi_matrix=128, n=256, b0=False),
+    "gre32_10us_f32": dict(seq="gre_paper.seq", n=32, b0=True, dtype="float32"),
+    "epi64_10us_f32": dict(seq="epi_esp081.seq", n=64, b0=False, dtype="float32"),
 }
 
 
@@ -62,6 +64,7 @@ def run_case(name: str, repeats: int = 2) -> dict:
     ir = _load(case)
     ph = brain_phantom(case["n"], fov_m=ir.fov_m[0], b0=case["b0"], b1=True)
     cfg = PDGConfig()
+    dtype = getattr(torch, case.get("dtype", "float64"))
     t = time.perf_counter()
     graph = build_graph(ir, cfg, ph)
     t_graph = time.perf_counter() - t
@@ -69,15 +72,15 @@ def run_case(name: str, repeats: int = 2) -> dict:
     for _ in range(repeats):
         t = time.perf_counter()
         with torch.no_grad():
-            simulate(ir, ph, graph=graph, config=cfg)
+            simulate(ir, ph, graph=graph, config=cfg, dtype=dtype)
         fwd.append(time.perf_counter() - t)
         g = torch.as_tensor(ir.grad_mT_per_m).requires_grad_(True)
         t = time.perf_counter()
-        s = simulate(ir, ph, g, graph=graph, config=cfg)
+        s = simulate(ir, ph, g, graph=graph, config=cfg, dtype=dtype)
         (s.abs() ** 2).sum().backward()
         fb.append(time.perf_counter() - t)
     return {
-        "case": name, "n_fine": ir.n_fine, "n_adc": ir.n_adc_samples, "phantom": case["n"], **graph.summary(),
+        "case": name, "dtype": case.get("dtype", "float64"), "n_fine": ir.n_fine, "n_adc": ir.n_adc_samples, "phantom": case["n"], **graph.summary(),
         "graph_s": t_graph, "fwd_s": min(fwd), "fwd_bwd_s": min(fb),
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
     }
@@ -106,7 +109,7 @@ def main(argv=None):
 
 def _write(rows):
     body = [
-        "dtoc PDG simulator alone (default `PDGConfig`, float64, CPU, 2 torch threads, best of 2).  Loss for backward: "
+        "dtoc PDG simulator alone (default `PDGConfig`, float64 unless the case ends in _f32, CPU, 2 torch threads, best of 2).  Loss for backward: "
         "sum |s|^2 w.r.t. the fine-grid gradient.  Peak memory = peak RSS of the case's process.  "
         "Brain phantom 3 T with B1 map (GRE also B0).  NOTE: the machine was shared with other jobs (load ~8 on "
         "2 cores, several other benchmarks running; the same operation varied 10x between runs) when these "

@@ -250,10 +250,13 @@ def _prisma_axis_of(p: Path) -> int:
 def _import_prisma(paths: list[Path], include_b0: bool) -> GirfData:
     got: dict[int, tuple] = {}
     for p in paths:
+        if _loadmat(p):  # a MATLAB v5 file among per-axis HDF5 files
+            raise InputError(f"{p}: several files are only accepted as per-axis HDF5 GIRF_X/Y/Z.mat files; import it alone")
+        data = _import_prisma_axis(p)  # checks the layout before the name
         a = _prisma_axis_of(p)
         if a in got:
             raise InputError(f"{p}: axis {AXES[a]} given twice")
-        got[a] = _import_prisma_axis(p)
+        got[a] = data
     f = None
     for a, (fa, _, _, _) in got.items():
         if f is None:
