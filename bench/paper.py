@@ -215,7 +215,10 @@ def main(argv=None):
             except Exception as e:  # noqa: BLE001 - a failing scenario is reported, not hidden
                 traceback.print_exc()
                 r = {**{k: str(v) for k, v in sc.items()}, "error": f"{type(e).__name__}: {e}"}
+            r["quick"] = a.quick
             rows.append(r)
+            if a.json:  # incremental: a long run that is stopped keeps what it finished
+                a.json.write_text(json.dumps(rows, indent=2, default=str))
     for r in rows:
         r["quick"] = a.quick
     if a.json:

@@ -83,6 +83,8 @@ def test_missing_effect_is_found_first(kind, girf, g):
         assert 0 < se < atol  # the stated uncertainty is meaningful and tighter than the test tolerance
     for c in data.channels():
         assert r.heldout_after[c] <= 1.2 * _true_sigma(c), f"{kind}: held-out {c} {r.heldout_after[c]} vs noise {_true_sigma(c)}"
+        # The noise floor is estimated (not given) and must be accurate (was -10 % for b0 before the audit).
+        assert abs(r.noise[c].sigma / _true_sigma(c) - 1) < 0.05, f"{kind}: noise {c} {r.noise[c]}"
         assert r.before[c] > 1.3 * _true_sigma(c) or c != ("b0" if kind == "b0_eddy" else "G")  # the effect was visible
     assert r.explained, r.remaining
 

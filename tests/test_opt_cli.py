@@ -112,7 +112,7 @@ def test_interrupt_keeps_best_and_resume_continues(tmp_path):
     from dtoc.optimize.config import load_config
     from dtoc.optimize.run import optimize_sequence
 
-    cfg = load_config("epi", None, {"warm_iters": 20, "iters": 6, "threads": 1})
+    cfg = load_config("epi", None, {"warm_iters": 20, "iters": 6, "threads": 1, "optimizer": "adam", "lr": 1e-5})
     calls = {"n": 0}
 
     def progress(stage, it, total, loss):

@@ -99,3 +99,25 @@ def test_config_errors_are_one_line(tmp_path):
     f.write_text("[unclosed\n")
     with pytest.raises(InputError, match="YAML"):
         load_config(None, f)
+
+
+def test_moment_term_sees_a_cancelled_spoiler(ir):
+    """The k term at the ADC samples is blind to the spoiler; the moment term (k just before each RF
+    pulse, in dk^2 per pulse) is not: cancelling the spoiler area costs (area/dk)^2 per repetition."""
+    from dtoc.optimize.limits import EdgeProjector
+    from dtoc.optimize.twin import Twin
+
+    ctx = L.build_context(ir, Limits(50, 500))
+    P = EdgeProjector(ir.edge_grad_mT_per_m, ir.free_mask[:, ::2], ir.raster_s, Limits(50, 500))
+    tw = Twin(ir, None, P)
+    g0 = torch.as_tensor(ir.grad_mT_per_m)
+    assert float(L.moment_term(tw.moments(g0), ctx)) == pytest.approx(0.0, abs=1e-20)
+    g = g0.clone()
+    # remove the x spoiler plateau (17.6 mT/m) of every TR, after the ADC: k at the samples is unchanged
+    spoil = (g[0] > 17.0)
+    g[0, spoil] = 0.0
+    k_same = tw.kspace(g)
+    assert torch.allclose(k_same, ctx.k0_rad_per_m)
+    m = float(L.moment_term(tw.moments(g), ctx))
+    assert m > 1.0  # many dk of dephasing per repetition lost
+

@@ -91,3 +91,17 @@ def test_exact_inverse_coefficients_undo_the_eddy_current():
     err = (G[0] - g).abs().max()
     raw = (model(g[None], dt)[0][0] - g).abs().max()
     assert float(err) < 0.02 * float(raw)
+
+
+def test_adam_paper_with_restarts_descends_and_stays_feasible():
+    from dtoc.optimize.config import OptimizeConfig
+
+    ir, lim, tw, ctx = _setup(13, 130)
+    cfg = OptimizeConfig(method="adam-paper", iters=40, lr=0.05, weights=LossWeights(image=0.0))
+    state = O.StageState(best_edges=tw.base_edges())
+    x0 = tw.projector.project(tw.base_edges())
+    f = lambda e: float(O.evaluate(tw, None, ctx, cfg.weights, e)[0])  # noqa: E731
+    x = O.full_loss(tw, None, ctx, cfg, x0, state, paper=True)
+    assert f(x) < 0.9 * f(x0)
+    assert tw.projector.is_feasible(x.numpy(), tol=1e-9)
+    assert limit_violations(tw.export_fine(x), ir.dt_fine_s, lim) == []

@@ -49,6 +49,7 @@ def _load(case):
 
     data = yaml.safe_load((REPO / "sequences" / "epi_esp081.yaml").read_text())
     data["matrix"] = case["epi_matrix"]
+    data["echo_spacing_ms"] = 1.6  # room for a 1.28 ms readout (128 x 10 us) and its reversal
     data["name"] = f"epi{case['epi_matrix']}"
     return build_ir(parse_spec(data))
 

@@ -12,9 +12,69 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
+
 from dtoc.identify.data import from_measurement
 from dtoc.identify.search import IdentifyResult, identify
 from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_output_path
+
+
+#: Plausible peak slew rate of the demanded test waveforms, T/m/s.  Outside it ``dt`` is almost surely in the
+#: wrong unit (ms or us instead of s: a factor 1e3 either way), which the sample count alone cannot reveal.
+SLEW_RANGE_T_PER_M_PER_S = (2.0, 1e4)
+
+
+def load_identify_measurement(path: str | os.PathLike):
+    """:func:`dtoc.hardware.measurement.load_measurement` plus the checks ``identify`` needs on top:
+
+    * a file that is not an ``.npz`` archive (e.g. a single ``.npy`` array saved under that name) is a
+      one-line error, not a crash;
+    * the demanded peak slew rate, max |dg/dt| with ``dt`` as given, must lie in
+      :data:`SLEW_RANGE_T_PER_M_PER_S`: a ``dt`` written in ms (1e3 too large) makes every ramp 1e3 times
+      too slow, one written in us too fast.
+    Raises:
+        InputError naming the file and key.
+    """
+    import zipfile
+
+    from dtoc.errors import InputError
+    from dtoc.hardware.measurement import load_measurement
+
+    p = Path(path)
+    if p.is_file() and not zipfile.is_zipfile(p):
+        raise InputError(f"{p}: not an .npz archive (expected the measurement keys dt, g, G and/or k saved with "
+                         f"numpy.savez)")
+    meas = load_measurement(p)
+    slew = float(np.max(np.abs(np.diff(meas.g, axis=-1)))) / meas.dt_s * 1e-3  # T/m/s
+    lo, hi = SLEW_RANGE_T_PER_M_PER_S
+    if slew > 0 and not lo <= slew <= hi:
+        raise InputError(f"{p}: key 'dt' = {meas.dt_s:g} s gives a peak demanded slew of {slew:.3g} T/m/s "
+                         f"(plausible {lo:g} to {hi:g}): is 'dt' in s (not ms or us) and 'g' in mT/m?")
+    return meas
+
+
+def check_outputs(outputs: dict, inputs: dict, force: bool) -> None:
+    """Refuse, before any work, outputs that exist (without ``force``), that lack a folder, that name the
+    same file twice, or that would overwrite an input (even with ``force``: a measurement is not
+    reproducible).  ``outputs``/``inputs``: {option name: path or None}.
+
+    Raises:
+        InputError naming the option(s).
+    """
+    from dtoc.errors import InputError
+
+    seen: dict[str, str] = {}
+    ins = {os.path.realpath(v): k for k, v in inputs.items() if v is not None}
+    for opt, p in outputs.items():
+        if p is None:
+            continue
+        real = os.path.realpath(p)
+        if real in ins:
+            raise InputError(f"{p}: {opt} would overwrite the {ins[real]} input; choose another output path")
+        if real in seen:
+            raise InputError(f"{p}: given for both {seen[real]} and {opt}; each output needs its own path")
+        seen[real] = opt
+        check_output_path(p, force)
 
 
 def run_identify(measured: str | os.PathLike, girf: str | os.PathLike | None = None,
@@ -27,21 +87,23 @@ def run_identify(measured: str | os.PathLike, girf: str | os.PathLike | None = N
     Returns:
         The :class:`dtoc.identify.search.IdentifyResult`.
     """
-    from dtoc.hardware.measurement import load_measurement
     from dtoc.hardware.model import resolve_model, save_model
     from dtoc.identify.report import report_json, residual_png
 
-    for p in (out_model, json_out, png_out):
-        if p is not None:
-            check_output_path(p, force)
-    meas = load_measurement(measured)
+    check_outputs({"-o": out_model, "--json": json_out, "--png": png_out},
+                  {"measurement": measured, "--girf": girf, "--model": model}, force)
+    meas = load_identify_measurement(measured)
     declared = resolve_model(girf=girf, model=model)
     data = from_measurement(meas)
     res = identify(data, declared, max_effects=max_effects, threshold=threshold, kinds=kinds, progress=progress)
-    if json_out is not None:
-        atomic_write_text(json_out, report_json(res), force=force)
+    # Render everything first, so that a failure while rendering leaves no output half-done.
+    text = report_json(res) if json_out is not None else None
+    png = residual_png(res) if png_out is not None else None
+    updated = res.updated_model()
     if out_model is not None:
-        save_model(res.updated_model(), out_model, force=force)
+        save_model(updated, out_model, force=force)
+    if json_out is not None:
+        atomic_write_text(json_out, text, force=force)
     if png_out is not None:
-        atomic_write_bytes(png_out, residual_png(res), force=force)
+        atomic_write_bytes(png_out, png, force=force)
     return res

@@ -290,7 +290,7 @@ def screen_lti(ws: Workspace, ctx: Context, axis: str, n_taps: int | None = None
     taps = [float(v) for v in res.theta]
     dt = ws.data.dt_s
     return _finish(ws, "lti", axis, None, {"taps": taps, "dt_s": dt, "t0_s": j0 * dt}, L, res,
-                   notes=lti_features(np.asarray(taps), j0, dt))
+                   notes=lti_features(np.asarray(taps), j0, dt, excited_band_hz(ctx.P[:, a], dt)))
 
 
 def _lti_stats_toeplitz(ws: Workspace, x: np.ndarray, a: int, lags: list) -> tuple[np.ndarray, np.ndarray]:
@@ -334,14 +334,35 @@ def _lti_stats_toeplitz(ws: Workspace, x: np.ndarray, a: int, lags: list) -> tup
     return A, b
 
 
-def lti_features(taps: np.ndarray, first_lag: int, dt_s: float) -> dict:
+def excited_band_hz(x: np.ndarray, dt_s: float, db: float = 50.0) -> float:
+    """Upper edge of the band the waveforms ``x`` (..., N) excite: the highest frequency at which their mean
+    power spectrum (smoothed over ~2 % of the bins) is within ``db`` dB of its peak.  Above it a fitted
+    filter is not constrained by the data (its response there is noise-fitting)."""
+    from scipy.ndimage import uniform_filter1d
+
+    x2 = np.asarray(x, dtype=np.float64).reshape(-1, np.shape(x)[-1])
+    f = np.fft.rfftfreq(x2.shape[-1], dt_s)
+    P = (np.abs(np.fft.rfft(x2, axis=-1)) ** 2).mean(0)
+    if not np.any(P > 0):
+        return float(f[-1])
+    Ps = uniform_filter1d(P, max(1, len(P) // 50))
+    idx = np.nonzero(Ps >= Ps.max() * 10.0 ** (-db / 10.0))[0]
+    return float(f[idx.max()]) if idx.size else float(f[-1])
+
+
+def lti_features(taps: np.ndarray, first_lag: int, dt_s: float, fmax_hz: float | None = None) -> dict:
     """Dominant features of an FIR correction dH(f) = sum_j taps[j] exp(-2 pi i f (j + first_lag) dt):
-    peak |dH| and its frequency, and the DC change (sum of taps)."""
+    peak |dH| and its frequency (searched up to ``fmax_hz``, the band the data excite, when given;
+    default Nyquist), and the DC change (sum of taps)."""
     nfft = 4096
     f = np.fft.rfftfreq(nfft, dt_s)
     H = np.fft.rfft(np.asarray(taps, dtype=np.float64), nfft) * np.exp(-2j * np.pi * f * first_lag * dt_s)
-    k = int(np.argmax(np.abs(H)))
-    return {"peak_hz": float(f[k]), "peak_abs": float(np.abs(H[k])), "dc_change": float(np.real(H[0]))}
+    band = np.ones(f.size, dtype=bool) if fmax_hz is None else (f <= fmax_hz)
+    k = int(np.argmax(np.where(band, np.abs(H), -1.0)))
+    out = {"peak_hz": float(f[k]), "peak_abs": float(np.abs(H[k])), "dc_change": float(np.real(H[0]))}
+    if fmax_hz is not None:
+        out["band_hz"] = float(min(fmax_hz, f[-1]))
+    return out
 
 
 # -- slew limit (non-linear, on the demanded input) --------------------------------------------------

@@ -6,7 +6,9 @@
   the median over bins (the broadband level).  For white noise each bin is a chi-square with 2 * n_seg
   degrees of freedom (scaled); a bin is significant when its ratio exceeds the Bonferroni-corrected
   (p = 1e-3 over all bins) chi-square quantile and is at least 1.5 x the level.  Contiguous significant bins
-  are merged and reported by their peak.
+  are merged and reported by their peak; a region whose maximum is the lowest usable bin, or that is wider
+  than ``NARROW_MAX_BINS`` bins without a distinct peak, is flagged as broadband (low-frequency structure
+  shaped like the waveforms' spectrum, e.g. a non-linear gain), not narrow-band.
 * :func:`dependence_note` — does the residual power grow with the demanded slew rate or amplitude?  The mean
   whitened power in the top decile of |dg/dt| (or |g|) against the bottom half; a ratio above 2 that is
   statistically significant is reported (a missing *linear* effect also concentrates at high slew, so the
@@ -22,6 +24,9 @@ from dtoc.constants import AXES
 from dtoc.identify.data import IdentData
 
 SEG = 256
+#: A significant region wider than this many periodogram bins (or touching the lowest usable bin) is
+#: reported as broadband structure, not as a narrow-band peak.
+NARROW_MAX_BINS = 6
 
 
 def rmse(data: IdentData, res: dict, weight: np.ndarray | None = None) -> dict:
@@ -54,7 +59,11 @@ def spectral_peaks(data: IdentData, c: str, z: np.ndarray, p_value: float = 1e-3
     """Significant narrow-band peaks of a whitened residual channel.
 
     Returns:
-        [{"f_hz": peak frequency, "ratio": power / broadband level}], strongest first.
+        [{"f_hz": peak frequency, "ratio": power / broadband level, "narrow": bool, "f_lo_hz", "f_hi_hz":
+        extent of the significant region}], strongest first.  ``narrow`` is False for a region whose maximum
+        is at the lowest usable bin, or that spans more than :data:`NARROW_MAX_BINS` bins without a peak 3x
+        above its low-frequency end: broadband structure that follows the waveforms' own spectrum, which must
+        not be reported as a resonance.
     """
     series = [s for s in _series(data, c, z) if s.size >= SEG]
     if not series:
@@ -89,7 +98,15 @@ def spectral_peaks(data: IdentData, c: str, z: np.ndarray, p_value: float = 1e-3
             while j + 1 < len(f) and sig[j + 1]:
                 j += 1
             k = i + int(np.argmax(ratio[i : j + 1]))
-            peaks.append({"f_hz": float(f[k]), "ratio": float(ratio[k])})
+            # A region peaking at the lowest usable bin, or a wide one without a distinct peak, is broadband
+            # structure (the spectrum of the waveforms themselves: a missing or non-linear effect), not a
+            # resonance.
+            if k == use[0]:  # rises towards DC: the low-frequency spectrum of the waveforms themselves
+                narrow = False
+            else:  # a distinct peak above the region's low-frequency end, or a short isolated region
+                narrow = bool(ratio[k] >= 3.0 * ratio[i] or (j - i + 1) <= NARROW_MAX_BINS)
+            peaks.append({"f_hz": float(f[k]), "ratio": float(ratio[k]), "narrow": bool(narrow),
+                          "f_lo_hz": float(f[i]), "f_hi_hz": float(f[j])})
             i = j + 1
         else:
             i += 1
@@ -122,4 +139,55 @@ def dependence_note(data: IdentData, zG: np.ndarray, what: str = "slew") -> str 
                     f"unmodelled fast dynamics")
         return (f"residual grows with gradient amplitude: mean power {ratio:.1f}x higher at the top 10 % of |g| "
                 f"(>= {hi_thr:.1f} mT/m): amplitude-dependent (non-linear) gain or heating")
+    return None
+
+
+#: Samples closer than this to a corner of the demand are left out of the hysteresis test: a linear
+#: transient (resonance, fast eddy current) left in the residual decays within it, a hysteresis offset does not.
+REST_GUARD_S = 0.5e-3
+#: Smallest up/down difference of the rest residual, in noise floors, worth a note.
+DIRECTION_MIN_SIGMA = 0.5
+
+
+def _far_from_corners(g: np.ndarray, guard: float) -> np.ndarray:
+    from dtoc.identify.noise import quiet_samples
+
+    return quiet_samples(g, guard=int(np.ceil(guard)))
+
+
+def last_ramp_direction(g: np.ndarray) -> np.ndarray:
+    """(..., N) sign (+1 / -1, 0 before the first ramp) of the most recent non-zero slope of ``g``."""
+    d = np.sign(np.diff(np.asarray(g, dtype=np.float64), axis=-1, prepend=0.0))
+    d[..., 0] = np.sign(np.asarray(g)[..., 0])
+    idx = np.where(d != 0, np.arange(d.shape[-1]), 0)
+    np.maximum.accumulate(idx, axis=-1, out=idx)
+    out = np.take_along_axis(d, idx, axis=-1)
+    return out
+
+
+def direction_note(data: IdentData, res_G: np.ndarray, sigma_G: float, quiet: np.ndarray) -> str | None:
+    """A note when the residual at zero demand depends on the direction of the last ramp (a hysteresis-like
+    memory of the amplifier / iron, which no effect of the library describes).
+
+    Compares the mean G residual (mT/m) on samples where the demand is zero and that are away from corners
+    (``quiet`` (M, 3, N)) after up-ramps with that after down-ramps (at zero demand an amplitude-dependent
+    gain leaves nothing, so the two are told apart); reported when the difference exceeds 0.5 x the noise floor and
+    is significant (z > 5 against white noise of ``sigma_G``).
+    """
+    s = last_ramp_direction(data.g)
+    quiet = quiet & _far_from_corners(data.g, REST_GUARD_S / data.dt_s)
+    rest = np.abs(data.g) <= 1e-9 * max(float(np.max(np.abs(data.g))), 1e-300)
+    use = quiet & rest & np.broadcast_to(data.axes_measured[:, :, None], data.g.shape)
+    up, dn = use & (s > 0), use & (s < 0)
+    n1, n2 = int(up.sum()), int(dn.sum())
+    if n1 < 100 or n2 < 100:
+        return None
+    m1, m2 = float(res_G[up].mean()), float(res_G[dn].mean())
+    diff = m1 - m2
+    z = abs(diff) / (sigma_G * np.sqrt(1.0 / n1 + 1.0 / n2))
+    if abs(diff) > DIRECTION_MIN_SIGMA * sigma_G and z > 5:
+        return (f"residual at zero demand depends on the direction of the last ramp ({m1:+.3g} mT/m after "
+                f"up-ramps, {m2:+.3g} mT/m after down-ramps, z = {z:.0f}): a memory the model lacks, "
+                f"hysteresis-like (not in the library) or a slow linear transient (time constant > "
+                f"{REST_GUARD_S * 1e3:g} ms) that no added effect captured")
     return None

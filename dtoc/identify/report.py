@@ -49,9 +49,11 @@ def _effect_entry(f) -> dict:
         "score": _num(f.score),
     }
     if e.kind == "lti":
-        taps = np.asarray(params["taps"], dtype=np.float64).reshape(-1)
-        j0 = int(round(params["t0_s"] / params["dt_s"]))
-        entry["features"] = lti_features(taps, j0, params["dt_s"])
+        feats = (f.notes or {}).get("features")
+        if feats is None:
+            taps = np.asarray(params["taps"], dtype=np.float64).reshape(-1)
+            feats = lti_features(taps, int(round(params["t0_s"] / params["dt_s"])), params["dt_s"])
+        entry["features"] = feats
     return entry
 
 
@@ -128,7 +130,8 @@ def print_table(r: IdentifyResult, console=None) -> None:
                   cell("heldout_before"), cell("heldout_after"))
     con.print(t)
     for c in r.data.channels():
-        con.print(f"noise floor {c}: {d['noise_method'][c]}; values in brackets are multiples of it", markup=False)
+        con.print(f"noise floor {c}: {d['noise_method'][c]}; values in brackets are multiples of it", markup=False,
+                  soft_wrap=True)
     e = Table(title="effects added (in order)")
     for col in ("#", "kind", "axis", "input", "parameters ± stderr", "score"):
         e.add_column(col)
@@ -141,7 +144,7 @@ def print_table(r: IdentifyResult, console=None) -> None:
     con.print(e)
     con.print(f"explained: {'yes' if d['explained'] else 'NO'}")
     for note in d["remaining"]:
-        con.print(f"  - {note}", markup=False)
+        con.print(f"  - {note}", markup=False, soft_wrap=True)  # one line per note (grep-able)
 
 
 def _psd(x: np.ndarray, dt_s: float, seg: int = 512):
@@ -162,48 +165,74 @@ def _psd(x: np.ndarray, dt_s: float, seg: int = 512):
     return f, acc * scale / max(n, 1)
 
 
+def _rows(r: IdentifyResult) -> list:
+    """Plot rows: (channel, axis index or None, label) for every measured channel and axis."""
+    rows = []
+    for c in r.data.channels():
+        if c == "b0":
+            rows.append((c, None, "b0"))
+        else:
+            rows += [(c, a, f"{c} {AXES[a]}") for a in range(3) if r.data.axes_measured[:, a].any()]
+    return rows
+
+
 def residual_png(r: IdentifyResult) -> bytes:
-    """PNG bytes: per measured channel, residual before/after in time (worst waveform) and frequency (PSD)."""
+    """PNG bytes of the residuals before (declared model) and after (updated model), one row per measured
+    channel and axis: (1) time course of the waveform with the largest residual on that axis, before and
+    after; (2) the same after only, zoomed, with the +-noise floor band; (3) Welch PSD of the residual over
+    all measured waveforms, before and after, with the white-noise level of the noise floor."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    chans = r.data.channels()
-    fig, axs = plt.subplots(len(chans), 2, figsize=(12, 3.2 * len(chans)), squeeze=False)
+    rows = _rows(r)
+    fig, axs = plt.subplots(len(rows), 3, figsize=(15, 2.6 * len(rows) + 0.8), squeeze=False)
     t_ms = np.arange(r.data.N) * r.data.dt_s * 1e3
-    for i, c in enumerate(chans):
+    for i, (c, a, lab) in enumerate(rows):
         rb, ra = r.residual_before[c], r.residual_after[c]
+        if a is not None:
+            rb, ra = rb[:, a], ra[:, a]
+            ok = r.data.axes_measured[:, a]
+        else:
+            ok = np.ones(r.data.M, dtype=bool)
         s = r.noise[c].sigma
-        energy = (rb**2).reshape(r.data.M, -1).sum(1)
+        u = UNITS[c]
+        energy = np.where(ok, (rb**2).sum(-1), -1.0)
         m = int(np.argmax(energy))
         ax = axs[i, 0]
-        if c == "b0":
-            ax.plot(t_ms, rb[m], lw=0.6, label="before")
-            ax.plot(t_ms, ra[m], lw=0.6, label="after")
-        else:
-            for a in range(3):
-                if r.data.axes_measured[m, a]:
-                    ax.plot(t_ms, rb[m, a], lw=0.6, label=f"before {AXES[a]}")
-                    ax.plot(t_ms, ra[m, a], lw=0.6, label=f"after {AXES[a]}")
-        ax.axhspan(-s, s, color="0.8", alpha=0.5, label="±noise")
+        ax.plot(t_ms, rb[m], lw=0.7, color="tab:red", label="before (declared)")
+        ax.plot(t_ms, ra[m], lw=0.7, color="tab:blue", label="after (updated)")
         ax.set_xlabel("t [ms]")
-        ax.set_ylabel(f"{c} residual [{UNITS[c]}]")
-        ax.set_title(f"{c}: waveform {r.data.labels[m]} (largest residual)")
-        ax.legend(fontsize=7, ncol=2)
+        ax.set_ylabel(f"{lab} residual [{u}]")
+        same = bool(np.array_equal(rb[ok], ra[ok]))
+        ax.set_title(f"{lab}: measured - predicted, waveform {r.data.labels[m]}" +
+                     (" (after = before)" if same else ""), fontsize=9)
+        ax.legend(fontsize=7, loc="upper right")
         ax = axs[i, 1]
-        fb, pb = _psd(rb, r.data.dt_s)
-        fa, pa = _psd(ra, r.data.dt_s)
-        ax.semilogy(fb / 1e3, pb, lw=0.8, label="before")
-        ax.semilogy(fa / 1e3, pa, lw=0.8, label="after")
-        ax.axhline(2.0 * s * s * r.data.dt_s, color="k", ls="--", lw=0.8, label="white noise level")
+        ax.plot(t_ms, ra[m], lw=0.6, color="tab:blue", label="after")
+        ax.axhspan(-s, s, color="0.75", alpha=0.6, label=f"±noise floor ({s:.3g} {u})")
+        ax.set_xlabel("t [ms]")
+        ax.set_ylabel(f"{lab} residual [{u}]")
+        ax.set_title(f"{lab}: after, zoomed (rms {np.sqrt(np.mean(ra[ok] ** 2)):.3g} {u})", fontsize=9)
+        ax.legend(fontsize=7, loc="upper right")
+        ax = axs[i, 2]
+        fb, pb = _psd(rb[ok], r.data.dt_s)
+        fa, pa = _psd(ra[ok], r.data.dt_s)
+        ax.semilogy(fb / 1e3, np.maximum(pb, 1e-300), lw=0.8, color="tab:red", label="before")
+        ax.semilogy(fa / 1e3, np.maximum(pa, 1e-300), lw=0.8, color="tab:blue", label="after")
+        ax.axhline(2.0 * s * s * r.data.dt_s, color="k", ls="--", lw=0.8, label="white noise at the floor")
         ax.set_xlabel("f [kHz]")
-        ax.set_ylabel(f"PSD [({UNITS[c]})²/Hz]")
-        ax.set_title(f"{c}: residual spectrum")
-        ax.legend(fontsize=7)
-    fig.suptitle("explained" if r.explained else "NOT explained: " + "; ".join(r.remaining[:2])[:150], fontsize=9)
+        ax.set_ylabel(f"PSD [({u})²/Hz]")
+        ax.set_title(f"{lab}: residual spectrum (all waveforms)", fontsize=9)
+        ax.legend(fontsize=7, loc="upper right")
+    verdict = "explained (held-out residual consistent with noise)" if r.explained else \
+        "NOT explained: " + "; ".join(n[:90] for n in r.remaining[:2])
+    found = ", ".join(f.effect.kind + (f"[{f.effect.axis}]" if f.effect.axis else "") +
+                      (f"<-{f.effect.input_axis}" if f.effect.input_axis else "") for f in r.twin.found) or "none"
+    fig.suptitle(f"dtoc identify residuals: effects added: {found}\n{verdict}", fontsize=10)
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, metadata={"Software": None})
+    fig.savefig(buf, format="png", dpi=80, metadata={"Software": None})
     plt.close(fig)
     return buf.getvalue()

@@ -30,12 +30,16 @@ from dtoc.errors import InputError
 from dtoc.hardware.effects import SlewLimit
 from dtoc.hardware.model import HardwareModel
 from dtoc.identify import diagnostics
-from dtoc.identify.candidates import Context, Proposal, lti_features, screen_all
+from dtoc.identify.candidates import Context, Proposal, excited_band_hz, lti_features, screen_all
 from dtoc.identify.data import IdentData
 from dtoc.identify.folds import Folds, make_folds
 from dtoc.identify.noise import NoiseEstimate, difference_sigma, estimate_sigma, quiet_samples
 from dtoc.identify.twin import Twin
 from dtoc.identify.workspace import Workspace
+
+#: Relative standard error x sqrt(n) of the robust difference estimator of the noise floor (MAD of
+#: correlated differences; measured on pure noise: 1.1-1.5).
+DIFF_REL_SE = 1.5
 
 #: Kinds that may be added more than once on the same axes (multi-exponential eddy currents).
 REPEATABLE = {"exp_eddy", "cross_eddy", "b0_eddy"}
@@ -186,11 +190,26 @@ def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_eff
     # estimate from the final (smaller) residual is the better one when it is lower.
     for c in list(noise):
         if noise[c].method.startswith("difference"):
-            q = quiet_samples(data.g)
-            re = difference_sigma(res_after[c], data.mask(c), quiet=q.all(axis=1) if c == "b0" else q)
-            if re is not None and re.sigma < noise[c].sigma:
-                noise[c] = NoiseEstimate(re.sigma, re.method + ", final residual", re.n_samples)
-                sigma[c] = re.sigma
+            # The final residual on *all* samples: when the model now fits, it is noise everywhere and this
+            # estimate is the most precise one (many more samples than the corner-free subset); adopt it unless
+            # it is significantly above the first estimate (model error left at the corners) while the final
+            # residual's plain RMS is not white-noise-like either.  Taking simply
+            # the lower of two noisy estimates would bias the floor low (measured: -10 % for b0 with 2,200
+            # corner-free samples).
+            first = noise[c]
+            re_all = difference_sigma(res_after[c], data.mask(c))
+            rel_se = DIFF_REL_SE / np.sqrt(max(first.n_samples, 1))
+            mk = data.mask(c)
+            rms_after = float(np.sqrt(np.sum((res_after[c] * mk) ** 2) / max(mk.sum(), 1)))
+            white = re_all is not None and rms_after <= re_all.sigma * (1.0 + 3.0 * DIFF_REL_SE / np.sqrt(re_all.n_samples))
+            if re_all is not None and (white or re_all.sigma <= first.sigma * (1.0 + 3.0 * rel_se)):
+                noise[c] = NoiseEstimate(re_all.sigma, re_all.method + ", final residual", re_all.n_samples)
+            else:
+                q = quiet_samples(data.g)
+                re = difference_sigma(res_after[c], data.mask(c), quiet=q.all(axis=1) if c == "b0" else q)
+                if re is not None and re.sigma < first.sigma:
+                    noise[c] = NoiseEstimate(re.sigma, re.method + ", final residual", re.n_samples)
+            sigma[c] = noise[c].sigma
     before = diagnostics.rmse(data, res_before)
     after = diagnostics.rmse(data, res_after)
     # Held-out: each fold refitted on its training samples, residual on its test samples.
@@ -231,7 +250,13 @@ def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_eff
         z = res_after[c] / sigma[c]
         for pk in diagnostics.spectral_peaks(data, c, z):
             explained = False
-            remaining.append(f"narrow-band {c} residual near {pk['f_hz'] / 1e3:.2f} kHz ({pk['ratio']:.1f}x the broadband level)")
+            if pk["narrow"]:
+                remaining.append(f"narrow-band {c} residual near {pk['f_hz'] / 1e3:.2f} kHz ({pk['ratio']:.1f}x the "
+                                 f"broadband level)")
+            else:
+                remaining.append(f"broadband {c} residual from {pk['f_lo_hz'] / 1e3:.2f} to {pk['f_hi_hz'] / 1e3:.2f} kHz "
+                                 f"(up to {pk['ratio']:.1f}x the high-frequency level, peak near {pk['f_hz'] / 1e3:.2f} "
+                                 f"kHz): structure that follows the waveforms, not a resonance")
     if data.G is not None:
         zG = res_after["G"] / sigma["G"]
         for what in ("slew", "amplitude"):
@@ -239,15 +264,21 @@ def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_eff
             if note:
                 remaining.append(note)
                 explained = False
+        note = diagnostics.direction_note(data, res_after["G"], sigma["G"], quiet_samples(data.g))
+        if note:
+            remaining.append(note)
+            explained = False
     for fo in twin.found:
         if fo.effect.kind == "slew_limit":
             remaining.append("a non-linear slew-rate limit was modelled: the amplifier cannot follow the demanded slew")
         if fo.effect.kind == "lti":
             e = fo.effect
-            n = lti_features(e.taps.detach().numpy().reshape(-1), int(round(e.t0_s / e.dt_s)), e.dt_s)
-            if n:
-                remaining.append(f"lti correction on {fo.effect.axis}: largest |dH| {n['peak_abs']:.3f} near "
-                                 f"{n['peak_hz'] / 1e3:.2f} kHz (no parametric effect explained it)")
+            band = excited_band_hz(data.g[:, e._ax][data.axes_measured[:, e._ax]], data.dt_s)
+            n = lti_features(e.taps.detach().numpy().reshape(-1), int(round(e.t0_s / e.dt_s)), e.dt_s, band)
+            fo.notes = {**fo.notes, "features": n}
+            remaining.append(f"lti correction on {fo.effect.axis}: largest |dH| {n['peak_abs']:.3f} near "
+                             f"{n['peak_hz'] / 1e3:.2f} kHz within the excited band 0-{band / 1e3:.1f} kHz, DC change "
+                             f"{n['dc_change']:+.4f} (a linear response no parametric effect explained)")
     for i, n in fit.get("at_bound", []):
         e = twin.found[i].effect
         remaining.append(f"{e.kind} ({e.axis or ''}{'<-' + e.input_axis if e.input_axis else ''}) parameter {n} ended at "

@@ -88,7 +88,8 @@ class Twin:
 
     def updated_model(self) -> HardwareModel:
         m = self.chain()
-        m.description = (self.declared.description or "declared model") + " + identified effects"
+        base = self.declared.description or ("declared model" if self.declared.effects else "ideal hardware")
+        m.description = base + (" + identified effects" if self.found else "")
         return m
 
     # -- prediction -------------------------------------------------------------------------------

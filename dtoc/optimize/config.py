@@ -25,6 +25,8 @@ class LossWeights(BaseModel):
         slew: L_s = mean over segments of max(|dg/dt| - smax, 0) / smax (zero under hard limits).
         rf: L_tRF = mean over RF-period samples of sum_axes (G - g0)^2 / g_ref^2, g_ref the base's
             peak |g| (the paper penalises realized gradient during RF: g0 = 0 there in GRE).
+        moment: L_m = mean over RF pulses of sum_axes ((m - m0)/dk)^2 with m the realized k-space
+            moment just before each pulse (dephasing per repetition: spoiling).
         reg: Tikhonov term mean((g - g0)^2) / g_ref^2 of the linear warm start only.
     """
 
@@ -34,6 +36,7 @@ class LossWeights(BaseModel):
     amplitude: float = Field(10.0, ge=0)
     slew: float = Field(10.0, ge=0)
     rf: float = Field(1.0, ge=0)
+    moment: float = Field(1.0, ge=0)
     reg: float = Field(1e-6, ge=0)
 
 

@@ -8,6 +8,9 @@ Terms (all dimensionless; each multiplied by its weight from :class:`~dtoc.optim
   per sample (dk = 2 pi / FOV), independent of FOV and matrix.
 * ``amplitude`` (4D): ``mean_m relu(|g_m| - gmax) / gmax`` over fine samples and axes.
 * ``slew`` (4E): ``mean_m relu(|g_{m+1} - g_m| / dt - smax) / smax``.
+* ``moment`` (dtoc addition): the k-space moment accumulated just before every RF pulse, in dk^2 per
+  pulse: it fixes the dephasing per repetition (spoiling, stimulated-echo pathways) that the k term
+  at the ADC samples does not see; without it a k-only solution may cancel the spoiler.
 * ``rf`` (4F): ``mean over RF-period samples of sum_axes (G - g0)^2 / g_ref^2`` with ``g_ref`` the base
   waveform's peak |g|: the realized gradient during RF pulses must be that of the base (zero in GRE,
   the slice-select plateau in EPI), because slice selection is not simulated.
@@ -50,6 +53,8 @@ class LossContext:
     smax_T_per_m_per_s: float
     dt_fine_s: float
     sample_weight: torch.Tensor | None = None
+    t_moment_s: np.ndarray | None = None
+    k0_moment_rad_per_m: torch.Tensor | None = None
 
 
 def rf_mask_fine(ir) -> np.ndarray:
@@ -73,10 +78,15 @@ def build_context(ir, limits, dtype=torch.float64, device="cpu") -> LossContext:
     dk_t = torch.as_tensor(np.asarray(dk, dtype=np.float64), dtype=dtype, device=device)
     g0 = torch.as_tensor(ir.grad_mT_per_m, dtype=dtype, device=device)
     gref = float(np.abs(ir.grad_mT_per_m).max()) or 1.0
+    # gradient moment accumulated up to each RF pulse (just before its centre): the dephasing per
+    # repetition that spoiling and the higher-order echo pathways depend on
+    t_mom = np.array([r.t_center_s - 1e-9 for r in ir.rf[1:]], dtype=np.float64)  # before the first: no transverse state
+    k0_mom = ir.kspace_rad_per_m(times_s=t_mom).to(dtype=dtype, device=device) if t_mom.size else None
     return LossContext(
         k0_rad_per_m=k0, dk_rad_per_m=dk_t, rf_mask=torch.as_tensor(rf_mask_fine(ir), device=device),
         g0_fine_mT_per_m=g0, g_ref_mT_per_m=gref, gmax_mT_per_m=limits.gmax_mT_per_m,
-        smax_T_per_m_per_s=limits.smax_T_per_m_per_s, dt_fine_s=ir.dt_fine_s)
+        smax_T_per_m_per_s=limits.smax_T_per_m_per_s, dt_fine_s=ir.dt_fine_s,
+        t_moment_s=t_mom if t_mom.size else None, k0_moment_rad_per_m=k0_mom)
 
 
 def kspace_term(k: torch.Tensor, ctx: LossContext) -> torch.Tensor:
@@ -87,6 +97,12 @@ def kspace_term(k: torch.Tensor, ctx: LossContext) -> torch.Tensor:
     if ctx.sample_weight is not None:
         return (per * ctx.sample_weight).sum() / ctx.sample_weight.sum().clamp_min(1e-12)
     return per.mean()
+
+
+def moment_term(k_mom: torch.Tensor, ctx: LossContext) -> torch.Tensor:
+    """mean over RF pulses of sum_axes ((m - m0)/dk)^2, m the k-space moment just before each pulse."""
+    inv = torch.where(torch.isfinite(ctx.dk_rad_per_m), 1.0 / ctx.dk_rad_per_m, torch.zeros_like(ctx.dk_rad_per_m))
+    return (((k_mom - ctx.k0_moment_rad_per_m) * inv[:, None]) ** 2).sum(0).mean()
 
 
 def image_term(images: list[torch.Tensor], targets: list[torch.Tensor]) -> torch.Tensor:
@@ -120,11 +136,12 @@ def reg_term(g: torch.Tensor, ctx: LossContext) -> torch.Tensor:
 
 def total_loss(weights: LossWeights, ctx: LossContext, *, g: torch.Tensor, G: torch.Tensor, k: torch.Tensor,
                images: list[torch.Tensor] | None = None, targets: list[torch.Tensor] | None = None,
-               include_reg: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
+               include_reg: bool = False, k_moment: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """Weighted sum of the terms and their weighted values (floats, for the history).
 
     Args:
         g: (3, M) demanded fine waveform, mT/m.   G: (3, M) realized, mT/m.   k: (3, N_adc) rad/m.
+        k_moment: (3, N_rf) realized k just before each RF pulse (None: moment term skipped).
         images / targets: simulated and target images (None: image term skipped).
     """
     terms: dict[str, torch.Tensor] = {}
@@ -132,6 +149,8 @@ def total_loss(weights: LossWeights, ctx: LossContext, *, g: torch.Tensor, G: to
         terms["image"] = weights.image * image_term(images, targets)
     if weights.kspace > 0:
         terms["kspace"] = weights.kspace * kspace_term(k, ctx)
+    if weights.moment > 0 and k_moment is not None:
+        terms["moment"] = weights.moment * moment_term(k_moment, ctx)
     if weights.amplitude > 0:
         terms["amplitude"] = weights.amplitude * amplitude_term(g, ctx)
     if weights.slew > 0:

@@ -65,7 +65,7 @@ def _linear_objective(twin, ctx, weights):
         G, _ = twin.realize(g)
         k = twin.kspace(G)
         w = weights.model_copy(update={"image": 0.0, "amplitude": 0.0, "slew": 0.0})
-        return L.total_loss(w, ctx, g=g, G=G, k=k, include_reg=True)
+        return L.total_loss(w, ctx, g=g, G=G, k=k, include_reg=True, k_moment=twin.moments(G))
 
     return f
 
@@ -220,7 +220,8 @@ def evaluate(twin, imager, ctx, weights, edges: torch.Tensor, idx: int = 0, keep
         sig = imager.signal(G, b0, idx)
         images = [imager.image(sig, keep_mask=keep_mask)]
         targets = [imager.targets[idx]]
-    total, terms = L.total_loss(weights, ctx, g=g, G=G, k=k, images=images, targets=targets)
+    total, terms = L.total_loss(weights, ctx, g=g, G=G, k=k, images=images, targets=targets,
+                                k_moment=twin.moments(G))
     return total, terms, {"g": g, "G": G, "b0": b0, "k": k, "images": images}
 
 

@@ -296,8 +296,8 @@ def optimize_sequence(base, *, out=None, girf=None, model=None, config: Optimize
     _check_system_limits(ir_out, limits)
     after = quality(twin, imager, ctx, x, keep_mask=keep)
     if state.interrupted and ckpt_target is not None:
-        save_checkpoint(ckpt_target, x, len([h for h in state.history if h.get("stage") == "full"]) + start_it,
-                        "full", state.history, cfg, force=True)
+        done = max([h["it"] for h in state.history if h.get("stage") == "full"] or [start_it])
+        save_checkpoint(ckpt_target, x, done, "full", state.history, cfg, force=True)
         extra["checkpoint"] = str(ckpt_target)
 
     manifest = {

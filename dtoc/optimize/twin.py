@@ -63,6 +63,16 @@ class Twin:
         """(3, N_adc) k-space (rad/m) of a fine-grid waveform at the ADC samples."""
         return self.ir.kspace_rad_per_m(G_fine)
 
+    def moments(self, G_fine: torch.Tensor) -> torch.Tensor | None:
+        """(3, N_rf - 1) k-space moment (rad/m) just before each RF pulse after the first (None if < 2 pulses)."""
+        t = getattr(self, "_t_mom", None)
+        if t is None:
+            t = np.array([r.t_center_s - 1e-9 for r in self.ir.rf[1:]], dtype=np.float64)
+            self._t_mom = t
+        if t.size == 0:
+            return None
+        return self.ir.kspace_rad_per_m(G_fine, times_s=t)
+
     def export_fine(self, edges) -> np.ndarray:
         """Played fine waveform of (already projected) edges, numpy float64."""
         e = edges.detach().cpu().numpy() if isinstance(edges, torch.Tensor) else np.asarray(edges)

@@ -43,6 +43,9 @@ class PDGConfig:
         object_spectrum: estimate a dephased state's signal with the phantom's PD spectrum at its
             k (True, default; much stronger pruning of spoiled states) instead of the per-voxel
             bound only (False: strict bound, many more states).
+        checkpoint_bytes: when autograd would keep more than this (estimate: 8 (S, V) complex
+            tensors per RF interval), each interval's relaxation and RF split is recomputed in the
+            backward pass instead (torch.utils.checkpoint; ~1.3x compute, memory ~ amplitudes only).
         probe_weighting: amplitude estimate of the pre-pass: 'max' (default: the largest
             magnitude over six probe voxels: mean and longest T1/T2, B1 range) or 'pd' (PD-weighted
             mean magnitude over up to 16 (T1, T2) clusters of the phantom: a pathway living only in
@@ -62,3 +65,4 @@ class PDGConfig:
     voxel_size_z_m: float | None = None
     object_spectrum: bool = True
     probe_weighting: str = "max"
+    checkpoint_bytes: float = 2e9

@@ -57,6 +57,8 @@ def _prepare(ir: SequenceIR, phantom, graph: PDGGraph | None, cfg: PDGConfig, gr
     if grad is None:
         grad = torch.as_tensor(ir.grad_mT_per_m, dtype=torch.float64, device=device)
     else:
+        if not isinstance(grad, torch.Tensor):
+            grad = torch.as_tensor(np.asarray(grad, dtype=np.float64))
         if tuple(grad.shape) != tuple(ir.grad_mT_per_m.shape):
             raise InputError(f"simulate: grad_mT_per_m has shape {tuple(grad.shape)}, expected {tuple(ir.grad_mT_per_m.shape)} (3, 2N+1)")
         grad = grad.to(device)
@@ -144,6 +146,11 @@ def _loop(ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_sign
     pieces = []
     coef_cache: dict = {}
     NI = len(graph.intervals)
+    # autograd memory estimate: ~8 saved (S, V) tensors per interval
+    est = 8 * vox.n * (16 if cdtype == torch.complex128 else 8) * sum(iv.n_states for iv in graph.intervals)
+    ckpt = torch.is_grad_enabled() and est > cfg.checkpoint_bytes
+    if ckpt:
+        from torch.utils.checkpoint import checkpoint
     for n, iv in enumerate(graph.intervals):
         if with_signal and iv.emit.size and iv.adc_stop > iv.adc_start:
             pieces.append((iv.adc_start, emit_signal(iv, A, K, mom, n, vox, graph, bounds_t, cfg)))
@@ -154,8 +161,8 @@ def _loop(ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_sign
         if iv.is_z[:nT].any():
             raise RuntimeError("PDG graph states must be ordered transverse first")
         tr_t = torch.as_tensor(~iv.is_z, device=device)
-        A, K, rec = _evolve(iv, A, K, mom, n, vox, dt, tr_t)
         if n == NI - 1:
+            A, K, rec = _evolve(iv, A, K, mom, n, vox, dt, tr_t)
             eq = torch.tensor([iv.eq_index], device=device)
             A = A.index_add(0, eq, rec.to(A.dtype)[None, :])
             break
@@ -164,6 +171,15 @@ def _loop(ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_sign
         coefs = coef_cache.get(key)
         if coefs is None:
             coefs = coef_cache[key] = rf_coefficients(rf.flip_angle_rad, rf.phase_rad, vox.b1, cdtype)
+        if ckpt:
+            # keep only the interval's input amplitudes; relaxation and RF split are recomputed in backward
+            def step(A_, K_, iv=iv, n=n, dt=dt, tr_t=tr_t, coefs=coefs):
+                A2, K2, rec2 = _evolve(iv, A_, K_, mom, n, vox, dt, tr_t)
+                return _apply_rf(graph.intervals[n + 1], A2, rec2, iv.eq_index, K2, coefs)
+
+            A, K = checkpoint(step, A, K, use_reentrant=False)
+            continue
+        A, K, rec = _evolve(iv, A, K, mom, n, vox, dt, tr_t)
         A, K = _apply_rf(graph.intervals[n + 1], A, rec, iv.eq_index, K, coefs)
     return pieces, A, K
 
