@@ -134,6 +134,10 @@ def write_results(rows: list[dict], quick: bool, machine: str) -> None:
           "Published (paper Figure 5) beside ours. PE = first-order pre-emphasis (Eq. 2, coefficients fitted here); "
           "its constant-TE fallback here is *projection onto the limits + optimal sample skipping* (see docs/optimize.md), "
           "not the paper's k-extent rescaling.", "",
+          "Base-sequence difference that matters here: dtoc's GRE (sequences/gre_paper.yaml) is scanner-ready, with "
+          "trapezoid ramps on a 10 us raster, so its prewinder needs 28.8 mT/m and its outermost phase encode 26.7 mT/m; "
+          "the paper's base on its 0.1 ms grid (piecewise-constant gradients) needs 25.0 mT/m. At gmax 25 our base is "
+          "therefore already infeasible before any eddy-current correction, unlike the paper's.", "",
           "| gmax mT/m | PE NRMSE % (paper) | PE NRMSE % (ours) | DTO NRMSE % (paper) | DTO NRMSE % (ours) | PE skipped % (paper) | PE skipped % (ours) | DTO skipped % (paper) | DTO skipped % (ours) | DTO <= paper | viol. | DTO time (s) |",
           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for g, (pe_n, dto_n, pe_s, dto_s) in PUBLISHED_FIG5.items():

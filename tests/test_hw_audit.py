@@ -217,3 +217,18 @@ def test_implausible_model_file_parameters(tmp_path, effect, match):
     (tmp_path / "m.json").write_text('{"effects": [%s]}' % effect)
     with pytest.raises(InputError, match=match):
         load_model(tmp_path / "m.json")
+
+
+def test_measurement_edge_files(tmp_path):
+    p = tmp_path / "a.npz"
+    with open(p, "wb") as f:
+        np.save(f, np.zeros(3))
+    with pytest.raises(InputError, match="not an .npz archive"):
+        load_measurement(p)
+    g = np.zeros((1, 3, 10)); g[0, 0, 3:6] = 1.0
+    np.savez(tmp_path / "b.npz", dt="abc", g=g, G=g)
+    with pytest.raises(InputError, match="numeric scalar"):
+        load_measurement(tmp_path / "b.npz")
+    np.savez(tmp_path / "c.npz", dt=1e-5, g=g, G=g, sigma_G=0.0)
+    with pytest.raises(InputError, match="sigma_G"):
+        load_measurement(tmp_path / "c.npz")

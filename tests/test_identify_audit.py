@@ -8,7 +8,8 @@
   (noise-fitting, e.g. "|dH| 1.35 near 47.9 kHz");
 * a hysteresis-like offset (depends on the sign of the last ramp) had no note of its own;
 * the noise floor was biased low (-10 % for b0) by taking the lower of two noisy estimates;
-* the residual PNG overlaid all axes in one panel (before/after indistinguishable) and pooled the spectrum.
+* the residual PNG overlaid all axes in one panel (before/after indistinguishable) and pooled the spectrum;
+* `-o` equal to the measurement overwrote it with `--force`; `-o x --json x` wrote the model, then failed.
 """
 
 import json
@@ -26,7 +27,7 @@ from dtoc.identify.candidates import excited_band_hz, lti_features
 from dtoc.identify.data import IdentData
 from dtoc.identify.noise import quiet_samples
 from dtoc.identify.search import identify
-from dtoc.identify.synth import lowpass_girf, probe_waveforms, save_measurement
+from dtoc.identify.synth import lowpass_girf, probe_waveforms
 
 DT = 10e-6
 SIGMA = 0.01
@@ -213,3 +214,26 @@ def test_declared_model_variants(tmp_path, capsys):
                          "-o", str(tmp_path / "u.json")], capsys)
     assert code == 2 and "--girf" in err and "--model" in err
     assert not (tmp_path / "u.json").exists()
+
+
+def test_zero_sigma_in_the_file_is_estimated_and_said(setup):
+    _, decl, g, G0 = setup
+    rng = np.random.default_rng(6)
+    d = IdentData(dt_s=DT, g=g, G=G0 + SIGMA * rng.standard_normal(g.shape), sigma={"G": 0.0})
+    r = identify(d, decl, max_effects=0)
+    assert r.noise["G"].sigma == pytest.approx(SIGMA, rel=0.05)
+    assert "not usable" in r.noise["G"].method
+
+
+def test_repeated_waveforms_stay_in_one_fold():
+    """Held-out waveforms must be unseen: a repeat of a training waveform is not held-out data."""
+    from dtoc.identify.folds import make_folds, waveform_groups
+
+    g = probe_waveforms(3, 200, DT, seed=7)
+    g = np.concatenate([g, g])  # waveforms 3, 4, 5 repeat 0, 1, 2
+    f = make_folds(6, 200, groups=waveform_groups(g))
+    fold = {u.m: k for u, k in zip(f.units, f.fold_of_unit)}
+    assert f.K == 3 and all(fold[m] == fold[m + 3] for m in range(3))
+    one = make_folds(4, 200, groups=waveform_groups(np.repeat(g[:1], 4, 0)))  # one distinct waveform
+    assert one.mode == "time blocks" and one.K == 4 and len(one.units) == 16
+    assert one.sample_mask(0, train=False).sum() == 4 * 50

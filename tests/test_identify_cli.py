@@ -9,7 +9,6 @@ import torch
 from dtoc.cli.main import run
 from dtoc.hardware.girf_io import save_girf
 from dtoc.hardware.model import HardwareModel, build_effect, girf_effect, load_model
-from dtoc.identify.data import IdentData
 from dtoc.identify.synth import lowpass_girf, probe_waveforms, save_measurement, simulate_measurement
 
 DT = 10e-6

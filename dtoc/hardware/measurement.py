@@ -127,8 +127,9 @@ def _sigma(z, key, path, unit):
     if a.size != 1 or not np.issubdtype(a.dtype, np.number):
         raise InputError(f"{path}: key {key!r} must be a scalar noise std in {unit}, got shape {a.shape}")
     v = float(a.reshape(()))
-    if not np.isfinite(v) or v < 0:
-        raise InputError(f"{path}: key {key!r} must be a finite noise std >= 0 in {unit}, got {v}")
+    if not np.isfinite(v) or v <= 0:
+        raise InputError(f"{path}: key {key!r} must be a finite noise std > 0 in {unit}, got {v} "
+                         "(omit the key to have the noise estimated from the data)")
     return v
 
 
@@ -139,7 +140,8 @@ def measurement_from_arrays(z, path: str = "measurement") -> Measurement:
         raise InputError(f"{path}: key 'dt' missing (scalar sample spacing in s)")
     dt = _arr(z, "dt", path)
     if dt.size != 1 or not np.issubdtype(dt.dtype, np.number):
-        raise InputError(f"{path}: key 'dt' must be a scalar in s, got shape {dt.shape}")
+        what = f"dtype {dt.dtype}" if dt.size == 1 else f"shape {dt.shape}"
+        raise InputError(f"{path}: key 'dt' must be a numeric scalar in s, got {what}")
     dt_s = float(dt.reshape(()))
     if not np.isfinite(dt_s) or dt_s <= 0:
         raise InputError(f"{path}: key 'dt' must be > 0 (s), got {dt_s}")
@@ -228,6 +230,8 @@ def load_measurement(path: str | os.PathLike) -> Measurement:
         z = np.load(p, allow_pickle=False)
     except Exception as e:  # noqa: BLE001
         raise InputError(f"{p}: not a readable .npz measurement file ({type(e).__name__})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise InputError(f"{p}: not an .npz archive (a single array?); expected the keys dt, g, G and/or k")
     with z:
         m = measurement_from_arrays(z, str(p))
     check_plausible(m)

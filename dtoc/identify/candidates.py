@@ -28,7 +28,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 
 from dtoc.constants import AXES
 from dtoc.identify.workspace import Workspace, cross_validate

@@ -162,4 +162,6 @@ def estimate_sigma(given: float | None, g: np.ndarray, y: np.ndarray, residual: 
         est = NoiseEstimate(floor, "none", 0)
     if est.sigma < floor:
         est = NoiseEstimate(floor, est.method, est.n_samples)
+    if given is not None:  # 0 (or negative) given: a noiseless claim cannot whiten a residual; say so
+        est = NoiseEstimate(est.sigma, est.method + f" (the file's sigma = {given:g} is not usable)", est.n_samples)
     return est

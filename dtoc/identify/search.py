@@ -32,7 +32,7 @@ from dtoc.hardware.model import HardwareModel
 from dtoc.identify import diagnostics
 from dtoc.identify.candidates import Context, Proposal, excited_band_hz, lti_features, screen_all
 from dtoc.identify.data import IdentData
-from dtoc.identify.folds import Folds, make_folds
+from dtoc.identify.folds import Folds, make_folds, waveform_groups
 from dtoc.identify.noise import NoiseEstimate, difference_sigma, estimate_sigma, quiet_samples
 from dtoc.identify.twin import Twin
 from dtoc.identify.workspace import Workspace
@@ -142,7 +142,7 @@ def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_eff
     say = progress or (lambda s: None)
     twin = Twin(declared, data, {c: 1.0 for c in data.channels()})
     pred0 = twin.predict()
-    folds = make_folds(data.M, data.N)
+    folds = make_folds(data.M, data.N, groups=waveform_groups(data.g))
     # Noise floors from the declared residual.
     ws0 = Workspace(data, {c: 1.0 for c in data.channels()}, folds, pred0)
     noise = {}
@@ -197,18 +197,19 @@ def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_eff
             # the lower of two noisy estimates would bias the floor low (measured: -10 % for b0 with 2,200
             # corner-free samples).
             first = noise[c]
+            note = first.method[first.method.index(" (the file"):] if " (the file" in first.method else ""
             re_all = difference_sigma(res_after[c], data.mask(c))
             rel_se = DIFF_REL_SE / np.sqrt(max(first.n_samples, 1))
             mk = data.mask(c)
             rms_after = float(np.sqrt(np.sum((res_after[c] * mk) ** 2) / max(mk.sum(), 1)))
             white = re_all is not None and rms_after <= re_all.sigma * (1.0 + 3.0 * DIFF_REL_SE / np.sqrt(re_all.n_samples))
             if re_all is not None and (white or re_all.sigma <= first.sigma * (1.0 + 3.0 * rel_se)):
-                noise[c] = NoiseEstimate(re_all.sigma, re_all.method + ", final residual", re_all.n_samples)
+                noise[c] = NoiseEstimate(re_all.sigma, re_all.method + ", final residual" + note, re_all.n_samples)
             else:
                 q = quiet_samples(data.g)
                 re = difference_sigma(res_after[c], data.mask(c), quiet=q.all(axis=1) if c == "b0" else q)
                 if re is not None and re.sigma < first.sigma:
-                    noise[c] = NoiseEstimate(re.sigma, re.method + ", final residual", re.n_samples)
+                    noise[c] = NoiseEstimate(re.sigma, re.method + ", final residual" + note, re.n_samples)
             sigma[c] = noise[c].sigma
     before = diagnostics.rmse(data, res_before)
     after = diagnostics.rmse(data, res_after)

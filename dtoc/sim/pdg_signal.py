@@ -191,9 +191,10 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
     so s_j(t) = vox_j(t) sum_v C_j(v) Kern(t, v): a (states x voxels) @ (voxels x samples) product
     with one kernel of T x V exponentials shared by all states.  States whose tau crosses 0 inside the
     interval (spin echoes) use both kernels with complementary sample masks.  Diffusion, whose
-    b-value is state-specific in time, is expanded to second order around the window centre
-    (order chosen so that the truncation is below 1e-9; intervals with D db > 0.3 fall back to the
-    direct evaluation).  With ``separable`` the kernel product is evaluated by
+    b-value is state-specific in time, is Taylor-expanded around the window centre, one extra
+    matrix product per order (order chosen so that the truncation is below ``cfg.taylor_tol``);
+    states with D |db| > 0.5 inside the window (strongly dephased) are evaluated exactly by
+    :func:`emit_signal_direct`, the others still as matrix products.  With ``separable`` the kernel product is evaluated by
     :func:`_apply_kernel_separable` (no T x V exponentials).
     """
     dev = A.device
@@ -214,11 +215,19 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
         b = _diffusion_b(Kj, mom, n, lo, hi, dtt_t)  # (J, T) float64
         bm = b[:, T // 2 : T // 2 + 1]
         delta = b - bm
-        xmax = float(vox.d.max()) * float(delta.detach().abs().max()) if T else 0.0
-        if xmax > 0.3:
-            return emit_signal_direct(iv, A, K, mom, n, vox, graph, bounds_t, cfg)
-        order = 0 if xmax < 1e-9 else (1 if xmax * xmax / 2 < 1e-9 else 2)
-        dif = (bm[:, 0].to(rdt), delta.to(rdt), order)
+        xs = float(vox.d.max()) * delta.detach().abs().amax(1).cpu().numpy() if T else np.zeros(len(iv.emit))
+        far = xs > _DIFF_TAYLOR_MAX
+        if far.any():
+            # states whose in-window diffusion change is large (strongly dephased, e.g. spoiled
+            # pathways seen through the voxel sinc): exact per-state evaluation for those only
+            s_far = emit_signal_direct(_subset(iv, far), A, K, mom, n, vox, graph, bounds_t, cfg)
+            if far.all():
+                return s_far
+            return s_far + emit_signal_gemm(_subset(iv, ~far), A, K, mom, n, vox, graph, bounds_t, cfg, separable)
+        # per-state Taylor order: the term of order r is a matrix product over the states that need it
+        orders = np.array([_taylor_order(float(x), cfg.taylor_tol) for x in xs], dtype=np.int64)
+        rows = [torch.as_tensor(np.where(orders >= r)[0], device=dev) for r in range(1, int(orders.max(initial=0)) + 1)]
+        dif = (bm[:, 0].to(rdt), delta.to(rdt), rows)
     # per-state voxel weights C_j(v) (without the T2' part, which depends on the kernel class)
     Aj = A.index_select(0, Jn)
     kj = Kj.to(rdt)
@@ -250,38 +259,49 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
             C = C[None]
         Co, J, V = C.shape
         mats = [C.reshape(Co * J, V)]
-        if dif is not None and dif[2] >= 1:
-            mats.append((C * vox.d[None, None, :]).reshape(Co * J, V))
-        if dif is not None and dif[2] >= 2:
-            mats.append((C * (vox.d * vox.d)[None, None, :]).reshape(Co * J, V))
-        Cm = torch.cat(mats, 0) if len(mats) > 1 else mats[0]  # (nterm*Co*J, V)
+        counts = [J]
+        if dif is not None:
+            dr = torch.ones_like(vox.d)
+            for rr in dif[2]:  # Taylor terms C D^r of exp(-D delta), states of order >= r only
+                dr = dr * vox.d
+                mats.append((C.index_select(1, rr) * dr[None, None, :]).reshape(-1, V))
+                counts.append(int(rr.numel()))
         if kinds == [+1.0]:
             tm = None
         else:
             tm = t_mask_plus if sgn > 0 else ~t_mask_plus
         if separable:
-            G = _apply_kernel_separable(Cm, sgn, use_t2d, mt_r, dtt, vox, cfg).reshape(-1, Co, J, T)
+            Cm = torch.cat(mats, 0) if len(mats) > 1 else mats[0]  # (nterm*Co*J, V)
+            Gs = torch.split(_apply_kernel_separable(Cm, sgn, use_t2d, mt_r, dtt, vox, cfg), [Co * c for c in counts], 0)
         else:
             rate = vox.r2 + (sgn * vox.r2d if use_t2d else 0.0)
             # large problems: recompute each kernel chunk in the backward pass instead of storing
             # T x V complex numbers (a 128x128 EPI on a 256x256 phantom would keep 17 GB)
             ckpt = torch.is_grad_enabled() and T * V > 4 * cfg.chunk_elems
-            res = []
-            for t0 in range(0, T, step):
-                sl = slice(t0, min(T, t0 + step))
-                if ckpt:
-                    from torch.utils.checkpoint import checkpoint
+            if ckpt or T > step:
+                Cm = torch.cat(mats, 0) if len(mats) > 1 else mats[0]  # (nterm*Co*J, V)
+                res = []
+                for t0 in range(0, T, step):
+                    sl = slice(t0, min(T, t0 + step))
+                    if ckpt:
+                        from torch.utils.checkpoint import checkpoint
 
-                    res.append(checkpoint(_kernel_product, Cm, mt_r[sl], dtr[sl], rate, vox, use_reentrant=False))
-                else:
-                    res.append(_kernel_product(Cm, mt_r[sl], dtr[sl], rate, vox))
-            G = torch.cat(res, 1).reshape(-1, Co, J, T)
-        s = G[0]
-        if dif is not None and dif[2] >= 1:
-            dl = dif[1].to(cdt)[None]  # (1, J, T)
-            s = s - dl * G[1]
-            if dif[2] >= 2:
-                s = s + 0.5 * dl * dl * G[2]
+                        res.append(checkpoint(_kernel_product, Cm, mt_r[sl], dtr[sl], rate, vox, use_reentrant=False))
+                    else:
+                        res.append(_kernel_product(Cm, mt_r[sl], dtr[sl], rate, vox))
+                G = torch.cat(res, 1) if len(res) > 1 else res[0]
+                Gs = torch.split(G, [Co * c for c in counts], 0)
+            else:  # one kernel, one product per Taylor term (no concatenated copy of the weights)
+                KernT = _kernel(mt_r, dtr, rate, vox).T
+                Gs = [m @ KernT for m in mats]
+        s = Gs[0].reshape(Co, J, T)
+        if dif is not None and dif[2]:
+            ndl = (-dif[1]).to(cdt)  # (J, T)
+            w = ndl
+            for r, rr in enumerate(dif[2], start=1):  # sum_r (-delta)^r / r! * G[r]
+                if r > 1:
+                    w = w * ndl / r
+                s = s.index_add(1, rr, w.index_select(0, rr)[None] * Gs[r].reshape(Co, -1, T))
         s = s * vf[None]
         if tm is not None:
             s = s * torch.as_tensor(tm, device=dev)[None].to(s.real.dtype)
@@ -289,12 +309,41 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
     return out
 
 
-def _kernel_product(Cm, mt_r, dtr, rate, vox: VoxelData) -> torch.Tensor:
-    """Cm (M, V) @ Kern^T for one chunk of samples: Kern(t, v) = exp(-dt rate - i (m(t).r + omega dt))."""
+_DIFF_TAYLOR_MAX = 0.5  # largest D * |b(t) - b(t_mid)| expanded in a Taylor series (else exact per state)
+
+
+def _taylor_order(x: float, tol: float) -> int:
+    """Smallest order R with x^(R+1) / (R+1)! <= tol (remainder of the Taylor series of exp(-x) for x >= 0)."""
+    if x <= tol:
+        return 0
+    r, term = 0, 1.0
+    while r < 30:
+        term = term * x / (r + 1)
+        if term <= tol:
+            return r
+        r += 1
+    return r
+
+
+def _subset(iv, mask: np.ndarray):
+    """Shallow copy of interval graph ``iv`` whose emitting states are ``iv.emit[mask]``."""
+    import copy
+
+    sub = copy.copy(iv)
+    sub.emit = iv.emit[mask]
+    return sub
+
+
+def _kernel(mt_r, dtr, rate, vox: VoxelData) -> torch.Tensor:
+    """(t, V) kernel Kern(t, v) = exp(-dt rate - i (m(t).r + omega dt))."""
     kph = -(mt_r[:, 0:1] * vox.x[None] + mt_r[:, 1:2] * vox.y[None] + dtr[:, None] * vox.omega[None])
     # clamp: the mirrored (tau < 0) kernel grows as exp(+dt/T2'); only masked-out samples can get there
-    Kern = torch.exp(torch.complex(torch.clamp(-dtr[:, None] * rate[None], max=80.0), kph))  # (t, V)
-    return Cm @ Kern.T
+    return torch.exp(torch.complex(torch.clamp(-dtr[:, None] * rate[None], max=80.0), kph))
+
+
+def _kernel_product(Cm, mt_r, dtr, rate, vox: VoxelData) -> torch.Tensor:
+    """Cm (M, V) @ Kern^T for one chunk of samples."""
+    return Cm @ _kernel(mt_r, dtr, rate, vox).T
 
 
 def _taylor_terms(x: float, tol: float) -> int:
