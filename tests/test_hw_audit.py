@@ -227,7 +227,7 @@ def test_measurement_edge_files(tmp_path):
         load_measurement(p)
     g = np.zeros((1, 3, 10)); g[0, 0, 3:6] = 1.0
     np.savez(tmp_path / "b.npz", dt="abc", g=g, G=g)
-    with pytest.raises(InputError, match="numeric scalar"):
+    with pytest.raises(InputError, match="must be a scalar number"):
         load_measurement(tmp_path / "b.npz")
     np.savez(tmp_path / "c.npz", dt=1e-5, g=g, G=g, sigma_G=0.0)
     with pytest.raises(InputError, match="sigma_G"):

@@ -402,6 +402,38 @@ def test_separable_evaluation_equals_direct(seq):
     assert np.abs(ss - sd).max() < 1e-8 * np.abs(sd).max()
 
 
+@pytest.mark.parametrize("d_scale", [1e2, 1e4])
+def test_gemm_diffusion_taylor_and_per_state_fallback(d_scale, monkeypatch):
+    """Strong in-readout diffusion (D scaled by 1e2 / 1e4, so D |b(t) - b(t_mid)| spans small to > 0.5
+    over the emitting states): the per-state Taylor orders and the per-state exact fallback equal the
+    direct evaluation to 1e-9 of the maximum in float64, and float32 stays finite and within 1e-4."""
+    import dtoc.sim.pdg_signal as S
+
+    ir = _small_gre()
+    ph = _rich_phantom()
+    ph.d_m2_per_s = ph.d_m2_per_s * d_scale
+    g = build_graph(ir, PDGConfig(), ph)
+    sd = simulate(ir, ph, graph=g, config=PDGConfig(signal_method="direct")).numpy()
+    n_far = []
+    orig = S.emit_signal_direct
+    monkeypatch.setattr(S, "emit_signal_direct", lambda iv, *a: (n_far.append(iv.emit.size), orig(iv, *a))[1])
+    sg = simulate(ir, ph, graph=g, config=PDGConfig(signal_method="gemm")).numpy()
+    assert np.abs(sg - sd).max() < 1e-9 * np.abs(sd).max()
+    if d_scale > 1e3:
+        assert sum(n_far) > 0  # some states did take the exact per-state path
+    s32 = simulate(ir, ph, graph=g, config=PDGConfig(signal_method="gemm"), dtype=torch.float32).numpy()
+    assert np.all(np.isfinite(s32)) and np.abs(s32 - sd).max() < 1e-4 * np.abs(sd).max()
+
+
+def test_presets_order_states():
+    """PDGConfig.fast() keeps fewer states than the defaults, strict() more (same graph builder)."""
+    ir = _small_gre(n_rep=6)
+    ph = _rich_phantom()
+    n = [build_graph(ir, c, ph).n_states_total for c in (PDGConfig.fast(), PDGConfig(), PDGConfig.strict())]
+    assert n[0] <= n[1] <= n[2] and n[0] < n[2]
+    assert PDGConfig.fast(max_states=7).max_states == 7 and PDGConfig.fast().min_latent_signal == 1e-4
+
+
 def test_raster_independence_and_checkpointed_chunks():
     """The same played waveform on a 10 us and a 100 us raster gives the same signal (1e-10): only
     exact moments at RF centres and ADC samples enter.  Checkpointed chunks give the same gradient."""

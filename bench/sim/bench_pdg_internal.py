@@ -54,35 +54,39 @@ def _load(case):
     return build_ir(parse_spec(data))
 
 
-def run_case(name: str, repeats: int = 2) -> dict:
+def run_case(name: str, repeats: int = 2, preset: str = "default", threads: int = 2, dtype_name: str | None = None) -> dict:
+    """Time one case: graph build, forward (no grad), forward+backward; wall and process CPU seconds (best of ``repeats``)."""
     import torch
 
     from dtoc.sim.pdg import PDGConfig, build_graph, simulate
     from dtoc.sim.phantom import brain_phantom
 
-    torch.set_num_threads(2)
+    torch.set_num_threads(threads)
     case = CASES[name]
     ir = _load(case)
     ph = brain_phantom(case["n"], fov_m=ir.fov_m[0], b0=case["b0"], b1=True)
-    cfg = PDGConfig()
-    dtype = getattr(torch, case.get("dtype", "float64"))
+    cfg = PDGConfig() if preset == "default" else getattr(PDGConfig, preset)()
+    dname = dtype_name or case.get("dtype", "float64")
+    dtype = getattr(torch, dname)
     t = time.perf_counter()
     graph = build_graph(ir, cfg, ph)
     t_graph = time.perf_counter() - t
-    fwd, fb = [], []
+    fwd, fb, fwd_cpu, fb_cpu = [], [], [], []
     for _ in range(repeats):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         with torch.no_grad():
             simulate(ir, ph, graph=graph, config=cfg, dtype=dtype)
         fwd.append(time.perf_counter() - t)
+        fwd_cpu.append(time.process_time() - c)
         g = torch.as_tensor(ir.grad_mT_per_m).requires_grad_(True)
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         s = simulate(ir, ph, g, graph=graph, config=cfg, dtype=dtype)
         (s.abs() ** 2).sum().backward()
         fb.append(time.perf_counter() - t)
+        fb_cpu.append(time.process_time() - c)
     return {
-        "case": name, "dtype": case.get("dtype", "float64"), "n_fine": ir.n_fine, "n_adc": ir.n_adc_samples, "phantom": case["n"], **graph.summary(),
-        "graph_s": t_graph, "fwd_s": min(fwd), "fwd_bwd_s": min(fb),
+        "case": name, "preset": preset, "dtype": dname, "threads": threads, "n_fine": ir.n_fine, "n_adc": ir.n_adc_samples, "phantom": case["n"],
+        **graph.summary(), "graph_s": t_graph, "fwd_s": min(fwd), "fwd_bwd_s": min(fb), "fwd_cpu_s": min(fwd_cpu), "fwd_bwd_cpu_s": min(fb_cpu),
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
     }
 
@@ -91,41 +95,65 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--case", choices=sorted(CASES))
     ap.add_argument("--cases", nargs="*", default=list(CASES))
+    ap.add_argument("--presets", nargs="*", default=["default"], help="PDGConfig presets: default, fast, strict")
+    ap.add_argument("--dtypes", nargs="*", default=[None], help="override the case dtype (float32/float64)")
+    ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads (1 on a loaded machine: OpenMP spin-waits inflate CPU time)")
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--baseline", help="JSON-lines file of an earlier run (same cases) shown as 'before' columns")
     ap.add_argument("--no-write", action="store_true")
     a = ap.parse_args(argv)
     if a.case:
-        print(json.dumps(run_case(a.case)))
+        print(json.dumps(run_case(a.case, a.repeats, a.presets[0], a.threads, a.dtypes[0])))
         return
+    base = {}
+    if a.baseline:
+        for line in Path(a.baseline).read_text().splitlines():
+            r = json.loads(line)
+            if "error" not in r:
+                base[r["case"]] = r
     rows = []
     for c in a.cases:
-        p = subprocess.run([sys.executable, "-m", "bench.sim.bench_pdg_internal", "--case", c], cwd=REPO, capture_output=True, text=True)
-        if p.returncode != 0:
-            rows.append({"case": c, "error": (p.stderr.strip().splitlines() or ["?"])[-1]})
-        else:
-            rows.append(json.loads(p.stdout.strip().splitlines()[-1]))
-        print(json.dumps(rows[-1]), flush=True)
-        if not a.no_write:  # after every case, so that a long run leaves its finished rows
-            _write(rows)
+        for preset in a.presets:
+            for dt in a.dtypes:
+                cmd = [sys.executable, "-m", "bench.sim.bench_pdg_internal", "--case", c, "--presets", preset, "--threads", str(a.threads),
+                       "--repeats", str(a.repeats)] + (["--dtypes", dt] if dt else [])
+                p = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+                if p.returncode != 0:
+                    rows.append({"case": c, "preset": preset, "error": (p.stderr.strip().splitlines() or ["?"])[-1]})
+                else:
+                    rows.append(json.loads(p.stdout.strip().splitlines()[-1]))
+                print(json.dumps(rows[-1]), flush=True)
+                if not a.no_write:  # after every case, so that a long run leaves its finished rows
+                    _write(rows, base, a.threads)
 
 
-def _write(rows):
+def _write(rows, base=None, threads=2):
+    import platform
+
+    import torch
+
+    base = base or {}
     body = [
-        "dtoc PDG simulator alone (default `PDGConfig`, float64 unless the case ends in _f32, CPU, 2 torch threads, best of 2).  Loss for backward: "
-        "sum |s|^2 w.r.t. the fine-grid gradient.  Peak memory = peak RSS of the case's process.  "
-        "Brain phantom 3 T with B1 map (GRE also B0).  NOTE: the machine was shared with other jobs (load ~8 on "
-        "2 cores, several other benchmarks running; the same operation varied 10x between runs) when these "
-        "were measured: treat the times as upper bounds, not as the machine's speed.",
+        f"dtoc PDG simulator alone, CPU ({platform.processor() or platform.machine()}, {__import__('os').cpu_count()} cores, torch "
+        f"{torch.__version__}, {threads} torch thread(s), best of the repeats; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}).  "
+        "Loss for backward: sum |s|^2 w.r.t. the fine-grid gradient.  Peak memory = peak RSS of the case's process.  "
+        "Brain phantom 3 T with B1 map (GRE also B0).  Presets: `default` = `PDGConfig()` (thresholds 1e-5), `fast` = "
+        "`PDGConfig.fast()` (1e-4).  CPU s = process CPU time (user+sys), the figure to compare on a shared machine; "
+        "wall s depends on the load (other jobs were running: load ~8-10 on 2 cores).  'before' = the same case with "
+        "the simulator before the sim-perf changes (default preset, same dtype, same run of this script).",
         "",
-        "| case | phantom | ADC samples | states (max/interval) | emitting | graph s | forward s | forward+backward s | peak RSS GB |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| case | preset | dtype | phantom | ADC samples | states (max/interval) | emitting | forward CPU s | fwd+bwd CPU s | forward wall s | fwd+bwd wall s | before: fwd / fwd+bwd CPU s | peak RSS GB |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "error" in r:
-            body.append(f"| {r['case']} | - | - | - | - | - | - | failed: {r['error'][:80]} | - |")
+            body.append(f"| {r['case']} | {r.get('preset', '-')} | - | - | - | - | - | - | failed: {r['error'][:80]} | - | - | - | - |")
             continue
+        b = base.get(r["case"]) if r.get("preset", "default") == "default" else None
+        bs = f"{b['fwd_cpu_s']:.3f} / {b['fwd_bwd_cpu_s']:.3f}" if b and b.get("dtype") == r["dtype"] and "fwd_cpu_s" in b else "-"
         body.append(
-            f"| {r['case']} | {r['phantom']}x{r['phantom']} | {r['n_adc']} | {r['states_total']} ({r['states_max']}) | "
-            f"{r['emitting_total']} | {r['graph_s']:.2f} | {r['fwd_s']:.3f} | {r['fwd_bwd_s']:.3f} | {r['peak_rss_gb']:.2f} |"
+            f"| {r['case']} | {r.get('preset', 'default')} | {r['dtype']} | {r['phantom']}x{r['phantom']} | {r['n_adc']} | {r['states_total']} ({r['states_max']}) | "
+            f"{r['emitting_total']} | {r['fwd_cpu_s']:.3f} | {r['fwd_bwd_cpu_s']:.3f} | {r['fwd_s']:.3f} | {r['fwd_bwd_s']:.3f} | {bs} | {r['peak_rss_gb']:.2f} |"
         )
     sys.path.insert(0, str(REPO))
     from bench._report import write_section

@@ -141,7 +141,7 @@ def measurement_from_arrays(z, path: str = "measurement") -> Measurement:
     dt = _arr(z, "dt", path)
     if dt.size != 1 or not np.issubdtype(dt.dtype, np.number):
         what = f"dtype {dt.dtype}" if dt.size == 1 else f"shape {dt.shape}"
-        raise InputError(f"{path}: key 'dt' must be a numeric scalar in s, got {what}")
+        raise InputError(f"{path}: key 'dt' must be a scalar number in s, got {what}")
     dt_s = float(dt.reshape(()))
     if not np.isfinite(dt_s) or dt_s <= 0:
         raise InputError(f"{path}: key 'dt' must be > 0 (s), got {dt_s}")

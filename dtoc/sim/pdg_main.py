@@ -16,7 +16,10 @@ from dtoc.seq.ir import SequenceIR
 from dtoc.sim.pdg_config import PDGConfig
 from dtoc.sim.pdg_graph import CONJ, PDGGraph, build_graph
 from dtoc.sim.pdg_moments import compute_moments
+from dtoc.sim.pdg_rfsplit import rf_split
 from dtoc.sim.pdg_signal import VoxelData, emit_signal
+
+CONJ_NP = np.asarray(CONJ, dtype=bool)  # per edge kind: the child takes the conjugate of the parent
 
 
 def _complex_dtype(dtype):
@@ -108,29 +111,22 @@ def _evolve(iv, A, K, mom, n, vox, dt, tr_t):
     return A_end, K_end, rec
 
 
-def _edge_groups(nxt):
-    """Edges of an interval grouped by kind: list of (kind, parent idx, child idx) numpy arrays."""
-    out = []
-    for q in range(6):
-        m = nxt.edge_kind == q
-        if m.any():
-            out.append((q, nxt.edge_parent[m], nxt.edge_child[m]))
-    return out
-
-
 def _apply_rf(nxt, A_end, rec, eq_prev, K_end, coefs):
-    """Split the states at an RF pulse into the next interval's states (edges grouped by kind)."""
+    """Split the states at an RF pulse into the next interval's states.
+
+    One gather, one multiply by the per-edge coefficient rows and one scatter-add for the plain
+    edges and the same for the conjugating ones (not one per edge kind), with a hand-written adjoint
+    (:mod:`dtoc.sim.pdg_rfsplit`); the T1 recovery ``rec``
+    of the equilibrium state enters through its (at most three) edges separately, so the (S, V)
+    amplitudes are never copied to add it.
+    """
     dev = A_end.device
-    A_new = torch.zeros((nxt.n_states, A_end.shape[1]), dtype=A_end.dtype, device=dev)
-    rec_c = rec.to(A_end.dtype)
-    for q, par, child in _edge_groups(nxt):
-        src = A_end.index_select(0, torch.as_tensor(par, device=dev))
-        at_eq = np.where(par == eq_prev)[0]
-        if at_eq.size:
-            src = src.index_add(0, torch.as_tensor(at_eq, device=dev), rec_c[None, :].expand(at_eq.size, -1))
-        if CONJ[q]:
-            src = src.conj()
-        A_new.index_add_(0, torch.as_tensor(child, device=dev), coefs[q][None, :] * src)  # fresh tensor: in place is safe
+    kind, par, child = nxt.edge_kind, nxt.edge_parent, nxt.edge_child
+    A_new = rf_split(A_end, coefs, kind, par, child, CONJ_NP, nxt.n_states)  # fresh tensor: in place below is safe
+    at_eq = np.where(par == eq_prev)[0]
+    if at_eq.size:  # rec is real: conjugation does not change it
+        cf = coefs.index_select(0, torch.as_tensor(kind[at_eq], device=dev))
+        A_new.index_add_(0, torch.as_tensor(child[at_eq], device=dev), cf * rec.to(A_end.dtype)[None, :])
     rep = nxt.rep_parent
     sgn = np.where(rep < 0, 0.0, np.where(nxt.rep_conj, -1.0, 1.0))
     K_new = K_end.index_select(0, torch.as_tensor(np.maximum(rep, 0), device=dev)) * torch.as_tensor(sgn, dtype=K_end.dtype, device=dev)[:, None]

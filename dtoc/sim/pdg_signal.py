@@ -207,6 +207,19 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
     mt = mom.I_adc[lo:hi] - mom.I_bound[n][None, :]  # (T, 4) float64
     dtt = graph.adc_times_s[lo:hi] - bounds_t[n]
     tau = iv.tau_s[iv.emit]
+    t_mask_plus = (tau[:, None] + dtt[None, :]) >= 0  # (J, T): samples where |tau + dt| = tau + dt
+    use_t2d = vox.has_t2d
+    if use_t2d and T:
+        # states whose |tau + dt| keeps one sign over the window need one kernel class only: evaluate
+        # the groups (all plus / all minus / crossing zero) separately instead of masking both classes
+        allp, allm = t_mask_plus.all(1), (~t_mask_plus).all(1)
+        groups = [m for m in (allp, allm, ~(allp | allm)) if m.any()]
+        if len(groups) > 1:
+            out = None
+            for m in groups:
+                sg = emit_signal_gemm(_subset(iv, m), A, K, mom, n, vox, graph, bounds_t, cfg, separable)
+                out = sg if out is None else out + sg
+            return out
     vf = voxel_factor(Kj[:, None, :] + mt[None, :, :], vox)  # (J, T) complex
     # diffusion: b_j(t) = b_j(t_mid) + delta_j(t)
     dif = None
@@ -227,7 +240,7 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
         # per-state Taylor order: the term of order r is a matrix product over the states that need it
         orders = np.array([_taylor_order(float(x), cfg.taylor_tol) for x in xs], dtype=np.int64)
         rows = [torch.as_tensor(np.where(orders >= r)[0], device=dev) for r in range(1, int(orders.max(initial=0)) + 1)]
-        dif = (bm[:, 0].to(rdt), delta.to(rdt), rows)
+        dif = (bm[:, 0].to(rdt), delta.to(rdt), rows, max(float(vox.d.max()), 1e-300))
     # per-state voxel weights C_j(v) (without the T2' part, which depends on the kernel class)
     Aj = A.index_select(0, Jn)
     kj = Kj.to(rdt)
@@ -237,11 +250,14 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
     if dif is not None:
         mag0 = mag0 - dif[0][:, None] * vox.d[None]
     # kernel classes: plus (|tau + dt| = tau + dt) and minus (|tau + dt| = -(tau + dt))
-    need_minus = bool(np.any(tau < 0))
     use_t2d = vox.has_t2d
-    t_mask_plus = (tau[:, None] + dtt[None, :]) >= 0  # (J, T): samples where the plus form holds
     out = torch.zeros((vox.n_coils, T), dtype=cdt, device=dev)
-    kinds = [+1.0] + ([-1.0] if (need_minus and use_t2d) else [])
+    if not use_t2d or t_mask_plus.all():
+        kinds = [+1.0]
+    elif not t_mask_plus.any():
+        kinds = [-1.0]
+    else:
+        kinds = [+1.0, -1.0]
     mt_r = mt.to(rdt)
     dtr = torch.as_tensor(dtt, dtype=rdt, device=dev)
     step = max(1, int(cfg.chunk_elems // max(1, vox.n)))
@@ -261,12 +277,13 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
         mats = [C.reshape(Co * J, V)]
         counts = [J]
         if dif is not None:
+            dn = vox.d / dif[3]  # scaled to <= 1: D^r and delta^r separately under/overflow float32
             dr = torch.ones_like(vox.d)
-            for rr in dif[2]:  # Taylor terms C D^r of exp(-D delta), states of order >= r only
-                dr = dr * vox.d
+            for rr in dif[2]:  # Taylor terms C (D/Dmax)^r of exp(-D delta), states of order >= r only
+                dr = dr * dn
                 mats.append((C.index_select(1, rr) * dr[None, None, :]).reshape(-1, V))
                 counts.append(int(rr.numel()))
-        if kinds == [+1.0]:
+        if len(kinds) == 1:
             tm = None
         else:
             tm = t_mask_plus if sgn > 0 else ~t_mask_plus
@@ -296,7 +313,7 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
                 Gs = [m @ KernT for m in mats]
         s = Gs[0].reshape(Co, J, T)
         if dif is not None and dif[2]:
-            ndl = (-dif[1]).to(cdt)  # (J, T)
+            ndl = (-dif[3] * dif[1]).to(cdt)  # (J, T): -Dmax delta, |.| <= _DIFF_TAYLOR_MAX
             w = ndl
             for r, rr in enumerate(dif[2], start=1):  # sum_r (-delta)^r / r! * G[r]
                 if r > 1:
