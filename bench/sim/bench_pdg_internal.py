@@ -2,6 +2,8 @@
 
     python -m bench.sim.bench_pdg_internal            # all cases, writes docs/benchmarks.md "PDG internal"
     python -m bench.sim.bench_pdg_internal --case gre32_10us   # one case, prints JSON
+    python -m bench.sim.bench_pdg_internal --cases gre32_100us gre32_10us gre_phantom64 epi64_10us \
+        --presets default fast --dtypes float64 float32 --threads 1 [--baseline before.jsonl]
 
 Each case runs in its own process (peak RSS is per process), with torch threads = 2 (the CI
 machine).  The formal side-by-side comparison with MRzeroCore is bench/sim (sim-support's).
@@ -139,8 +141,8 @@ def _write(rows, base=None, threads=2):
         "Loss for backward: sum |s|^2 w.r.t. the fine-grid gradient.  Peak memory = peak RSS of the case's process.  "
         "Brain phantom 3 T with B1 map (GRE also B0).  Presets: `default` = `PDGConfig()` (thresholds 1e-5), `fast` = "
         "`PDGConfig.fast()` (1e-4).  CPU s = process CPU time (user+sys), the figure to compare on a shared machine; "
-        "wall s depends on the load (other jobs were running: load ~8-10 on 2 cores).  'before' = the same case with "
-        "the simulator before the sim-perf changes (default preset, same dtype, same run of this script).",
+        "wall s depends on the load (other jobs were running: load ~3-4 on 2 cores when this was measured).  'before' = the same case, default preset and dtype, with "
+        "the simulator before the sim-perf changes (2026-11-21, measured right after this table under the same load, `--baseline`).",
         "",
         "| case | preset | dtype | phantom | ADC samples | states (max/interval) | emitting | forward CPU s | fwd+bwd CPU s | forward wall s | fwd+bwd wall s | before: fwd / fwd+bwd CPU s | peak RSS GB |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
@@ -157,6 +159,8 @@ def _write(rows, base=None, threads=2):
         )
     sys.path.insert(0, str(REPO))
     from bench._report import write_section
+
+    torch.set_num_threads(threads)  # the section header reports this process's thread count
 
     write_section("pdg_internal", "PDG internal (dtoc.sim.pdg)", "\n".join(body), "python -m bench.sim.bench_pdg_internal")
 

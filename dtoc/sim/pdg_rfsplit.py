@@ -7,8 +7,10 @@ At an RF pulse every child state c of the next interval receives
 with per-voxel edge coefficients ``coef`` (6, V) (flip scaled by B1, RF phase; see
 :func:`dtoc.sim.pdg_main.rf_coefficients`).  Generic autograd would save the gathered (E, V)
 coefficient rows and run five elementwise passes in backward; this function saves only the
-(6, V) coefficients and the index arrays, and its backward is the adjoint map: one gather of the
-incoming gradient at the children, one multiply by conj(coef), one scatter-add into the parents
+(6, V) coefficients and the index arrays (edges sorted by kind, so each kind's coefficient row
+scales a contiguous block in place: no (E, V) coefficient gather), and its backward is the adjoint
+map: one gather of the incoming gradient at the children, scaling by conj(coef), one scatter-add
+into the parents
 (conjugated for the conjugating edges: d/dx of c conj(x) gives conj(c g) under PyTorch's convention
 grad_x = conj(dL/dx) for real L).  Not differentiable w.r.t. the coefficients (use the generic
 path when the RF parameters require a gradient).
@@ -16,39 +18,64 @@ path when the RF parameters require a gradient).
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
 def _groups(kind, parent, child, conj_np, device):
+    """Edges split into plain / conjugating groups, each sorted by kind: (is_conj, kind, parent, child, kind ranges)."""
     out = []
     cj = conj_np[kind]
     for is_conj in (False, True):
-        sel = cj if is_conj else ~cj
-        if sel.any():
-            out.append((is_conj, torch.as_tensor(kind[sel], device=device), torch.as_tensor(parent[sel], device=device),
-                        torch.as_tensor(child[sel], device=device)))
+        sel = np.where(cj == is_conj)[0]
+        if sel.size:
+            sel = sel[np.argsort(kind[sel], kind="stable")]
+            k = kind[sel]
+            cuts = np.flatnonzero(np.diff(k)) + 1
+            starts = np.concatenate([[0], cuts])
+            ends = np.concatenate([cuts, [k.size]])
+            ranges = [(int(k[a]), int(a), int(b)) for a, b in zip(starts, ends)]
+            out.append((is_conj, torch.as_tensor(k, device=device), torch.as_tensor(parent[sel], device=device),
+                        torch.as_tensor(child[sel], device=device), ranges))
     return out
+
+
+def _split_generic(A, coefs, groups, n_out):
+    """Plain autograd version (used when the coefficients require a gradient)."""
+    out = torch.zeros((n_out, A.shape[1]), dtype=A.dtype, device=A.device)
+    for is_conj, kind, par, child, _ in groups:
+        src = A.index_select(0, par)
+        if is_conj:
+            src = src.conj()
+        out = out.index_add(0, child, src * coefs.index_select(0, kind))
+    return out
+
+
+def _scaled_gather(X, rows, coefs, ranges, is_conj):
+    """op(X[rows] * coefs[kind]) with one coefficient row per kind range; op = conj for conjugating groups."""
+    src = X.index_select(0, rows)  # fresh tensor: scaled in place, one coefficient row per kind range
+    for q, a, b in ranges:
+        src[a:b].mul_(coefs[q])
+    if is_conj:
+        src.conj_physical_()
+    return src
 
 
 def _split(A, coefs, groups, n_out):
     out = torch.zeros((n_out, A.shape[1]), dtype=A.dtype, device=A.device)
-    for is_conj, kind, par, child in groups:
-        src = A.index_select(0, par)
-        if is_conj:
-            src = src.conj()
-        src = src * coefs.index_select(0, kind)
-        out.index_add_(0, child, src)
+    cc = coefs.conj()
+    for is_conj, kind, par, child, ranges in groups:
+        # c conj(x) = conj(conj(c) x)
+        out.index_add_(0, child, _scaled_gather(A, par, cc if is_conj else coefs, ranges, is_conj))
     return out
 
 
 def _split_adjoint(G, coefs, groups, n_in):
     out = torch.zeros((n_in, G.shape[1]), dtype=G.dtype, device=G.device)
     cc = coefs.conj()
-    for is_conj, kind, par, child in groups:
-        g = G.index_select(0, child) * cc.index_select(0, kind)
-        if is_conj:
-            g = g.conj()
-        out.index_add_(0, par, g)
+    for is_conj, kind, par, child, ranges in groups:
+        # y = c x: grad_x = conj(c) g;  y = c conj(x): grad_x = conj(conj(c) g)
+        out.index_add_(0, par, _scaled_gather(G, child, cc, ranges, is_conj))
     return out
 
 
@@ -70,5 +97,5 @@ def rf_split(A, coefs, kind, parent, child, conj_np, n_out):
     """(n_out, V) amplitudes after the RF split of A (S, V) along the edges (kind, parent, child) (numpy int arrays)."""
     groups = _groups(kind, parent, child, conj_np, A.device)
     if coefs.requires_grad:
-        return _split(A, coefs, groups, n_out)  # generic autograd (RF parameters differentiated)
+        return _split_generic(A, coefs, groups, n_out)  # generic autograd (RF parameters differentiated)
     return _RFSplit.apply(A, coefs, groups, n_out)
