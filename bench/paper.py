@@ -157,7 +157,7 @@ def write_results(rows: list[dict], quick: bool, machine: str) -> None:
                                                                    pe_rows[0]["preemphasis"]["coefficients"]["tau_s"]))
               + " (paper: 0.1392 / 0.89 ms and 0.1108 / 90 ms).", "",
               "Variable-TE fallback (TE, TR for which pre-emphasis meets gmax; paper: 10 -> 4.23/13.14 ms, 15 -> 3.68/11.34 ms, 20 -> 3.4/10.4 ms): " +
-              "; ".join(f"gmax {g}: " + (f"TE {v['te_ms']:.2f} ms, TR {v['tr_ms']:.2f} ms" if v and v.get("te_ms") else "within limits / n.a.")
+              "; ".join(f"gmax {g}: " + (f"TE {v['te_ms']:.2f} ms, TR {v['tr_ms']:.2f} ms" if v and v.get("te_ms") else (v.get("note", "n.a.") if v else "not needed / n.a."))
                         for g, v in vte)]
     L += ["", "## GRE, fully constrained (13 mT/m, 130 T/m/s, both eddy currents)", "",
           "| method | NRMSE before % | NRMSE after % | max k err (dk) | skipped % | viol. | time (s) |", "|---|---|---|---|---|---|---|"]

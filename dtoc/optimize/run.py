@@ -223,6 +223,8 @@ def optimize_sequence(base, *, out=None, girf=None, model=None, config: Optimize
         from dtoc.hardware.model import resolve_model
 
         hardware = resolve_model(girf=girf, model=model)
+    if hasattr(hardware, "frozen"):
+        hardware = hardware.frozen()  # the model is fixed here: no parameter gradients, cached GIRF spectra
     limits = system_limits(ir, cfg)
     free = free_edges(ir)
     if not free.any():
