@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -242,6 +243,10 @@ def _merge_rows(new: list[dict]) -> list[dict]:
     by = {r["name"]: r for r in old}
     for r in new:
         by[r["name"]] = r
+    for r in by.values():  # keep no machine paths in the committed data: paths relative to the repository
+        b = str(r.get("base", ""))
+        if b.startswith(str(REPO) + os.sep):
+            r["base"] = os.path.relpath(b, REPO)
     order = [s["name"] for s in scenarios(None)]
     rows = sorted(by.values(), key=lambda r: order.index(r["name"]) if r["name"] in order else 999)
     ROWS.write_text(json.dumps(rows, indent=1, sort_keys=True, default=str) + "\n")
