@@ -6,21 +6,13 @@ import json
 import numpy as np
 import pytest
 
-from dtoc.cli.main import run
 from dtoc.errors import InputError
 from dtoc.hardware.girf_io import GirfData, load_girf
 from dtoc.hardware.measurement import k_from_G, load_measurement
 from dtoc.hardware.npzio import save_npz
 
 
-def _run(capsys, *argv):
-    code = 0
-    try:
-        run(list(map(str, argv)))
-    except SystemExit as e:
-        code = e.code or 0
-    out = capsys.readouterr()
-    return code, out.out, out.err
+from cli_helpers import run_cli as _run  # noqa: E402
 
 
 def _strict_json(text):

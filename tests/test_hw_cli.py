@@ -5,18 +5,10 @@ import json
 import numpy as np
 import pytest
 
-from dtoc.cli.main import run
 from dtoc.hardware.npzio import save_npz
 
 
-def _run(capsys, *argv):
-    code = 0
-    try:
-        run(list(map(str, argv)))
-    except SystemExit as e:
-        code = e.code or 0
-    out = capsys.readouterr()
-    return code, out.out, out.err
+from cli_helpers import run_cli as _run  # noqa: E402
 
 
 def _synthetic_ir():
