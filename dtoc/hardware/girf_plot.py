@@ -14,7 +14,6 @@ The frequency axis runs to the kernel's Nyquist frequency or to the end of the f
 
 from __future__ import annotations
 
-import io
 
 import numpy as np
 
@@ -22,6 +21,7 @@ from dtoc.constants import AXES
 from dtoc.hardware.girf_analysis import girf_summary, response_grid
 from dtoc.hardware.girf_io import GirfData
 from dtoc.util.atomic import atomic_write_bytes, check_output_path
+from dtoc.util.figures import png_bytes
 
 _COLORS = ("C0", "C1", "C2")
 
@@ -143,8 +143,4 @@ def plot_girf(gd: GirfData, path, title: str = "", force: bool = False, fmax_hz:
     ax_t.grid(alpha=0.3)
 
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100, metadata={"Software": None})
-    plt.close(fig)
-    return atomic_write_bytes(path, buf.getvalue(), force=force)
+    return atomic_write_bytes(path, png_bytes(fig, dpi=100), force=force)

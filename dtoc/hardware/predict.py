@@ -21,6 +21,7 @@ import torch
 from dtoc.constants import AXES
 from dtoc.hardware.model import HardwareModel
 from dtoc.seq.ir import SequenceIR
+from dtoc.util.figures import png_bytes
 
 
 def realize(ir: SequenceIR, model: HardwareModel, device: str | torch.device = "cpu",
@@ -131,8 +132,7 @@ def plot_prediction(ir: SequenceIR, res: dict[str, Any], path, title: str = "", 
     """PNG, 4 panels: demanded (dashed) vs realized (solid) gradients over the whole sequence and in a
     zoom around the middle ADC events (ADC windows shaded); realized minus demanded gradient; k error at
     the ADC samples in units of dk = 2 pi / FOV (rad/m when the FOV is unknown), EPI line means marked."""
-    import io
-
+    
     import matplotlib
 
     matplotlib.use("Agg")
@@ -201,8 +201,4 @@ def plot_prediction(ir: SequenceIR, res: dict[str, Any], path, title: str = "", 
         ax_k.text(0.5, 0.5, "no ADC samples", ha="center", va="center", transform=ax_k.transAxes)
         ax_k.set_axis_off()
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100, metadata={"Software": None})
-    plt.close(fig)
-    return atomic_write_bytes(path, buf.getvalue(), force=force)
+    return atomic_write_bytes(path, png_bytes(fig, dpi=100), force=force)

@@ -11,7 +11,6 @@ Units: G mT/m, k rad/m, b0 uT; scores in chi-square units (held-out BIC decrease
 
 from __future__ import annotations
 
-import io
 import json
 import math
 
@@ -21,6 +20,7 @@ from dtoc import __version__
 from dtoc.constants import AXES
 from dtoc.identify.candidates import lti_features
 from dtoc.identify.search import IdentifyResult
+from dtoc.util.figures import png_bytes
 
 CH = ("G", "k", "b0")
 UNITS = {"G": "mT/m", "k": "rad/m", "b0": "uT"}
@@ -231,8 +231,4 @@ def residual_png(r: IdentifyResult) -> bytes:
     found = ", ".join(f.effect.kind + (f"[{f.effect.axis}]" if f.effect.axis else "") +
                       (f"<-{f.effect.input_axis}" if f.effect.input_axis else "") for f in r.twin.found) or "none"
     fig.suptitle(f"dtoc identify residuals: effects added: {found}\n{verdict}", fontsize=10)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=80, metadata={"Software": None})
-    plt.close(fig)
-    return buf.getvalue()
+    return png_bytes(fig, dpi=80)

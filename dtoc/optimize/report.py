@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import io
 
 import numpy as np
 
 from dtoc.util.atomic import atomic_write_bytes
+from dtoc.util.figures import png_bytes
 
 
 def write_report_png(path, figures: dict, manifest: dict, force: bool = False):
@@ -84,11 +84,7 @@ def write_report_png(path, figures: dict, manifest: dict, force: bool = False):
     m = manifest
     fig.suptitle(f"dtoc optimize ({m['options']['method']}): gmax {m['limits']['gmax_mT_per_m']:g} mT/m, "
                  f"smax {m['limits']['smax_T_per_m_per_s']:g} T/m/s, skipped {m['samples_discarded']} samples")
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, metadata={"Software": None})
-    plt.close(fig)
-    return atomic_write_bytes(path, buf.getvalue(), force=force)
+    return atomic_write_bytes(path, png_bytes(fig, dpi=90), force=force)
 
 
 def _pct(v):

@@ -9,7 +9,6 @@ acquisition *is* the ideal one (same tensor), so its NRMSE is exactly 0.
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -20,6 +19,7 @@ from dtoc.errors import InputError
 from dtoc.sim import metrics
 from dtoc.sim.phantom import Phantom
 from dtoc.sim.recon import cartesian_grid, reconstruct
+from dtoc.util.figures import png_bytes
 
 
 @dataclass
@@ -173,8 +173,4 @@ def plot_comparison(res: ComparisonResult, title: str = "") -> bytes:
     ax[3].set_title("k-space" + (f" (max error {em:.3g} dk)" if em is not None else ""))
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, metadata={"Software": None})
-    plt.close(fig)
-    return buf.getvalue()
+    return png_bytes(fig, dpi=90)
