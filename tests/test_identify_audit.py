@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from dtoc.cli.main import run
+from cli_helpers import run_cli
 from dtoc.hardware.girf_io import save_girf
 from dtoc.hardware.model import HardwareModel, girf_effect
 from dtoc.identify import diagnostics
@@ -34,13 +34,7 @@ SIGMA = 0.01
 
 
 def _run(argv, capsys):
-    code = 0
-    try:
-        run(argv)
-    except SystemExit as e:
-        code = e.code or 0
-    out = capsys.readouterr()
-    return code, out.out, out.err
+    return run_cli(capsys, *argv)
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from dtoc.cli.main import run
+from cli_helpers import run_cli
 from dtoc.hardware.girf_io import save_girf
 from dtoc.hardware.model import HardwareModel, build_effect, girf_effect, load_model
 from dtoc.identify.synth import lowpass_girf, probe_waveforms, save_measurement, simulate_measurement
@@ -17,13 +17,7 @@ RMSE_KEYS = {"G_rmse", "k_rmse", "b0_rmse"}
 
 
 def _run(argv, capsys):
-    code = 0
-    try:
-        run(argv)
-    except SystemExit as e:
-        code = e.code or 0
-    out = capsys.readouterr()
-    return code, out.out, out.err
+    return run_cli(capsys, *argv)
 
 
 @pytest.fixture(scope="module")
