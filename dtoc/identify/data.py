@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
 from dtoc.errors import InputError
+from dtoc.hardware.measurement import k_from_G
 
 #: Channel names in the order used everywhere (report keys are f"{name}_rmse").
 CHANNELS = ("G", "k", "b0")
@@ -33,10 +33,7 @@ def integrate_k(G_mT_per_m: np.ndarray, dt_s: float) -> np.ndarray:
     Returns:
         (..., N) k in rad/m, k[..., 0] = 0.
     """
-    G = np.asarray(G_mT_per_m, dtype=np.float64)
-    out = np.zeros_like(G)
-    np.cumsum(0.5 * dt_s * (G[..., 1:] + G[..., :-1]), axis=-1, out=out[..., 1:])
-    return GAMMA_RAD_PER_S_PER_MT * out
+    return k_from_G(np.asarray(G_mT_per_m, dtype=np.float64), dt_s)
 
 
 @dataclass
