@@ -51,9 +51,16 @@ class OptimizeConfig(BaseModel):
         amp_margin / slew_margin: relative safety margins of the hard limits.
         weights: loss weights (defaults per kind).
         warm_iters: iterations of the constrained least-squares warm start.
+        robust_rounds: rounds of iteratively reweighted least squares after the warm start (Cauchy
+            weights on the per-sample k error, scale ``robust_scale_dk`` in dk): samples that cannot
+            reach their target within the limits stop pulling the others off theirs (0 = plain LS).
         iters: iterations of the full-loss stage.
         optimizer: full-loss stage of 'dto': 'pgd' (monotone projected gradient with backtracking)
             or 'adam' (projected Adam).  'adam-paper' always uses Adam.
+        full_kspace_scale: factor on the k-space weight in the full-loss stage only.
+        sim_preset / sim_dtype: PDG simulator preset and precision inside the full-loss loop (image and
+            target both simulated with it); the reported before/after figures and the discarding always
+            use the default preset in float64.
         lr: Adam learning rate; for 'pgd' the largest first move of any sample, mT/m.
         restarts: Adam restart iterations (paper: 500, 1500, 3000, ... scaled to ``iters``).
         augment_rotations: number of rotated phantoms cycled through (0 = no augmentation).
@@ -75,8 +82,13 @@ class OptimizeConfig(BaseModel):
     slew_margin: float = Field(0.01, ge=0, lt=0.5)
     weights: LossWeights = Field(default_factory=LossWeights)
     warm_iters: int = Field(400, ge=0)
+    robust_rounds: int = Field(0, ge=0)
+    robust_scale_dk: float = Field(0.5, gt=0)
     iters: int = Field(60, ge=0)
     optimizer: Literal["pgd", "adam"] = "pgd"
+    full_kspace_scale: float = Field(1.0, ge=0)
+    sim_preset: Literal["fast", "default", "strict"] = "fast"
+    sim_dtype: Literal["float32", "float64"] = "float32"
     lr: Optional[float] = Field(None, gt=0)
     restarts: list[int] = Field(default_factory=list)
     augment_rotations: int = Field(0, ge=0)
@@ -92,7 +104,8 @@ class OptimizeConfig(BaseModel):
 
 #: Defaults per sequence kind, applied below the config file.
 KIND_DEFAULTS: dict[str, dict] = {
-    "gre": {"weights": {"image": 1.0, "kspace": 1.0, "rf": 1.0}, "lr": 0.05, "iters": 0, "n_dummies": 300, "warm_iters": 300},
+    "gre": {"weights": {"image": 1.0, "kspace": 1.0, "rf": 1.0, "moment": 0.1}, "lr": 0.05, "iters": 0, "n_dummies": 300,
+            "warm_iters": 300, "robust_rounds": 3},
     "epi": {"weights": {"image": 1.0, "kspace": 4.0, "rf": 1.0}, "lr": 0.01, "iters": 2, "n_dummies": 0},
 }
 

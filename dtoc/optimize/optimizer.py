@@ -225,6 +225,16 @@ def evaluate(twin, imager, ctx, weights, edges: torch.Tensor, idx: int = 0, keep
     return total, terms, {"g": g, "G": G, "b0": b0, "k": k, "images": images}
 
 
+def full_weights(cfg: OptimizeConfig):
+    """Loss weights of the full-loss stage: ``cfg.weights`` with the k-space weight scaled by
+    ``cfg.full_kspace_scale`` (the warm start has already placed the samples; a smaller k weight lets
+    the image term trade k accuracy of unimportant samples for image fidelity, as the paper's tiny w_k)."""
+    w = cfg.weights
+    if cfg.full_kspace_scale == 1.0:
+        return w
+    return w.model_copy(update={"kspace": w.kspace * cfg.full_kspace_scale})
+
+
 def full_loss(twin, imager, ctx, cfg: OptimizeConfig, edges0: torch.Tensor, state: StageState,
               progress: ProgressFn | None = None, start_it: int = 0, paper: bool = False,
               checkpoint: Callable[[torch.Tensor, int], None] | None = None) -> torch.Tensor:
@@ -255,7 +265,7 @@ def full_loss(twin, imager, ctx, cfg: OptimizeConfig, edges0: torch.Tensor, stat
 
             def closure():
                 opt.zero_grad()
-                total, terms, _ = evaluate(twin, imager, ctx, cfg.weights, x, idx)
+                total, terms, _ = evaluate(twin, imager, ctx, full_weights(cfg), x, idx)
                 total.backward()
                 with torch.no_grad():
                     x.grad.mul_(free)
@@ -289,7 +299,7 @@ def _finish(twin, imager, ctx, cfg, x, state, n_img):
     else:
         # compare the final iterate too
         with torch.no_grad():
-            val = float(evaluate(twin, imager, ctx, cfg.weights, last, 0)[0])
+            val = float(evaluate(twin, imager, ctx, full_weights(cfg), last, 0)[0])
         if val < state.best_loss:
             state.best_loss, state.best_edges = val, last
     return P.project(state.best_edges, n_iter=60)
@@ -311,7 +321,7 @@ def _pgd(twin, imager, ctx, cfg, x, state, progress, start_it, n_img, lr, checkp
 
     def val_grad(e, idx):
         e = e.detach().requires_grad_(True)
-        total, terms, _ = evaluate(twin, imager, ctx, cfg.weights, e, idx)
+        total, terms, _ = evaluate(twin, imager, ctx, full_weights(cfg), e, idx)
         (g,) = torch.autograd.grad(total, e)
         return float(total.detach()), torch.where(free, g, torch.zeros_like(g)), terms
 

@@ -9,7 +9,9 @@ sequence's waveform, L-BFGS on log-parameters).  For a single exponential eddy c
 When ``g_pre`` breaks the hard limits the paper offers two fallbacks:
 
 * **variable TE** (GRE specs only): TE (and TR by the same amount) is increased on the 10 us grid,
-  the base rebuilt and pre-emphasised again, until ``g_pre`` meets the limits; the TE/TR found are
+  the base rebuilt and pre-emphasised again, until ``g_pre`` meets the limits (a spoiler too high to
+  be pre-emphasised within gmax is first lowered and lengthened at constant moment, TR growing by the
+  extra lobe length); the TE/TR found are
   reported (the exported file keeps the base TE, as in the paper's constant-TE comparison).
 * **constant TE**: ``g_pre`` is projected onto the limits (the same hard-limit projection as the
   optimizer) and the samples that then miss their k-space target are skipped with the threshold
@@ -124,9 +126,23 @@ def variable_te(ir, twin, limits, fit, max_steps: int = 2000) -> dict | None:
 
     spec = load_spec(spec_path)
     step_ms = spec.system.grad_raster_s * 1e3
+    # the spoiler keeps its moment but is lowered to what pre-emphasis can still overdrive within gmax
+    # (a step of amplitude A pre-emphasised peaks at A (1 + sum a_n)); its lobe grows longer, TR with it
+    sp_amp, sp_dur = spec.spoiler_mT_per_m, spec.spoiler_duration_ms
+    a_max = 0.98 * limits.gmax_eff_mT_per_m / (1.0 + float(np.sum(fit["alpha"])))
+    if sp_amp > a_max:
+        sp_dur = math.ceil(sp_dur * sp_amp / a_max / step_ms) * step_ms
+        sp_amp = sp_amp * spec.spoiler_duration_ms / sp_dur
+    extra_tr_ms = sp_dur - spec.spoiler_duration_ms
+    # ramps: pre-emphasis raises a ramp's slew by the same factor, so the rebuilt base ramps at most
+    # smax / (1 + sum a_n) (the paper's piecewise-constant base had no ramps to overdrive)
+    smax_eff = limits.smax_T_per_m_per_s * (1.0 - limits.slew_margin)
+    sys2 = spec.system.model_copy(update={"max_slew_T_per_m_per_s": min(spec.system.max_slew_T_per_m_per_s,
+                                                                        0.98 * smax_eff / (1.0 + float(np.sum(fit["alpha"]))))})
 
     def ok(i: int) -> bool:
-        s2 = spec.model_copy(update={"te_ms": spec.te_ms + i * step_ms, "tr_ms": spec.tr_ms + i * step_ms})
+        s2 = spec.model_copy(update={"te_ms": spec.te_ms + i * step_ms, "tr_ms": spec.tr_ms + i * step_ms + extra_tr_ms,
+                                     "spoiler_mT_per_m": sp_amp, "spoiler_duration_ms": sp_dur, "system": sys2})
         try:
             ir2 = build_ir(s2)
         except DtocError:
@@ -143,7 +159,8 @@ def variable_te(ir, twin, limits, fit, max_steps: int = 2000) -> dict | None:
         lo, hi = hi, hi * 2
     if hi > max_steps:
         if not ok(max_steps):
-            return {"te_ms": None, "tr_ms": None, "note": f"no TE within +{max_steps * step_ms:.2f} ms meets the limits"}
+            return {"te_ms": None, "tr_ms": None, "note": f"no TE within +{max_steps * step_ms:.2f} ms meets the limits"
+                    + (f" (spoiler lowered to {sp_amp:.2f} mT/m over {sp_dur:.2f} ms)" if extra_tr_ms > 0 else "")}
         hi = max_steps
     while hi - lo > 1:
         mid = (lo + hi) // 2
@@ -151,4 +168,8 @@ def variable_te(ir, twin, limits, fit, max_steps: int = 2000) -> dict | None:
             hi = mid
         else:
             lo = mid
-    return {"te_ms": round(spec.te_ms + hi * step_ms, 6), "tr_ms": round(spec.tr_ms + hi * step_ms, 6)}
+    out = {"te_ms": round(spec.te_ms + hi * step_ms, 6), "tr_ms": round(spec.tr_ms + hi * step_ms + extra_tr_ms, 6)}
+    if extra_tr_ms > 0:
+        out["spoiler"] = {"mT_per_m": round(sp_amp, 4), "duration_ms": round(sp_dur, 6),
+                          "note": "spoiler lowered to fit pre-emphasis within gmax, moment kept; TR includes its longer lobe"}
+    return out

@@ -273,14 +273,17 @@ def optimize_sequence(base, *, out=None, girf=None, model=None, config: Optimize
         if x is None:
             if cfg.method in ("dto", "warmstart"):
                 t0 = time.time()
-                x = O.warm_start(twin, ctx, cfg.weights, cfg.warm_iters, state, progress)
+                x = O.robust_warm_start(twin, ctx, cfg.weights, cfg.warm_iters, rounds=cfg.robust_rounds,
+                                        scale_dk=cfg.robust_scale_dk, state=state, progress=progress)
                 stage_times["warm_start_s"] = time.time() - t0
             else:
                 x = projector.project(twin.base_edges())
         if cfg.method in ("dto", "adam-paper") and not state.interrupted and cfg.iters > 0:
             t0 = time.time()
             state.best_loss = math.inf
-            x = O.full_loss(twin, imager if cfg.weights.image > 0 else None, ctx, cfg, x, state, progress,
+            opt_imager = _loop_imager(imager, cfg) if cfg.weights.image > 0 else None
+            stage_times["loop_imager_s"] = time.time() - t0
+            x = O.full_loss(twin, opt_imager, ctx, cfg, x, state, progress,
                             start_it=start_it, paper=cfg.method == "adam-paper", checkpoint=ckpt)
             stage_times["full_loss_s"] = time.time() - t0
         if cfg.discard and imager is not None:
@@ -337,6 +340,16 @@ def optimize_sequence(base, *, out=None, girf=None, model=None, config: Optimize
 
         write_report_png(png_path, figures, manifest, force=force)
     return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)
+
+
+def _loop_imager(imager, cfg: OptimizeConfig):
+    """The imager of the full-loss loop: ``cfg.sim_preset`` / ``cfg.sim_dtype`` (shares phantoms and steady state)."""
+    if imager is None or (cfg.sim_preset == "default" and cfg.sim_dtype == "float64"):
+        return imager
+    from dtoc.sim.pdg import PDGConfig
+
+    preset = {"fast": PDGConfig.fast, "default": PDGConfig, "strict": PDGConfig.strict}[cfg.sim_preset]()
+    return imager.with_config(preset, {"float32": torch.float32, "float64": torch.float64}[cfg.sim_dtype])
 
 
 def _extremes(fine, dt):

@@ -91,7 +91,8 @@ class Imager:
         n_dummies: dummy repetitions for the steady-state initial magnetisation (0: none).
     """
 
-    def __init__(self, ir, phantoms: list, n_dummies: int = 0, dtype=torch.float64, device="cpu"):
+    def __init__(self, ir, phantoms: list, n_dummies: int = 0, dtype=torch.float64, device="cpu",
+                 config=None, mz0: list | None = None):
         from dtoc.sim import pdg, recon
 
         self.ir = ir
@@ -100,20 +101,34 @@ class Imager:
         self.phantoms = phantoms
         self.dtype = dtype
         self.device = device
-        self.graph = pdg.build_graph(ir)
+        self.config = config or pdg.PDGConfig()
+        self.n_dummies = n_dummies
+        # the graph's pruning bounds use the tissue range of the (first) phantom; rotated copies
+        # hold the same tissues
+        self.graph = pdg.build_graph(ir, self.config, phantoms[0] if phantoms else None)
         self.mz0 = []
         self.targets = []
-        for ph in phantoms:
-            mz = pdg.steady_state_mz(ir, ph, n_dummies) if n_dummies > 0 else None
+        for i, ph in enumerate(phantoms):
+            if mz0 is not None:
+                mz = mz0[i]
+            else:
+                mz = pdg.steady_state_mz(ir, ph, n_dummies) if n_dummies > 0 else None
             self.mz0.append(mz)
             with torch.no_grad():
                 sig = self.signal(None, None, len(self.mz0) - 1)
                 self.targets.append(self.image(sig).detach())
 
+    def with_config(self, config, dtype) -> "Imager":
+        """The same phantoms and steady state through a different simulator preset / precision
+        (e.g. ``PDGConfig.fast()`` and float32 inside the optimizer loop); targets re-simulated with it,
+        so image and target share the preset's pruning."""
+        return Imager(self.ir, self.phantoms, self.n_dummies, dtype=dtype, device=self.device, config=config,
+                      mz0=self.mz0)
+
     def signal(self, G_fine, b0_uT, idx: int) -> torch.Tensor:
         """(n_coils, N_adc) complex signal of phantom ``idx`` for a realized waveform (None = base)."""
         return self._pdg.simulate(self.ir, self.phantoms[idx], grad_mT_per_m=G_fine, b0_uT=b0_uT, graph=self.graph,
-                                  initial_mz=self.mz0[idx], device=self.device)
+                                  config=self.config, initial_mz=self.mz0[idx], dtype=self.dtype, device=self.device)
 
     def image(self, signal, keep_mask=None) -> torch.Tensor:
         """Image by plain iFFT onto the target grid (keep_mask: (N_adc,) bool, False = discarded)."""

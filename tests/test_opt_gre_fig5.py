@@ -1,0 +1,93 @@
+"""GRE amplitude-limited machinery: IRLS warm start, the pre-emphasis variable-TE fallback on the
+paper's Figure 5 base, and the full-loss loop's simulator preset."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from opt_synth import eddy_model  # noqa: E402
+
+from dtoc.optimize import loss as L
+from dtoc.optimize import optimizer as O
+from dtoc.optimize.config import LossWeights, load_config
+from dtoc.optimize.limits import EdgeProjector, Limits
+from dtoc.optimize.twin import Twin
+
+SEQ = Path(__file__).resolve().parents[1] / "sequences"
+
+
+def _kerr(tw, ctx, x):
+    with torch.no_grad():
+        G, _ = tw.realize(tw.played(x))
+        return O.kspace_error_dk(tw.kspace(G), ctx)
+
+
+def test_robust_warm_start_puts_more_samples_on_target_under_tight_limits():
+    """IRLS (Cauchy weights on the k error) lets the unreachable samples go instead of spreading their
+    error over the reachable ones.  gre_small (prewinder 27.6 mT/m) at gmax 15 with both eddy currents,
+    measured: plain least squares 73 % of samples within 0.1 dk, IRLS 87.5 %."""
+    from dtoc.seq.read import load_sequence
+
+    torch.set_num_threads(1)
+    ir = load_sequence(SEQ / "gre_small.yaml")
+    lim = Limits(15.0, 500.0)
+    P = EdgeProjector(ir.edge_grad_mT_per_m, ir.free_mask[:, ::2], ir.raster_s, lim)
+    tw, ctx = Twin(ir, eddy_model(), P), L.build_context(ir, lim)
+    w = LossWeights(moment=0.1)
+    x_ls = O.warm_start(tw, ctx, w, 100)
+    x_rb = O.robust_warm_start(tw, ctx, w, 100, rounds=3, scale_dk=0.5)
+    e_ls, e_rb = _kerr(tw, ctx, x_ls), _kerr(tw, ctx, x_rb)
+    assert e_ls.max() > 1.0  # the limits make some samples unreachable
+    assert np.mean(e_rb < 0.1) > np.mean(e_ls < 0.1) + 0.08
+    assert tw.projector.is_feasible(x_rb.numpy())
+
+
+def test_gre_defaults_use_irls_and_a_soft_moment_term():
+    cfg = load_config("gre")
+    assert cfg.robust_rounds == 3 and cfg.weights.moment == pytest.approx(0.1)
+    assert load_config("epi").robust_rounds == 0
+
+
+def test_variable_te_fallback_matches_the_paper_figure5_timings():
+    """Paper Figure 5B: pre-emphasis meets gmax 20 mT/m at TE 3.4 ms / TR 10.4 ms and gmax 10 at
+    4.23 / 13.14 ms; ours on the same amplitudes with real ramps (slew headroom for the overdrive,
+    spoiler lowered at constant moment) must land within 0.3 ms of TE and 0.7 ms of TR."""
+    from dtoc.optimize.preemphasis import fit_preemphasis, variable_te
+    from dtoc.seq.read import load_sequence
+
+    torch.set_num_threads(1)
+    ir = load_sequence(SEQ / "gre_paper_fig5.yaml")
+    model = eddy_model()
+    fit = fit_preemphasis(model, ir.grad_mT_per_m, ir.dt_fine_s)
+    for gmax, te_paper, tr_paper in ((20.0, 3.4, 10.4), (10.0, 4.23, 13.14)):
+        lim = Limits(gmax, 500.0)
+        P = EdgeProjector(ir.edge_grad_mT_per_m, ir.free_mask[:, ::2], ir.raster_s, lim)
+        v = variable_te(ir, Twin(ir, model, P), lim, fit)
+        assert v["te_ms"] is not None, v
+        assert abs(v["te_ms"] - te_paper) < 0.3 and abs(v["tr_ms"] - tr_paper) < 0.7, (gmax, v)
+        assert v["te_ms"] > 3.21  # longer than the base: the base itself cannot be pre-emphasised
+
+
+def test_loop_imager_shares_steady_state_and_is_consistent_with_its_targets():
+    from dtoc.optimize.config import OptimizeConfig
+    from dtoc.optimize.run import _loop_imager, make_phantoms
+    from dtoc.optimize.twin import Imager
+    from dtoc.seq.read import load_sequence
+    from dtoc.sim import metrics
+
+    torch.set_num_threads(1)
+    ir = load_sequence(SEQ / "gre_small.yaml")
+    cfg = OptimizeConfig(n_dummies=20)
+    im = Imager(ir, make_phantoms(ir, cfg), n_dummies=20)
+    lo = _loop_imager(im, cfg)
+    assert lo is not im and lo.mz0[0] is im.mz0[0] and lo.dtype == torch.float32
+    with torch.no_grad():
+        img = lo.image(lo.signal(None, None, 0))
+    assert float(metrics.nrmse(img, lo.targets[0])) == 0.0  # target simulated with the loop's own preset
+    # the fast float32 preset is a close stand-in for the reported (default, float64) image
+    assert float(metrics.nrmse(lo.targets[0].to(torch.complex128), im.targets[0])) < 0.03
+    assert _loop_imager(im, OptimizeConfig(sim_preset="default", sim_dtype="float64")) is im
