@@ -38,6 +38,11 @@ def test_outputs_exist_and_manifest_has_contract_keys(run1):
             assert key in m[side]
     for key in ("samples_discarded", "loss_history", "run_time_s", "inputs", "options", "versions"):
         assert key in m
+    # EPI: the ideal image's own ghost-region energy and the excess the hardware adds
+    a = m["after"]
+    assert a["ghost_ratio_ideal"] == m["before"]["ghost_ratio_ideal"] and a["ghost_ratio_ideal"] >= 0
+    assert a["ghost_ratio_excess"] == pytest.approx(a["ghost_ratio"] - a["ghost_ratio_ideal"], abs=1e-15)
+    assert m["before"]["ghost_ratio_excess"] > a["ghost_ratio_excess"]
     assert m["inputs"]["base"]["sha256"] and m["inputs"]["girf"]["sha256"]
     assert m["limit_violations"] == 0 and m["output"]["check_ok"] is True
     # the optimization must actually help: k-space error and image error drop

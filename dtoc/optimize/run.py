@@ -118,6 +118,10 @@ def quality(twin: Twin, imager: Imager | None, ctx, edges, keep_mask=None, playe
             if twin.ir.kind == "epi":
                 pdim = -1 if twin.ir.phase_axis == 0 else -2
                 out["ghost_ratio"] = float(metrics.ghost_ratio(im, imager.targets[0], phase_dim=pdim))
+                # the ideal image's own energy in the ghost region (Gibbs ringing, T2* blurring along the
+                # echo train): the floor no gradient correction can go below; the excess is the hardware's
+                out["ghost_ratio_ideal"] = float(metrics.ghost_ratio(imager.targets[0], imager.targets[0], phase_dim=pdim))
+                out["ghost_ratio_excess"] = out["ghost_ratio"] - out["ghost_ratio_ideal"]
             out["_image"] = im.abs().cpu().numpy()
         out["_k"] = k.cpu().numpy()
         out["_G"] = G.cpu().numpy()
