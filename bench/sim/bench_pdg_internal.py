@@ -112,7 +112,7 @@ def main(argv=None):
         for line in Path(a.baseline).read_text().splitlines():
             r = json.loads(line)
             if "error" not in r:
-                base[r["case"]] = r
+                base[(r["case"], r.get("preset", "default"), r.get("dtype"))] = r
     rows = []
     for c in a.cases:
         for preset in a.presets:
@@ -141,8 +141,9 @@ def _write(rows, base=None, threads=2):
         "Loss for backward: sum |s|^2 w.r.t. the fine-grid gradient.  Peak memory = peak RSS of the case's process.  "
         "Brain phantom 3 T with B1 map (GRE also B0).  Presets: `default` = `PDGConfig()` (thresholds 1e-5), `fast` = "
         "`PDGConfig.fast()` (1e-4).  CPU s = process CPU time (user+sys), the figure to compare on a shared machine; "
-        "wall s depends on the load (other jobs were running: load ~3-4 on 2 cores when this was measured).  'before' = the same case, default preset and dtype, with "
-        "the simulator before the sim-perf changes (2026-11-21, measured right after this table under the same load, `--baseline`).",
+        "wall s depends on the load (another job kept one of the 2 cores busy).  'before' = the same case, preset and dtype with "
+        "the simulator of the previous commit (issue-4 speed work not applied), measured on the same machine in the same session shortly "
+        "before this table (`--baseline`; a checkout of the previous commit).",
         "",
         "| case | preset | dtype | phantom | ADC samples | states (max/interval) | emitting | forward CPU s | fwd+bwd CPU s | forward wall s | fwd+bwd wall s | before: fwd / fwd+bwd CPU s | peak RSS GB |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
@@ -151,8 +152,8 @@ def _write(rows, base=None, threads=2):
         if "error" in r:
             body.append(f"| {r['case']} | {r.get('preset', '-')} | - | - | - | - | - | - | failed: {r['error'][:80]} | - | - | - | - |")
             continue
-        b = base.get(r["case"]) if r.get("preset", "default") == "default" else None
-        bs = f"{b['fwd_cpu_s']:.3f} / {b['fwd_bwd_cpu_s']:.3f}" if b and b.get("dtype") == r["dtype"] and "fwd_cpu_s" in b else "-"
+        b = base.get((r["case"], r.get("preset", "default"), r["dtype"]))
+        bs = f"{b['fwd_cpu_s']:.3f} / {b['fwd_bwd_cpu_s']:.3f}" if b and "fwd_cpu_s" in b else "-"
         body.append(
             f"| {r['case']} | {r.get('preset', 'default')} | {r['dtype']} | {r['phantom']}x{r['phantom']} | {r['n_adc']} | {r['states_total']} ({r['states_max']}) | "
             f"{r['emitting_total']} | {r['fwd_cpu_s']:.3f} | {r['fwd_bwd_cpu_s']:.3f} | {r['fwd_s']:.3f} | {r['fwd_bwd_s']:.3f} | {bs} | {r['peak_rss_gb']:.2f} |"

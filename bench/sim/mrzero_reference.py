@@ -87,7 +87,19 @@ def load_mr0_phantom(path: str, mr0, torch):
     return ph.build(voxel_shape="box")
 
 
-def run(seq_path, phantom_path, strict: bool, repeats: int = 0, n_dummies: int = 0):
+# MRzero settings, from its documented defaults to the strict reference.  'defaults' is exactly what
+# MRzero users run (compute_graph with its voxel-Nyquist cut-off, which drops the box voxels' sinc
+# tails); the intermediate levels and 'strict' use the same pre-pass with the cut-off disabled
+# (compute_graph_ext, nyquist = inf), i.e. MRzero converging to its own strict answer.
+LEVELS = {
+    "defaults": (dict(max_state_count=200, min_state_mag=1e-4), dict(min_emitted_signal=1e-2, min_latent_signal=1e-2), False),
+    "mid3": (dict(max_state_count=1000, min_state_mag=1e-5), dict(min_emitted_signal=1e-3, min_latent_signal=1e-3), True),
+    "mid4": (dict(max_state_count=5000, min_state_mag=1e-6), dict(min_emitted_signal=1e-4, min_latent_signal=1e-4), True),
+    "strict": (dict(max_state_count=100000, min_state_mag=1e-7), dict(min_emitted_signal=1e-7, min_latent_signal=1e-7), True),
+}
+
+
+def run(seq_path, phantom_path, strict: bool = True, repeats: int = 0, n_dummies: int = 0, level: str | None = None):
     import torch
 
     with _quiet():
@@ -98,15 +110,11 @@ def run(seq_path, phantom_path, strict: bool, repeats: int = 0, n_dummies: int =
     with _quiet():
         seq = mr0.Sequence.import_file(seq_path)
     t_import = time.perf_counter() - t0
-    if strict:
-        graph_kw = dict(max_state_count=100000, min_state_mag=1e-7)
-        exec_kw = dict(min_emitted_signal=1e-7, min_latent_signal=1e-7)
-    else:  # MRzero's documented defaults (what its users run)
-        graph_kw = dict(max_state_count=200, min_state_mag=1e-4)
-        exec_kw = dict(min_emitted_signal=1e-2, min_latent_signal=1e-2)
+    level = level or ("strict" if strict else "defaults")
+    graph_kw, exec_kw, no_cutoff = LEVELS[level]
     t0 = time.perf_counter()
     with _quiet():
-        if strict:
+        if no_cutoff:
             # compute_graph() passes the voxel Nyquist frequency to the pre-pass, which then treats every state
             # beyond it as emitting nothing -- right for 'sinc' voxels, wrong for the 'box' voxels used here
             # (their sinc(k dx) tails are real signal; up to 30 % error on a single voxel).  Same pre-pass with
@@ -139,6 +147,7 @@ def run(seq_path, phantom_path, strict: bool, repeats: int = 0, n_dummies: int =
         "t_fwd_first_s": t_fwd_first,
         "graph_kw": graph_kw,
         "exec_kw": exec_kw,
+        "level": level,
         "mrzero_version": mr0.__version__,
         "torch_version": torch.__version__,
         "threads": torch.get_num_threads(),
@@ -174,6 +183,7 @@ def main(argv=None):
     ap.add_argument("--out", required=True, help="reference: .npz with the signal; bench: .json")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--defaults", action="store_true", help="bench with MRzero's default thresholds (else strict)")
+    ap.add_argument("--level", choices=sorted(LEVELS), default=None, help="bench at this MRzero setting (overrides --defaults)")
     ap.add_argument("--threads", type=int, default=0)
     a = ap.parse_args(argv)
     if a.threads:
@@ -188,7 +198,7 @@ def main(argv=None):
         )
     else:
         try:
-            r = run(a.seq, a.phantom, strict=not a.defaults, repeats=a.repeats)
+            r = run(a.seq, a.phantom, strict=not a.defaults, repeats=a.repeats, level=a.level)
             sig = r.pop("signal")
             np.save(a.out + ".signal.npy", sig)
             r["ok"] = True

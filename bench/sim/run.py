@@ -1,16 +1,19 @@
-"""Simulator benchmark: dtoc's PDG versus MRzeroCore 1.2.0, side by side in one run.
+"""Simulator benchmark: dtoc's PDG versus MRzeroCore 1.2.0 at matching accuracy, side by side in one run.
 
-    python -m bench.sim.run [--mrzero-python /tmp/mrzero_env/bin/python] [--cases a,b] [--mem-limit-gb 12]
+    python -m bench.sim.run [--mrzero-python /tmp/mrzero_env/bin/python] [--cases a,b] [--mem-limit-gb 8]
 
-Every case runs in its own subprocess (dtoc in this environment, MRzeroCore in its throw-away one via
-bench/sim/mrzero_reference.py), so the peak resident memory of each is measured the same way (parent
-polls VmRSS; the process is killed above ``--mem-limit-gb`` and reported as such, never swapping the
-shared machine).  Per case: pre-pass (graph) time, forward time (no autograd), forward+backward time
-(loss = sum |signal|^2, gradient w.r.t. every gradient moment: dtoc's fine-grid gradient waveform,
-MRzero's per-event moments), peak RSS, and the image NRMSE of dtoc against MRzero (strict
-thresholds) as the accuracy check.  Times are the minimum over ``--repeats`` runs.  Results go to
-docs/benchmarks.md (section "sim") and bench/sim/last_results.json is NOT written (no machine paths
-in the repo); the raw JSON is printed to stdout.
+Per case, both simulators run a ladder of accuracy settings (MRzero: its documented defaults and
+intermediate thresholds up to 'strict', bench/sim/mrzero_reference.py LEVELS; dtoc: its presets and
+threshold settings, :func:`_config`).  Every setting runs in its own subprocess (dtoc in this
+environment, MRzeroCore in its throw-away one), so the peak resident memory of each is measured the
+same way (the parent polls VmRSS and kills the process above ``--mem-limit-gb``, never swapping the
+shared machine).  Per setting: pre-pass (graph) time, forward time (no autograd), forward+backward
+time (loss = sum |signal|^2, gradient w.r.t. every gradient moment: dtoc's fine-grid gradient
+waveform, MRzero's per-event moments), peak RSS, and the image NRMSE against ONE reference per case
+(MRzero strict where it runs, else a float64 dtoc ``PDGConfig.strict()`` forward).  The speed-up at
+matching accuracy, per MRzero setting, is its fwd+bwd time over that of the cheapest dtoc setting whose
+NRMSE is not larger.  Times are the minimum over ``--repeats`` runs.  Results go to docs/benchmarks.md
+(section "sim"); the raw JSON (one line per case) is printed to stdout, nothing else is written.
 """
 
 from __future__ import annotations
@@ -28,17 +31,21 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 
 # name: (sequence spec (file in sequences/ or dict of EpiSpec/GreSpec fields), phantom n, phantom FOV m,
-#        MRzero modes run for it: 'strict' (accuracy-matched, slow: its state count explodes with phantom size)
-#        and/or 'defaults')
+#        MRzero settings run for it (bench/sim/mrzero_reference.py LEVELS; 'strict' is then the common
+#        accuracy reference), dtoc settings (see _config))
+MR_ALL = ("defaults", "mid3", "mid4", "strict")
+DTOC_LADDER = ("t1e-3", "t5e-4", "t3e-4", "t2e-4", "t1.5e-4", "fast", "t7e-5", "t5e-5", "t3e-5", "t2e-5", "default", "t3e-6", "strict")
+DTOC_SCALING = ("t1e-3", "t5e-4", "t3e-4", "t2e-4", "fast", "t7e-5", "t5e-5", "default")
 CASES = {
-    "gre_100us_p32": ("gre_paper_r100us.yaml", 32, 0.032, ("strict", "defaults")),
-    "gre_10us_p32": ("gre_paper.yaml", 32, 0.032, ("strict", "defaults")),
-    "gre_10us_p64": ("gre_paper.yaml", 64, 0.032, ("defaults",)),
-    "epi64_10us_p64": ("epi_esp081.yaml", 64, 0.25, ("strict", "defaults")),
-    "gre_100us_p64": ("gre_paper_r100us.yaml", 64, 0.032, ("defaults",)),
-    "gre_100us_p128": ("gre_paper_r100us.yaml", 128, 0.032, ("defaults",)),
-    "gre_100us_p256": ("gre_paper_r100us.yaml", 256, 0.032, ("defaults",)),
-    "epi128_10us_p256": ({"kind": "epi", "name": "epi128", "matrix": 128, "fov_mm": 250, "dwell_us": 10, "echo_spacing_ms": 1.6}, 256, 0.25, ()),
+    "gre_100us_p32": ("gre_paper_r100us.yaml", 32, 0.032, MR_ALL, DTOC_LADDER),
+    "gre_10us_p32": ("gre_paper.yaml", 32, 0.032, MR_ALL, DTOC_LADDER),
+    "gre_10us_p64": ("gre_paper.yaml", 64, 0.032, ("defaults", "mid3", "mid4"), DTOC_SCALING),
+    "epi64_10us_p64": ("epi_esp081.yaml", 64, 0.25, ("defaults", "strict"), ("fast", "default", "strict")),
+    "gre_100us_p64": ("gre_paper_r100us.yaml", 64, 0.032, ("defaults", "mid3"), DTOC_SCALING),
+    "gre_100us_p128": ("gre_paper_r100us.yaml", 128, 0.032, ("defaults", "mid3"), DTOC_SCALING),
+    "gre_100us_p256": ("gre_paper_r100us.yaml", 256, 0.032, ("defaults",), ("t3e-4", "fast")),
+    "epi128_10us_p256": ({"kind": "epi", "name": "epi128", "matrix": 128, "fov_mm": 250, "dwell_us": 10, "echo_spacing_ms": 1.6}, 256, 0.25, (),
+                         ("default",)),
 }
 LABELS = {
     "gre_100us_p32": "GRE 32x32, 32 TRs, 0.1 ms raster, 32x32 phantom",
@@ -63,6 +70,21 @@ def _rss_mb() -> float:
     return float("nan")
 
 
+def _config(setting: str):
+    """dtoc setting name -> PDGConfig: 'fast', 'default', 'strict' (the presets) or 'tX' (signal
+    thresholds X, magnitude X/10, other fields default)."""
+    from dtoc.sim import pdg
+
+    if setting == "fast":
+        return pdg.PDGConfig.fast()
+    if setting == "strict":
+        return pdg.PDGConfig.strict()
+    if setting.startswith("t"):
+        x = float(setting[1:])
+        return pdg.PDGConfig(min_latent_signal=x, min_emitted_signal=x, min_magnitude=x / 10)
+    return pdg.PDGConfig()
+
+
 def worker(seq_path: str, phantom_path: str, out_json: str, repeats: int, dtype: str, preset: str = "default") -> None:
     import numpy as np
     import torch
@@ -76,10 +98,17 @@ def worker(seq_path: str, phantom_path: str, out_json: str, repeats: int, dtype:
     ph = load_phantom(phantom_path)
     base_rss = _rss_mb()
     t0 = time.perf_counter()
-    config = pdg.PDGConfig.fast() if preset == "fast" else pdg.PDGConfig()
+    config = _config(preset.removeprefix("ref:"))
     graph = pdg.build_graph(ir, config, ph)
     t_graph = time.perf_counter() - t0
     fw, fb = [], []
+    if preset.startswith("ref:"):  # accuracy reference only: one float64 forward, no timing
+        with torch.no_grad():
+            sig = pdg.simulate(ir, ph, graph=graph, config=config, dtype=torch.float64)
+        np.save(out_json + ".signal.npy", sig.numpy().astype(np.complex128))
+        with open(out_json, "w") as f:
+            json.dump({"ok": True, "n_states": graph.n_states_total}, f)
+        return
     sig = None
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -88,20 +117,25 @@ def worker(seq_path: str, phantom_path: str, out_json: str, repeats: int, dtype:
         fw.append(time.perf_counter() - t0)
         if fw[-1] > 20:
             break
+    cpu_fb = []
     for _ in range(repeats):
         g = torch.tensor(ir.grad_mT_per_m, dtype=td, requires_grad=True)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         s = pdg.simulate(ir, ph, g, graph=graph, config=config, dtype=td)
         loss = (s.real**2 + s.imag**2).sum()
         loss.backward()
         fb.append(time.perf_counter() - t0)
+        cpu_fb.append(time.process_time() - c0)
         if fb[-1] > 20:
             break
+    cpu_fb = min(cpu_fb)
     np.save(out_json + ".signal.npy", sig.numpy().astype(np.complex128))
     r = {
         "ok": True, "t_graph_s": t_graph, "t_fwd_s": min(fw), "t_fwd_bwd_s": min(fb), "grad_norm": float(g.grad.norm()),
         "base_rss_mb": base_rss, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "threads": torch.get_num_threads(), "n_adc": ir.n_adc_samples, "n_fine": ir.n_fine,
+        "n_states": graph.n_states_total, "n_emitting": graph.n_emitting_total,
+        "cpu_fwd_bwd_s": cpu_fb,
     }
     with open(out_json, "w") as f:
         json.dump(r, f)
@@ -140,7 +174,7 @@ def _prepare(case: str, tmp: Path) -> tuple[Path, Path]:
     from dtoc.seq.spec import load_spec, parse_spec
     from dtoc.sim.phantom import brain_phantom, save_phantom
 
-    spec, n, fov, _ = CASES[case]
+    spec, n, fov = CASES[case][:3]
     seq = tmp / (f"{spec.split('.')[0]}.seq" if isinstance(spec, str) else f"{spec['name']}.seq")
     if not seq.exists():
         sp = load_spec(REPO / "sequences" / spec) if isinstance(spec, str) else parse_spec(dict(spec))
@@ -167,31 +201,44 @@ def _nrmse_vs(seq: Path, a_npy: Path, b_npy: Path) -> float | None:
 
 
 def run_case(case: str, tmp: Path, a) -> dict:
+    """Every dtoc setting and every MRzero setting of the case, then each one's image NRMSE against the
+    common reference: MRzero strict when it ran, else dtoc ``PDGConfig.strict()`` (float64 forward)."""
     seq, ph = _prepare(case, tmp)
-    res: dict = {"case": case, "label": LABELS[case]}
-    for preset in ("default", "fast"):
-        out = tmp / f"{case}.ours_{preset}.json"
-        r = _run_limited([sys.executable, "-m", "bench.sim.run", "--threads", str(a.threads), "--worker", str(seq), str(ph), str(out), str(a.repeats),
-                          a.dtype, preset], a.mem_limit_gb * 1024, a.timeout_s)
-        res[f"ours_{preset}"] = {**r, **(json.loads(out.read_text()) if out.exists() else {"ok": False})}
-    res["ours"] = res["ours_default"]
-    res["ours_fast"]["nrmse_vs_ours_default"] = _nrmse_vs(
-        seq, tmp / f"{case}.ours_fast.json.signal.npy", tmp / f"{case}.ours_default.json.signal.npy")
+    spec, n, fov, mr_levels, settings = CASES[case]
+    res: dict = {"case": case, "label": LABELS[case], "dtoc": {}, "mrzero": {}}
+    for st in settings:
+        if a.dtoc_settings and st not in a.dtoc_settings:
+            continue
+        out = tmp / f"{case}.ours_{st}.json"
+        r = _run_limited([sys.executable, "-m", "bench.sim.run", "--threads", str(a.threads), "--worker", str(seq), str(ph), str(out),
+                          str(a.repeats), a.dtype, st], a.mem_limit_gb * 1024, a.timeout_s)
+        res["dtoc"][st] = {**r, **(json.loads(out.read_text()) if out.exists() else {"ok": False}), "signal": str(out) + ".signal.npy"}
     if a.mrzero_python:
-        for mode in [m for m in CASES[case][3] if m in a.mrzero_modes]:
-            mout = tmp / f"{case}.mr0_{mode}.json"
+        for lv in [m for m in mr_levels if m in a.mrzero_modes]:
+            mout = tmp / f"{case}.mr0_{lv}.json"
             cmd = [a.mrzero_python, str(REPO / "bench" / "sim" / "mrzero_reference.py"), "bench", "--seq", str(seq),
-                   "--phantom", str(ph), "--out", str(mout), "--repeats", str(a.repeats)] + (["--defaults"] if mode == "defaults" else [])
+                   "--phantom", str(ph), "--out", str(mout), "--repeats", str(a.repeats if lv != "strict" else 1), "--level", lv]
             r = _run_limited(cmd, a.mem_limit_gb * 1024, a.timeout_s)
-            res[f"mrzero_{mode}"] = {**r, **(json.loads(mout.read_text()) if mout.exists() else {"ok": False})}
-            res[f"mrzero_{mode}"]["nrmse_ours_vs_this"] = _nrmse_vs(
-                seq, tmp / f"{case}.ours_default.json.signal.npy", Path(str(mout) + ".signal.npy"))
-            res[f"mrzero_{mode}"]["nrmse_ours_fast_vs_this"] = _nrmse_vs(
-                seq, tmp / f"{case}.ours_fast.json.signal.npy", Path(str(mout) + ".signal.npy"))
-        if "mrzero_strict" in res and "mrzero_defaults" in res:
-            res["mrzero_defaults"]["nrmse_vs_strict"] = _nrmse_vs(
-                seq, tmp / f"{case}.mr0_defaults.json.signal.npy", tmp / f"{case}.mr0_strict.json.signal.npy")
+            res["mrzero"][lv] = {**r, **(json.loads(mout.read_text()) if mout.exists() else {"ok": False}), "signal": str(mout) + ".signal.npy"}
+    ref = res["mrzero"].get("strict")
+    if ref and ref.get("ok"):
+        res["reference"] = "MRzero strict"
+        ref_sig = Path(ref["signal"])
+    else:
+        rout = tmp / f"{case}.ref.json"
+        if case in REF_DTOC:
+            r = _run_limited([sys.executable, "-m", "bench.sim.run", "--threads", str(a.threads), "--worker", str(seq), str(ph), str(rout),
+                              "1", "float64", "ref:" + REF_DTOC[case]], a.mem_limit_gb * 1024, a.timeout_s)
+        res["reference"] = f"dtoc {REF_DTOC.get(case, '-')}()" if rout.exists() else None
+        ref_sig = Path(str(rout) + ".signal.npy")
+    for side in ("dtoc", "mrzero"):
+        for d in res[side].values():
+            d["nrmse"] = _nrmse_vs(seq, Path(d["signal"]), ref_sig) if res["reference"] else None
     return res
+
+
+# accuracy reference of the cases without an MRzero strict run (dtoc preset, float64 forward only)
+REF_DTOC = {"gre_10us_p64": "strict", "gre_100us_p64": "strict", "gre_100us_p128": "default"}
 
 
 def _fmt_t(x):
@@ -224,39 +271,85 @@ def _pct(x) -> str:
     return "-" if x is None else f"{100 * x:.2g} %"
 
 
+def _fb(d):
+    return d["t_fwd_bwd_s"] if d and d.get("ok") else None
+
+
+def matched(res: dict) -> list[dict]:
+    """Per MRzero setting: the cheapest dtoc setting (fwd+bwd) whose NRMSE <= MRzero's at that setting."""
+    rows = []
+    for lv, m in res["mrzero"].items():
+        row = {"level": lv, "mr": m, "ours": None}
+        if m.get("ok") and m.get("nrmse") is not None and not (lv == "strict" and res.get("reference") == "MRzero strict"):
+            ok = [(st, d) for st, d in res["dtoc"].items() if d.get("ok") and d.get("nrmse") is not None]
+            cands = [(st, d) for st, d in ok if d["nrmse"] <= m["nrmse"]]
+            if cands:
+                row["ours"] = min(cands, key=lambda x: x[1]["t_fwd_bwd_s"])
+            elif ok:  # MRzero below dtoc's floor against this reference (model difference): dtoc's most accurate setting
+                best = min(d["nrmse"] for _, d in ok)
+                row["ours"] = min([x for x in ok if x[1]["nrmse"] <= best * 1.001], key=lambda x: x[1]["t_fwd_bwd_s"])
+                row["floor"] = True
+        rows.append(row)
+    return rows
+
+
 def report(results: list[dict], cmd: str) -> str:
-    """Two accuracy-matched pairs per case: dtoc default vs MRzero strict, dtoc fast() vs MRzero defaults."""
-    rows = ["| case | dtoc default fwd / fwd+bwd / RSS | MRzero strict fwd / fwd+bwd / RSS | speed-up (matched: default vs strict) "
-            "| dtoc fast() fwd / fwd+bwd / RSS | MRzero defaults fwd / fwd+bwd / RSS | speed-up (matched: fast() vs defaults) "
-            "| image NRMSE vs MRzero strict: dtoc default; dtoc fast(); MRzero defaults |",
+    """Matched-accuracy table (one row per case and MRzero setting) and the dtoc ladder per case."""
+    rows = ["| case (reference) | MRzero setting | MRzero NRMSE | MRzero fwd / fwd+bwd / RSS | cheapest dtoc setting with NRMSE <= MRzero's "
+            "| dtoc NRMSE | dtoc fwd / fwd+bwd / RSS (states) | speed-up fwd+bwd (fwd) |",
             "|---|---|---|---|---|---|---|---|"]
+
+    def trio(d):
+        return "not run" if not d else f"{_cell(d, 't_fwd_s')} / {_cell(d, 't_fwd_bwd_s')} / {_mem(d)}"
+
     for r in results:
-        od, of = r.get("ours_default"), r.get("ours_fast")
-        ms, md = r.get("mrzero_strict"), r.get("mrzero_defaults")
-
-        def trio(d):
-            return "not run" if not d else f"{_cell(d, 't_fwd_s')} / {_cell(d, 't_fwd_bwd_s')} / {_mem(d)}"
-
-        if ms and ms.get("nrmse_ours_vs_this") is not None:
-            acc = (f"{_pct(ms.get('nrmse_ours_vs_this'))}; {_pct(ms.get('nrmse_ours_fast_vs_this'))}; "
-                   f"{_pct((md or {}).get('nrmse_vs_strict'))}")
-        else:  # no MRzero strict run: accuracy of fast() against dtoc's default, and MRzero defaults against dtoc's default
-            acc = (f"(no strict run) fast() vs dtoc default {_pct((of or {}).get('nrmse_vs_ours_default'))}; "
-                   f"MRzero defaults vs dtoc default {_pct((md or {}).get('nrmse_ours_vs_this'))}")
-        rows.append(f"| {r['label']} | {trio(od)} | {trio(ms)} | {_ratio(ms, od)} | {trio(of)} | {trio(md)} | "
-                    f"{_ratio(md, of)} | {acc} |")
+        head = f"{r['label']} ({r.get('reference') or 'no reference'})"
+        mrows = matched(r)
+        if not mrows:
+            for st, d in r["dtoc"].items():
+                rows.append(f"| {head} | not run | - | - | {st} | {_pct(d.get('nrmse'))} | {trio(d)} ({d.get('n_states', '-')}) | - |")
+        for row in mrows:
+            m, lv = row["mr"], row["level"]
+            if lv == "strict" and r.get("reference") == "MRzero strict":
+                rows.append(f"| {head} | strict (= reference) | 0 | {trio(m)} | (dtoc strict: {_pct(r['dtoc'].get('strict', {}).get('nrmse'))}) | - | "
+                            f"{trio(r['dtoc'].get('strict'))} | {_ratio(m, r['dtoc'].get('strict'))} (converged vs converged) |")
+                continue
+            if row["ours"] is None:
+                if not m.get("ok"):  # MRzero failed/killed: show what dtoc does on the case
+                    for st, d in r["dtoc"].items():
+                        rows.append(f"| {head} | {lv} | - | {trio(m)} | {st} | {_pct(d.get('nrmse'))} | {trio(d)} ({d.get('n_states', '-')}) | "
+                                    f"MRzero {(m.get('killed') or m.get('error') or 'failed')[:40]} |")
+                else:
+                    rows.append(f"| {head} | {lv} | {_pct(m.get('nrmse'))} | {trio(m)} | none | - | - | - |")
+                continue
+            st, d = row["ours"]
+            if row.get("floor"):
+                st = f"{st} (dtoc's floor vs this reference: both converged, not a match)"
+            fwd = f"{m['t_fwd_s'] / d['t_fwd_s']:.1f}x" if m.get("t_fwd_s") and d.get("t_fwd_s") else "-"
+            ratio = f"{_ratio(m, d)} ({fwd})" if row.get("floor") else f"**{_ratio(m, d)}** ({fwd})"
+            rows.append(f"| {head} | {lv} | {_pct(m.get('nrmse'))} | {trio(m)} | {st} | {_pct(d.get('nrmse'))} | "
+                        f"{trio(d)} ({d.get('n_states', '-')}) | {ratio} |")
+    lad = ["", "dtoc settings per case (image NRMSE vs the case's reference; fwd+bwd time; states):", ""]
+    for r in results:
+        parts = [f"{st} {_pct(d.get('nrmse'))} / {_cell(d, 't_fwd_bwd_s')} / {d.get('n_states', '-')}" for st, d in r["dtoc"].items()]
+        lad.append(f"* {r['label']}: " + "; ".join(parts))
     notes = (
-        "\n\nAccuracy-matched pairs: dtoc's default `PDGConfig` (0.2-0.3 % image NRMSE against MRzero strict) is "
-        "timed against MRzero 'strict' (max_state_count 1e5, all thresholds 1e-7, Nyquist cut-off off for box voxels: "
-        "the accuracy of the test fixtures); dtoc's `PDGConfig.fast()` (1.2-1.5 %) against MRzero's documented "
-        "defaults (compute_graph 200 states / 1e-4, execute_graph 1e-2: 2.3-2.4 %, and they drop the box voxels' sinc "
-        "tails, see docs/metrics.md) -- in both pairs dtoc is the more accurate side. Both simulators run float32 "
-        "with the same thread count, each case in its own subprocess; peak RSS = whole process (Python + torch, "
-        "~0.3-0.5 GB before simulating), polled by the driver. Speed-up = MRzero fwd+bwd / dtoc fwd+bwd (loss "
-        "sum |s|^2, gradient w.r.t. all gradient moments). Times: minimum over up to 2 repeats (1 when a run "
-        "exceeds 20 s); 'killed' = above the memory cap or the time limit of the run."
+        "\n\nMatched accuracy: both simulators run a ladder of settings; every image (magnitude, `dtoc.sim.metrics.nrmse`) is "
+        "compared with one reference per case -- MRzero 'strict' (max_state_count 1e5, all thresholds 1e-7, Nyquist cut-off off "
+        "for box voxels) where it runs, else dtoc `PDGConfig.strict()` (which agrees with MRzero strict to 0.2-0.3 %). For each "
+        "MRzero setting the speed-up is MRzero's fwd+bwd time divided by that of the cheapest dtoc setting whose NRMSE is not "
+        "larger than MRzero's. MRzero settings: 'defaults' = its documented compute_graph(200 states, 1e-4) + execute_graph(1e-2) "
+        "(with its voxel-Nyquist cut-off, which drops the box voxels' sinc tails); 'mid3' = 1000 states, 1e-5 / 1e-3; 'mid4' = "
+        "5000 states, 1e-6 / 1e-4 (both without the cut-off). dtoc settings: presets `fast` (1e-4), `default` (1e-5), `strict` "
+        "(1e-8) and 'tX' = `PDGConfig(min_latent_signal=X, min_emitted_signal=X, min_magnitude=X/10)`. Against MRzero strict as "
+        "the reference, no dtoc setting can reach 0 (the two models differ by 0.2-0.3 %: the 'converged vs converged' row "
+        "compares each simulator's strict run instead). Both simulators run float32 (the reference: float64) with 1 torch "
+        "thread, each setting in its own subprocess; peak RSS = whole process (~0.3-0.5 GB before simulating), polled by the "
+        "driver, killed above the memory cap. Loss sum |s|^2, gradient w.r.t. all gradient moments. Times: minimum over 3 "
+        "repeats (1 when a run exceeds 20 s; MRzero strict 1). Issue 4 asks for >= 5x at matching accuracy on every case: "
+        "which rows reach it and why the others do not is discussed in docs/simulator.md ('Speed against MRzeroCore')."
     )
-    return "\n".join(rows) + notes
+    return "\n".join(rows) + "\n".join(lad) + notes
 
 
 def main(argv=None):
@@ -265,9 +358,10 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=1,
                     help="torch/OpenMP threads for every process, dtoc and MRzero alike (default 1: a fair, quiet comparison)")
     ap.add_argument("--mrzero-python", default="/tmp/mrzero_env/bin/python")
-    ap.add_argument("--mrzero-modes", default="strict,defaults")
+    ap.add_argument("--mrzero-modes", default=",".join(MR_ALL))
+    ap.add_argument("--dtoc-settings", default="", help="comma list restricting the dtoc settings (default: each case's ladder)")
     ap.add_argument("--cases", default=",".join(CASES))
-    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     ap.add_argument("--mem-limit-gb", type=float, default=8.0)
     ap.add_argument("--timeout-s", type=float, default=300.0)
@@ -284,6 +378,7 @@ def main(argv=None):
         print(f"MRzeroCore python {a.mrzero_python} not found: dtoc only", file=sys.stderr)
         a.mrzero_python = None
     a.mrzero_modes = [m for m in a.mrzero_modes.split(",") if m]
+    a.dtoc_settings = [m for m in a.dtoc_settings.split(",") if m]
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = str(a.threads)  # inherited by both simulators' subprocesses
     results = []

@@ -51,6 +51,9 @@ class PDGConfig:
             magnitude over six probe voxels: mean and longest T1/T2, B1 range) or 'pd' (PD-weighted
             mean magnitude over up to 16 (T1, T2) clusters of the phantom: a pathway living only in
             CSF counts with the CSF fraction; fewer states, an estimate of the object-level signal).
+        compress_tissues: propagate the amplitudes once per distinct (T1, T2, D, B1, initial Mz/PD)
+            tuple of the phantom instead of once per voxel (exact: the amplitudes depend on nothing
+            else and scale with PD; True, default); False = per voxel (reference path for tests).
     """
 
     min_magnitude: float = 1e-6
@@ -67,6 +70,7 @@ class PDGConfig:
     object_spectrum: bool = True
     probe_weighting: str = "max"
     checkpoint_bytes: float = 2e9
+    compress_tissues: bool = True
 
     @classmethod
     def fast(cls, **overrides) -> "PDGConfig":

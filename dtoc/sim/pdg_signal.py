@@ -13,7 +13,7 @@ evaluations: 'direct' (exact exponentials of every (state, sample, voxel) triple
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -46,6 +46,8 @@ class VoxelData:
     has_b0: bool
     has_t2d: bool
     has_diffusion: bool
+    # per-simulate cache of constant signal-kernel factors (see :func:`_time_factor`)
+    cache: dict = field(default_factory=dict, repr=False)
 
     @property
     def n(self) -> int:
@@ -54,6 +56,30 @@ class VoxelData:
     @property
     def n_coils(self) -> int:
         return 1 if self.coil is None else int(self.coil.shape[0])
+
+    def ix_t(self) -> torch.Tensor:
+        """(V,) column index of every simulated voxel on the grid (torch, cached)."""
+        t = self.cache.get("ix")
+        if t is None:
+            t = self.cache["ix"] = torch.as_tensor(self.ix, device=self.pd.device)
+        return t
+
+    def iy_t(self) -> torch.Tensor:
+        """(V,) row index of every simulated voxel on the grid (torch, cached)."""
+        t = self.cache.get("iy")
+        if t is None:
+            t = self.cache["iy"] = torch.as_tensor(self.iy, device=self.pd.device)
+        return t
+
+    def spatial_phase(self, kx: torch.Tensor, ky: torch.Tensor) -> torch.Tensor:
+        """(..., V) complex exp(-i (kx x_v + ky y_v)) for k (...,) in rad/m, separably.
+
+        exp(-i kx x) exp(-i ky y) on the Cartesian voxel grid: (... x (nx + ny)) exponentials and one
+        complex multiply per voxel instead of one complex exponential per voxel.
+        """
+        shape = kx.shape
+        out = _SpatialPhase.apply(kx.reshape(-1), ky.reshape(-1), self.xg, self.yg, self.ix_t(), self.iy_t(), self.x, self.y)
+        return out.reshape(*shape, self.n)
 
     @classmethod
     def from_phantom(cls, ph, initial_mz, dtype, device, cfg) -> "VoxelData":
@@ -99,6 +125,35 @@ class VoxelData:
         E = torch.exp(torch.complex(mag, ph))
         vf = voxel_factor(K, self).to(A.dtype)
         return (A * E * vf[:, None]).sum(0).real
+
+
+class _SpatialPhase(torch.autograd.Function):
+    """exp(-i (kx x_v + ky y_v)) (M, V) from per-axis factors, with a fused adjoint.
+
+    Forward: (nx, M) and (ny, M) factors, gathered by rows (contiguous copies), multiplied in the
+    voxel-major layout and transposed once.  Backward (torch's convention, G = dL/dRe +
+    i dL/dIm): dL/dkx = sum_v x_v Im(conj(G) SP), dL/dky = sum_v y_v Im(conj(G) SP) -- one complex
+    product and two matrix-vector products instead of the generic chain.
+    """
+
+    @staticmethod
+    def forward(ctx, kx, ky, xg, yg, ix, iy, x, y):
+        sp = (_cis(-xg[:, None] * kx[None, :]).index_select(0, ix) * _cis(-yg[:, None] * ky[None, :]).index_select(0, iy)).T.contiguous()
+        ctx.save_for_backward(sp, x, y)
+        return sp  # (M, V)
+
+    @staticmethod
+    def backward(ctx, G):
+        sp, x, y = ctx.saved_tensors
+        q = (G.conj() * sp).imag  # (M, V)
+        gx = q @ x if ctx.needs_input_grad[0] else None
+        gy = q @ y if ctx.needs_input_grad[1] else None
+        return gx, gy, None, None, None, None, None, None
+
+
+def _cis(phase: torch.Tensor) -> torch.Tensor:
+    """exp(i phase) (complex, differentiable; cos + i sin, no exponential of the zero real part)."""
+    return torch.polar(torch.ones_like(phase), phase)
 
 
 def voxel_factor(k: torch.Tensor, vox: VoxelData) -> torch.Tensor:
@@ -309,7 +364,7 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
                 G = torch.cat(res, 1) if len(res) > 1 else res[0]
                 Gs = torch.split(G, [Co * c for c in counts], 0)
             else:  # one kernel, one product per Taylor term (no concatenated copy of the weights)
-                KernT = _kernel(mt_r, dtr, rate, vox).T
+                KernT = _kernel(mt_r, dtr, rate, vox, _time_key(dtt, sgn if use_t2d else 0.0)).T
                 Gs = [m @ KernT for m in mats]
         s = Gs[0].reshape(Co, J, T)
         if dif is not None and dif[2]:
@@ -351,11 +406,46 @@ def _subset(iv, mask: np.ndarray):
     return sub
 
 
-def _kernel(mt_r, dtr, rate, vox: VoxelData) -> torch.Tensor:
-    """(t, V) kernel Kern(t, v) = exp(-dt rate - i (m(t).r + omega dt))."""
+def _kernel(mt_r, dtr, rate, vox: VoxelData, key=None) -> torch.Tensor:
+    """(t, V) kernel Kern(t, v) = exp(-dt rate - i (m(t).r + omega dt)).
+
+    With ``key`` (hashable: the kernel class and the sample times), the factor
+    exp(-dt (rate + i omega)), which depends on the fixed ADC times only (no gradient), is computed
+    once per simulate call and reused by every interval with the same sample times relative to its
+    start (every TR of a GRE); the moment-dependent spatial part exp(-i m(t).r) is separable on the
+    voxel grid (:meth:`VoxelData.spatial_phase`: t x (nx + ny) exponentials).  Same values as the
+    direct formula up to rounding.
+    """
+    if key is not None:
+        tf = _time_factor(dtr, rate, vox, key)
+        if tf is not None:
+            return vox.spatial_phase(mt_r[:, 0], mt_r[:, 1]) * tf
     kph = -(mt_r[:, 0:1] * vox.x[None] + mt_r[:, 1:2] * vox.y[None] + dtr[:, None] * vox.omega[None])
     # clamp: the mirrored (tau < 0) kernel grows as exp(+dt/T2'); only masked-out samples can get there
     return torch.exp(torch.complex(torch.clamp(-dtr[:, None] * rate[None], max=80.0), kph))
+
+
+_TIME_FACTOR_CACHE_ELEMS = 2**24  # largest total size (complex elements) of the cached time factors per simulate call
+
+
+def _time_factor(dtr, rate, vox: VoxelData, key):
+    """Cached (t, V) exp(-dt (rate + i omega)) (constant: no autograd), or None when the cache is full."""
+    ck = ("tf", key)
+    tf = vox.cache.get(ck)
+    if tf is None:
+        used = vox.cache.get("tf_elems", 0)
+        if used + dtr.numel() * vox.n > _TIME_FACTOR_CACHE_ELEMS:
+            return None
+        with torch.no_grad():
+            tf = torch.exp(torch.complex(torch.clamp(-dtr[:, None] * rate[None], max=80.0), -dtr[:, None] * vox.omega[None]))
+        vox.cache[ck] = tf
+        vox.cache["tf_elems"] = used + tf.numel()
+    return tf
+
+
+def _time_key(dtt: np.ndarray, sgn: float):
+    """Hashable key of an interval's ADC sample times relative to its start (rounded to 1e-15 s) and kernel class."""
+    return (float(sgn), dtt.size, np.round(np.asarray(dtt) * 1e15).astype(np.int64).tobytes())
 
 
 def _kernel_product(Cm, mt_r, dtr, rate, vox: VoxelData) -> torch.Tensor:
