@@ -122,7 +122,10 @@ def _print_summary(m: dict) -> None:
             return "-"
         return f"{100 * v:.3f} %" if pct else f"{v:.4g}"
 
-    for key, pct in (("nrmse", True), ("ghost_ratio", True), ("kspace_rmse_rad_per_m", False), ("kspace_max_dk", False)):
+    for key, pct in (("nrmse", True), ("ghost_ratio", True), ("ghost_ratio_excess", True),
+                     ("kspace_rmse_rad_per_m", False), ("kspace_max_dk", False)):
+        if key == "ghost_ratio_excess" and m["after"].get(key) is None:
+            continue  # EPI only: ghost ratio above the ideal image's own (docs/optimize.md)
         t.add_row(key, f(m["before"].get(key), pct), f(m["after"].get(key), pct))
     t.add_row("samples_discarded", "0", str(m["samples_discarded"]))
     _console().print(t)
