@@ -54,6 +54,10 @@ class PDGConfig:
         compress_tissues: propagate the amplitudes once per distinct (T1, T2, D, B1, initial Mz/PD)
             tuple of the phantom instead of once per voxel (exact: the amplitudes depend on nothing
             else and scale with PD; True, default); False = per voxel (reference path for tests).
+        fused_signal_adjoint: evaluate the batched 'gemm' signal's state x kernel products as one
+            autograd node with a hand-written adjoint (:class:`dtoc.sim.pdg_signal_batch._BatchedGemm`:
+            fewer passes over the state x voxel arrays in the backward pass); False = generic
+            autograd chain.  Same result up to rounding (tests/test_sim_perf_equivalence.py).
     """
 
     min_magnitude: float = 1e-6
@@ -71,6 +75,7 @@ class PDGConfig:
     probe_weighting: str = "max"
     checkpoint_bytes: float = 2e9
     compress_tissues: bool = True
+    fused_signal_adjoint: bool = True
 
     @classmethod
     def fast(cls, **overrides) -> "PDGConfig":

@@ -17,7 +17,10 @@ rows: states are sorted by (class, interval, descending order)).  The spatial ex
 separable on the voxel grid, the tau factor is evaluated once per distinct tau, and the time factor
 exp(-dt (...)) of the kernel, which depends on the fixed ADC times only, is shared by all intervals
 with the same sample times.  Equal to the per-interval evaluation up to rounding
-(tests/test_sim_perf_signal.py).
+(tests/test_sim_perf_equivalence.py).  With ``PDGConfig.fused_signal_adjoint`` (default) the weights,
+kernels and products of a batch are one autograd node with a hand-written adjoint
+(:class:`_BatchedGemm`); otherwise torch's generic chain (the reference in
+tests/test_sim_perf_equivalence.py).
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import numpy as np
 import torch
 
 from dtoc.sim import pdg_signal as _sig
-from dtoc.sim.pdg_signal import _DIFF_TAYLOR_MAX, _time_factor, _time_key, voxel_factor
+from dtoc.sim.pdg_signal import _DIFF_TAYLOR_MAX, _cis, _time_factor, _time_key, voxel_factor
 
 
 def _taylor_orders(xs: np.ndarray, tol: float) -> np.ndarray:
@@ -96,7 +99,11 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg) -> list:
         far = xs > _DIFF_TAYLOR_MAX
         orders = _taylor_orders(xs, cfg.taylor_tol)
         orders[far] = -1
-        ndl = (-Dmax * delta).to(rdt).to(cdt)  # (J, T), |.| <= _DIFF_TAYLOR_MAX for the expanded states
+        ndl = (-Dmax * delta).to(rdt)  # (J, T) real, |.| <= _DIFF_TAYLOR_MAX for the expanded states
+
+    if getattr(cfg, "fused_signal_adjoint", False):
+        out = _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np, Dmax, vox, G, Co, T, rdt)
+        return _finish(out, vf, own, items, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg)
 
     # weights common to both kernel classes: A exp(-i k.r) exp(-D b_mid)
     W = Y * vox.spatial_phase(Kj[:, 0].to(rdt), Kj[:, 1].to(rdt))
@@ -174,6 +181,11 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg) -> list:
                 m = plus[in_c] if sgn > 0 else ~plus[in_c]
                 s_c = s_c * torch.as_tensor(m, device=dev).to(rdt)[:, None, :]
             out = out.index_add(0, rows_c, s_c)
+    return _finish(out, vf, own, items, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg)
+
+
+def _finish(out, vf, own, items, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg) -> list:
+    """Voxel factor, sum of the states per interval, exact evaluation of the far (strong-diffusion) states."""
     out = out * vf[:, None, :]
     sig = torch.zeros((G, Co, T), dtype=cdt, device=dev).index_add(0, own, out)
     res = list(sig.unbind(0))
@@ -187,3 +199,235 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg) -> list:
                 sub.emit = ivv.emit[f]
                 res[g] = res[g] + _sig.emit_signal_direct(sub, Yg, Kg, mom, n, vox, graph, bounds_t, cfg)
     return res
+
+
+def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np, Dmax, vox, G, Co, T, rdt):
+    """(J, Co, T) products of the expanded states through :class:`_BatchedGemm` (same terms and order as the generic path)."""
+    dev = Y.device
+    V = vox.n
+    empty = torch.zeros(0, dtype=rdt, device=dev)
+    utau, tinv = np.unique(tau, return_inverse=True)
+    utau_t = torch.as_tensor(utau, dtype=rdt, device=dev)
+    tinv = tinv.reshape(-1)
+    dtr = torch.as_tensor(dtt, dtype=rdt, device=dev)
+    tfs = {}
+    for sgn in ((1.0, -1.0) if vox.has_t2d else (1.0,)):
+        rate = vox.r2 + (sgn * vox.r2d if vox.has_t2d else 0.0)
+        keys = [_time_key(dtt[g], sgn if vox.has_t2d else 0.0) for g in range(G)]
+        tl = [_time_factor(dtr[g], rate, vox, k) for g, k in enumerate(keys)]
+        if any(t is None for t in tl):
+            tl = [torch.exp(torch.complex(torch.clamp(-dtr[g][:, None] * rate[None], max=80.0), -dtr[g][:, None] * vox.omega[None]))
+                  for g in range(G)]
+        tfs[sgn] = tl[0].T[:, None, :] if all(k == keys[0] for k in keys) else torch.stack(tl, 0).permute(2, 0, 1)  # (V, 1|G, T)
+    dn = vox.d / Dmax
+    steps = []
+    expanded = ~far
+    for c, signs in ((0, (1.0,)), (1, (-1.0,)), (2, (1.0, -1.0))):
+        in_c = np.where((cls == c) & expanded)[0]
+        if not in_c.size:
+            continue
+        in_c = in_c[np.lexsort((-orders[in_c], own_np[in_c]))]
+        rows_c = torch.as_tensor(in_c, device=dev)
+        for sgn in signs:
+            if not vox.has_t2d:
+                sgn = 1.0
+            Pt = torch.exp(torch.complex(torch.clamp(-sgn * utau_t[:, None] * vox.r2d[None], max=80.0) if vox.has_t2d
+                                         else torch.zeros((utau.size, V), dtype=rdt, device=dev),
+                                         -utau_t[:, None] * vox.omega[None]))
+            Pt_rows = Pt.index_select(0, torch.as_tensor(tinv[in_c], device=dev))
+            mask_c = None
+            if c == 2:
+                mask_c = torch.as_tensor(plus[in_c] if sgn > 0 else ~plus[in_c], device=dev).to(rdt)
+            ords = []
+            dr = None
+            for r in range(int(orders[in_c].max(initial=0)) + 1):
+                pos = np.where(orders[in_c] >= r)[0]
+                if not pos.size:
+                    break
+                if r > 0:
+                    dr = dn if dr is None else dr * dn
+                ow = own_np[in_c[pos]]
+                cuts = np.flatnonzero(np.diff(ow)) + 1
+                starts = np.concatenate([[0], cuts]).astype(np.int64)
+                ends = np.concatenate([cuts, [ow.size]]).astype(np.int64)
+                pos_t = torch.as_tensor(pos, device=dev)
+                ords.append(dict(pos_t=pos_t, rows_t=torch.as_tensor(in_c[pos], device=dev), dr=dr, sizes=(ends - starts).tolist(),
+                                 ivs=[int(ow[a]) for a in starts], fact=float(np.prod(np.arange(1, r + 1))),
+                                 mask=None if mask_c is None else (mask_c if r == 0 else mask_c.index_select(0, pos_t))))
+            steps.append(dict(rows=rows_c, sgn=sgn, Pt=Pt_rows, orders=ords))
+    # kernels only for the intervals with states of each sign; block interval -> kernel row
+    used = {sg: sorted({g for st in steps if st["sgn"] == sg for rr in st["orders"] for g in rr["ivs"]}) for sg in tfs}
+    used = {sg: u for sg, u in used.items() if u}
+    for st in steps:
+        row = {g: i for i, g in enumerate(used[st["sgn"]])}
+        for rr in st["orders"]:
+            rr["kix"] = [row[g] for g in rr["ivs"]]
+    plan = dict(vox=vox, Co=Co, tfs={sg: tfs[sg] for sg in used}, used=used, steps=steps)
+    bm_r = empty if bm is None else bm.to(rdt)
+    ndl_r = empty if ndl is None else ndl
+    return _BatchedGemm.apply(Y, Kj[:, 0].to(rdt), Kj[:, 1].to(rdt), bm_r, mt[:, :, 0].to(rdt), mt[:, :, 1].to(rdt), ndl_r, plan)
+
+
+class _BatchedGemm(torch.autograd.Function):
+    """The state x kernel products of :func:`emit_signal_batched` as one autograd node (hand-written adjoint).
+
+    Inputs (differentiable): Y (J, V) complex amplitudes; kx, ky (J,) rad/m (state k); bm (J,) s/m^2
+    (b at the window centre; empty: no diffusion); mtx, mty (G, T) rad/m (in-interval k of the
+    samples); ndl (J, T) real (-Dmax delta_j(t), the Taylor variable; empty: no diffusion).
+    ``plan`` (not differentiable) holds the voxel constants and the row bookkeeping.
+    Output: (J, Co, T) complex, sum over voxels of W_j(v) Kern_n(t, v) exp(-D(v) delta_j(t)) per class,
+    exactly as the generic path (same terms, same order of the products).
+
+    Adjoint (torch's convention, G = dL/dRe + i dL/dIm, real inputs get Re(conj(G) dz/dx)):
+    with W = Y E, E = exp(-i (kx x + ky y)) exp(-bm D): dL/dY = G_W conj(E),
+    dL/dkx = sum_v x Im(conj(G_W) W), dL/dbm = -sum_v D Re(conj(G_W) W); for the kernel
+    K = coil exp(-i (mx x + my y)) tf: dL/dmx = sum_v x Im(sum_coils conj(G_K) K) (same for y);
+    the products Z = Cr @ K^T give G_Cr = G_Z @ conj(K), G_K = G_Z^T @ conj(Cr); the Taylor weights
+    w = ndl^r / r! (times the class-2 mask m) give dL/dndl = m r ndl^(r-1)/r! Re(sum_coils G_Z conj(Z_raw)).
+    Saved: W, E, the kernels per sign in voxel-major layout (V, nK * Co * T; only the nK intervals
+    with states of that sign) and the raw products of orders >= 1 (J x Co x T); C = W Pt and the
+    order-r rows are recomputed (one pass each) instead of saved.  The backward carries conjugated
+    cotangents so no conjugated copy of a kernel or weight array is formed.
+    """
+
+    @staticmethod
+    def forward(ctx, Y, kx, ky, bm, mtx, mty, ndl, plan):
+        vox = plan["vox"]
+        E = vox.spatial_phase(kx, ky)
+        if bm.numel():
+            E = E * torch.exp(-bm[:, None] * vox.d[None, :])
+        W = Y * E
+        G, T = mtx.shape
+        Co = plan["Co"]
+        # kernels in voxel-major layout KT (V, nK * Co * T) = exp(-i (mx x + my y)) tf (coil): the
+        # per-axis factors are gathered by voxel rows (no transposed copy); interval k's kernel is the
+        # column block [k Co T, (k + 1) Co T), a strided (V, Co T) operand of the products
+        SPT = (_cis(-vox.xg[:, None] * mtx.reshape(1, -1)).index_select(0, vox.ix_t())
+               * _cis(-vox.yg[:, None] * mty.reshape(1, -1)).index_select(0, vox.iy_t())).reshape(-1, G, T)
+        Ks = {}
+        signs = list(plan["tfs"])
+        for i, sgn in enumerate(signs):
+            u, tfT = plan["used"][sgn], plan["tfs"][sgn]  # tfT (V, 1 or G, T)
+            if len(u) == G:
+                K = SPT.mul_(tfT) if (i == len(signs) - 1 and vox.coil is None) else SPT * tfT
+            else:
+                ut = torch.as_tensor(u, device=SPT.device)
+                K = SPT.index_select(1, ut) * (tfT if tfT.shape[1] == 1 else tfT.index_select(1, ut))
+            if vox.coil is not None:
+                K = vox.coil.T[:, None, :, None] * K[:, :, None, :]  # (V, nK, Co, T)
+            Ks[sgn] = K.reshape(K.shape[0], -1)
+        J = W.shape[0]
+        CT = Co * T
+        out = torch.zeros((J, Co, T), dtype=W.dtype, device=W.device)
+        raws = []
+        for st in plan["steps"]:
+            C = W.index_select(0, st["rows"]) * st["Pt"]
+            K = Ks[st["sgn"]]
+            s_c = None
+            for r, rr in enumerate(st["orders"]):
+                Cr = C if r == 0 else C.index_select(0, rr["pos_t"]) * rr["dr"][None, :]
+                blocks = torch.split(Cr, rr["sizes"], 0)
+                Gr = torch.cat([blk @ K[:, g * CT:(g + 1) * CT] for blk, g in zip(blocks, rr["kix"])], 0).reshape(-1, Co, T)
+                w = rr["mask"]
+                if r > 0:
+                    raws.append(Gr)
+                    wr = ndl.index_select(0, rr["rows_t"]) ** r / rr["fact"]
+                    w = wr if w is None else w * wr
+                if w is not None:
+                    Gr = Gr * w[:, None, :]
+                s_c = Gr if r == 0 else s_c.index_add(0, rr["pos_t"], Gr)
+            out.index_add_(0, st["rows"], s_c)
+        ctx.plan, ctx.Ks, ctx.GT = plan, Ks, (G, T)
+        ctx.save_for_backward(W, E, ndl, *raws)
+        return out
+
+    @staticmethod
+    def backward(ctx, gout):
+        # conjugated cotangents throughout (gKc = conj(G_K), gWc = conj(G_W)): the products need no
+        # conjugated copies of the (G, Co*T, V) kernels or the (J, V) weights
+        plan, Ks = ctx.plan, ctx.Ks
+        W, E, ndl, *raws = ctx.saved_tensors
+        vox = plan["vox"]
+        Co = plan["Co"]
+        J, V = W.shape
+        G, T = ctx.GT
+        need_y, need_kx, need_ky, need_bm, need_mx, need_my, need_ndl = ctx.needs_input_grad[:7]
+        need_k = need_mx or need_my
+        goutc = gout.conj()
+        gWc = torch.zeros_like(W)
+        CT = Co * T
+        gKcs = {s: torch.zeros_like(K) for s, K in Ks.items()} if need_k else {}  # conj(G_K), voxel-major
+        gndl = torch.zeros_like(ndl) if need_ndl else None
+        ri = 0
+        for st in plan["steps"]:
+            C = W.index_select(0, st["rows"]) * st["Pt"]
+            K = Ks[st["sgn"]]
+            gKc = gKcs.get(st["sgn"])
+            g_c = goutc.index_select(0, st["rows"])  # conj(G_out) of the step's rows
+            gCc = torch.empty_like(C)  # every row written by the order-0 products
+            for r, rr in enumerate(st["orders"]):
+                g_r = g_c if r == 0 else g_c.index_select(0, rr["pos_t"])
+                w = rr["mask"]
+                if r > 0:
+                    raw = raws[ri]
+                    ri += 1
+                    nd = ndl.index_select(0, rr["rows_t"])
+                    if need_ndl:
+                        dw = (r * nd ** (r - 1)) / rr["fact"]
+                        if w is not None:
+                            dw = dw * w
+                        gndl.index_add_(0, rr["rows_t"], (g_r * raw).real.sum(1) * dw)  # Re(conj(G) raw) = Re(G conj(raw))
+                    wr = nd ** r / rr["fact"]
+                    w = wr if w is None else w * wr
+                if w is not None:
+                    g_r = g_r * w[:, None, :]
+                gz = g_r.reshape(g_r.shape[0], Co * T)
+                Cr = C if r == 0 else C.index_select(0, rr["pos_t"]) * rr["dr"][None, :]
+                a = 0
+                if r == 0:
+                    for n_b, g in zip(rr["sizes"], rr["kix"]):
+                        b = gz[a:a + n_b]
+                        torch.mm(b, K[:, g * CT:(g + 1) * CT].T, out=gCc[a:a + n_b])
+                        if gKc is not None:
+                            gKc[:, g * CT:(g + 1) * CT].addmm_(Cr[a:a + n_b].T, b)
+                        a += n_b
+                else:
+                    parts = []
+                    for n_b, g in zip(rr["sizes"], rr["kix"]):
+                        b = gz[a:a + n_b]
+                        parts.append(b @ K[:, g * CT:(g + 1) * CT].T)
+                        if gKc is not None:
+                            gKc[:, g * CT:(g + 1) * CT].addmm_(Cr[a:a + n_b].T, b)
+                        a += n_b
+                    gCc.index_add_(0, rr["pos_t"], torch.cat(parts, 0) * rr["dr"][None, :])
+            gWc.index_add_(0, st["rows"], gCc * st["Pt"])
+        gY = (gWc * E).conj() if need_y else None
+        gkx = gky = gbm = None
+        if need_kx or need_ky or need_bm:
+            P = gWc * W
+            if need_kx or need_ky:
+                q = P.imag
+                gkx = q @ vox.x if need_kx else None
+                gky = q @ vox.y if need_ky else None
+            if need_bm:
+                gbm = -(P.real @ vox.d)
+        gmx = gmy = None
+        if need_k:
+            Q = None  # (V, G, T): sum over signs and coils of conj(G_K) K
+            for s_, K in sorted(Ks.items(), key=lambda kv: -kv[1].shape[1]):  # full kernels first
+                q = gKcs[s_].mul_(K).reshape(V, -1, Co, T)
+                q = q[:, :, 0] if Co == 1 else q.sum(2)
+                u = plan["used"][s_]
+                if len(u) == G:
+                    Q = q if Q is None else Q.add_(q)
+                else:
+                    if Q is None:
+                        Q = torch.zeros((V, G, T), dtype=q.dtype, device=q.device)
+                    Q.index_add_(1, torch.as_tensor(u, device=q.device), q)
+            if Q is None:  # no expanded state (all evaluated exactly)
+                Q = torch.zeros((V, G, T), dtype=W.dtype, device=W.device)
+            xy = torch.stack([vox.x, vox.y], 0).to(Q.dtype)  # (2, V)
+            m = (xy @ Q.reshape(V, G * T)).imag.reshape(2, G, T)
+            gmx = m[0].contiguous() if need_mx else None
+            gmy = m[1].contiguous() if need_my else None
+        return gY, gkx, gky, gbm, gmx, gmy, gndl, None
