@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from dtoc.sim.pdg_rfsplit import _groups, _split, _split_adjoint
+from dtoc.sim.pdg_rfsplit import _groups, _split, _split_adjoint, add_rows_
 
 
 @dataclass
@@ -84,7 +84,7 @@ def _rf(step: Step, A_end: torch.Tensor, rec: torch.Tensor) -> torch.Tensor:
     A = _split(A_end, step.coefs, step.groups, step.n_next)
     if step.eq_edges is not None:
         rows, child = step.eq_edges
-        A.index_add_(0, child, step.coefs.index_select(0, rows) * rec.to(A.dtype)[None, :])
+        add_rows_(A, child, step.coefs.index_select(0, rows) * rec.to(A.dtype)[None, :])
     return A
 
 
@@ -161,7 +161,7 @@ class _Propagate(torch.autograd.Function):
             if g is not None:
                 if lam is None:
                     lam = torch.zeros((st.S, g.shape[1]), dtype=g.dtype, device=g.device)
-                lam.index_add_(0, st.emit, g)
+                add_rows_(lam, st.emit, g)
         return (None, None, None, *grads_b)
 
 
@@ -194,7 +194,7 @@ def make_steps(graph, ir, vox, bounds_t, cdtype, with_signal: bool, rf_coefficie
             key = (rf.flip_angle_rad, rf.phase_rad)
             coefs = coef_cache.get(key)
             if coefs is None:
-                coefs = coef_cache[key] = rf_coefficients(rf.flip_angle_rad, rf.phase_rad, vox.b1, cdtype)
+                coefs = coef_cache[key] = rf_coefficients(rf.flip_angle_rad, rf.phase_rad, vox.b1, cdtype, coef_cache)
             nxt = graph.intervals[n + 1]
             # edge groups depend on the graph only: built once per graph and device (private cache on the graph)
             cache = graph.__dict__.setdefault("_torch_cache", {})

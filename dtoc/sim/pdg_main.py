@@ -30,8 +30,22 @@ def _complex_dtype(dtype):
     raise InputError(f"simulate: dtype must be torch.float32 or torch.float64, got {dtype}")
 
 
-def rf_coefficients(flip_rad: float, phase_rad: float, b1: torch.Tensor, cdtype) -> torch.Tensor:
-    """(6, V) complex edge coefficients of one RF pulse per voxel (kinds of the pdg_graph table)."""
+def rf_coefficients(flip_rad: float, phase_rad: float, b1: torch.Tensor, cdtype, cache: dict | None = None) -> torch.Tensor:
+    """(6, V) complex edge coefficients of one RF pulse per voxel (kinds of the pdg_graph table).
+
+    ``cache``: optional dict; the phase-free rows (trigonometry of the B1-scaled flip, (6, V)) are
+    kept there per flip angle and each pulse only multiplies them by its 6 phase factors (RF spoiling
+    gives every pulse its own phase, not its own flip).
+    """
+    if cache is not None:
+        key = ("rf_base", float(flip_rad))
+        base = cache.get(key)
+        if base is None:
+            base = cache[key] = rf_coefficients(flip_rad, 0.0, b1, cdtype)
+        e1 = complex(np.cos(phase_rad), np.sin(phase_rad))
+        e2 = complex(np.cos(2 * phase_rad), np.sin(2 * phase_rad))
+        ph = torch.tensor([1.0, e2, e1.conjugate(), e1, e1, 1.0], dtype=cdtype, device=base.device)
+        return base * ph[:, None]
     a = flip_rad * b1
     s = torch.sin(a)
     c = torch.cos(a)
@@ -256,7 +270,7 @@ def _loop(ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_sign
         with torch.no_grad():
             _, A, _ = propagate(steps, A0, bs, tis.d, rec, True, "none")
         return [], tis.expand(A), K
-    batcher = _SignalBatcher(graph, steps, Ks, mom, vox, bounds_t, cfg, tis.expand)
+    batcher = _SignalBatcher(graph, steps, _emitting_k(Ks, steps), mom, vox, bounds_t, cfg, tis.expand)
     if not torch.is_grad_enabled() or not any(b is not None and b.requires_grad for b in bs):
         # amplitudes do not depend on the gradient waveform (no diffusion, or no autograd): stream,
         # each interval's emitting rows go to the signal batcher as they are reached
@@ -320,14 +334,33 @@ def _tissue_classes(vox, cfg) -> _Tissues:
 _BATCH_ELEMS = 2**21
 
 
+def _emitting_k(Ks, steps):
+    """k of the emitting states of every interval (list, None where none emits): one gather from the
+    concatenated k of all intervals (one autograd node instead of one per interval)."""
+    if not Ks:
+        return []
+    dev = Ks[0].device
+    emit_n = [n for n, st in enumerate(steps) if n < len(Ks) and st.emit is not None]
+    out = [None] * len(Ks)
+    if not emit_n:
+        return out
+    offs = np.concatenate([[0], np.cumsum([k.shape[0] for k in Ks])])
+    idx = torch.cat([steps[n].emit + int(offs[n]) for n in emit_n])
+    K_emit = torch.cat(Ks, 0).index_select(0, idx)
+    for n, Kj in zip(emit_n, torch.split(K_emit, [int(steps[n].emit.numel()) for n in emit_n], 0)):
+        out[n] = Kj
+    return out
+
+
 class _SignalBatcher:
     """Collects the emitting amplitudes of the intervals and evaluates their signals: 'gemm' intervals
     batched by their number of ADC samples (:mod:`dtoc.sim.pdg_signal_batch`), in batches bounded by
     the kernels (G x C x T x V) and weights (sum of J x V) they form (2**21 elements); 'direct' /
     'separable' intervals and very large kernels one by one."""
 
-    def __init__(self, graph, steps, Ks, mom, vox, bounds_t, cfg, expand=None):
-        self.graph, self.steps, self.Ks, self.mom, self.vox, self.bounds_t, self.cfg = graph, steps, Ks, mom, vox, bounds_t, cfg
+    def __init__(self, graph, steps, Kjs, mom, vox, bounds_t, cfg, expand=None):
+        """``Kjs``: per interval, the k (J, 4) of its emitting states (see :func:`_emitting_k`)."""
+        self.graph, self.steps, self.Kjs, self.mom, self.vox, self.bounds_t, self.cfg = graph, steps, Kjs, mom, vox, bounds_t, cfg
         self.expand = expand or (lambda A: A)
         self.budget = 4 * cfg.chunk_elems  # larger kernels: per-interval path (chunked, checkpointed)
         # batches of ~2M complex elements: large enough to amortise the per-operation overhead, small
@@ -338,27 +371,26 @@ class _SignalBatcher:
 
     def add(self, n: int, Y: torch.Tensor) -> None:
         iv, vox, cfg = self.graph.intervals[n], self.vox, self.cfg
-        Y = self.expand(Y)
-        Kj = self.Ks[n].index_select(0, self.steps[n].emit)
+        Kj = self.Kjs[n]
         T = iv.adc_stop - iv.adc_start
         method = cfg.signal_method
         if method == "auto":
             method = "separable" if (T >= 256 and iv.emit.size <= 8) else "gemm"
         if method != "gemm" or vox.n_coils * T * vox.n > self.budget:
-            self.pieces.append((iv.adc_start, emit_signal(_emit_view(iv), Y, Kj, self.mom, n, vox, self.graph, self.bounds_t, cfg)))
+            self.pieces.append((iv.adc_start, emit_signal(_emit_view(iv), self.expand(Y), Kj, self.mom, n, vox, self.graph, self.bounds_t, cfg)))
             return
         cost = vox.n_coils * vox.n * (T + Y.shape[0])
         items, used = self.pending.get(T, ([], 0))
         if items and used + cost > self.batch_elems:
             self._flush(items)
             items, used = [], 0
-        items.append((n, _emit_view(iv), Y, Kj))
+        items.append((n, _emit_view(iv), Y, Kj))  # Y per tissue tuple: expanded to voxels once per batch
         self.pending[T] = (items, used + cost)
 
     def _flush(self, items) -> None:
         from dtoc.sim.pdg_signal_batch import emit_signal_batched
 
-        for (n, ivv, _, _), s in zip(items, emit_signal_batched(items, self.mom, self.vox, self.graph, self.bounds_t, self.cfg)):
+        for (n, ivv, _, _), s in zip(items, emit_signal_batched(items, self.mom, self.vox, self.graph, self.bounds_t, self.cfg, self.expand)):
             self.pieces.append((ivv.adc_start, s))
 
     def finish(self) -> list:

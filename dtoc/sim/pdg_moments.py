@@ -51,8 +51,12 @@ def _k_waveform(grad_mT_per_m: torch.Tensor, b0_uT: torch.Tensor | None) -> torc
 
 
 def compute_moments(grad_mT_per_m: torch.Tensor, b0_uT: torch.Tensor | None, dt_s: float, bound_t_s: np.ndarray,
-                    adc_t_s: np.ndarray, diffusion: bool) -> Moments:
+                    adc_t_s: np.ndarray, diffusion: bool, fused: bool = True) -> Moments:
     """Running k-integrals (and diffusion moments) at the interval bounds and ADC samples.
+
+    With ``fused`` (default) the integrals are one autograd node with a hand-written adjoint
+    (:class:`_MomentsAt`: no zero-filled full-length gradients per slice / gather); ``fused=False``
+    is the generic-autograd reference (same values, tests only).
 
     Args:
         grad_mT_per_m: (3, M) fine-grid gradient, mT/m (any float dtype/device; differentiable).
@@ -61,6 +65,15 @@ def compute_moments(grad_mT_per_m: torch.Tensor, b0_uT: torch.Tensor | None, dt_
         bound_t_s: (NI+1,) interval bounds, s.  adc_t_s: (N_adc,) sorted ADC times, s.
         diffusion: also compute J1, J2.
     """
+    if fused and grad_mT_per_m.shape[-1] > 1:  # (a single sample: the reference path)
+        t_all = np.concatenate([bound_t_s, adc_t_s])
+        nb = bound_t_s.size
+        out = _MomentsAt.apply(grad_mT_per_m, b0_uT, float(dt_s), t_all, bool(diffusion))
+        mom = Moments(I_bound=out[0][:nb], I_adc=out[0][nb:])
+        if diffusion:
+            mom.J1_bound, mom.J1_adc = out[1][:nb], out[1][nb:]
+            mom.J2_bound, mom.J2_adc = out[2][:nb], out[2][nb:]
+        return mom
     w = _k_waveform(grad_mT_per_m, b0_uT)  # (4, M)
     C = pwl_cumulative(w, dt_s)  # (4, M)
     t_all = np.concatenate([bound_t_s, adc_t_s])
@@ -96,3 +109,140 @@ def _diffusion_moments(w, C, dt, t_q, I_q):
     J1 = J1n[:, mi].T + 0.5 * h[:, None] * (Cm + I_q)
     J2 = J2n[mi] + 0.5 * h * ((Cm * Cm).sum(1) + (I_q * I_q).sum(1))
     return J1, J2
+
+
+def _query_index(t_q: np.ndarray, dt: float, M: int, last: int):
+    """Fine-grid index m = floor(t/dt) (clipped to [0, last]) and offset t - m dt (s) of clamped query times."""
+    t = np.clip(np.asarray(t_q, dtype=np.float64), 0.0, (M - 1) * dt)
+    m = np.clip(np.floor(t / dt + 1e-9).astype(np.int64), 0, last)
+    return m, t - m * dt
+
+
+def _suffix_at(vals: torch.Tensor, idx: np.ndarray, M: int) -> torch.Tensor:
+    """(R, M-1) tensor P with P[:, j] = sum of vals[:, q] over the queries with idx[q] > j.
+
+    The adjoint of "read a running sum at sparse indices": piecewise constant in j, so it is the
+    suffix sums of the (few) query values, sorted by index, gathered once by the count of queries at
+    or before j -- one pass over the fine grid instead of a zero-filled scatter and a reversed cumsum.
+    """
+    order = np.argsort(idx, kind="stable")
+    dev = vals.device
+    v = vals.index_select(1, torch.as_tensor(order, device=dev))
+    suf = torch.flip(torch.cumsum(torch.flip(v, (1,)), 1), (1,))  # suf[:, k] = sum_{k' >= k} v[:, k']
+    suf = torch.cat([suf, torch.zeros_like(suf[:, :1])], 1)  # (R, Q+1), suf[:, Q] = 0
+    cnt = torch.as_tensor(np.cumsum(np.bincount(idx, minlength=M)[: M - 1]), device=dev)  # queries with idx <= j
+    out = torch.empty((suf.shape[0], M - 1), dtype=suf.dtype, device=dev)
+    for r in range(suf.shape[0]):  # row by row: a dim-1 index_select of the (R, Q+1) array is ~6x slower on CPU
+        torch.index_select(suf[r], 0, cnt, out=out[r])
+    return out
+
+
+class _MomentsAt(torch.autograd.Function):
+    """Exact PWL running integrals I (Q, 4) and, with diffusion, J1 (Q, 3), J2 (Q,) at query times,
+    with a hand-written adjoint.  Same formulas as :func:`pwl_integral_at` and :func:`_diffusion_moments`
+    (of the float64 waveform w (4, M) of :func:`_k_waveform`, built inside so that its cast, scaling and
+    concatenation add no autograd nodes)."""
+
+    @staticmethod
+    def forward(ctx, grad, b0, dt, t_q, diffusion):
+        M = grad.shape[-1]
+        dev = grad.device
+        w = torch.empty((4, M), dtype=torch.float64, device=dev)
+        w[:3] = grad
+        w[:3] *= GAMMA_RAD_PER_S_PER_MT
+        if b0 is None:
+            w[3] = 0.0
+        else:
+            w[3] = b0.reshape(-1)
+            w[3] *= GAMMA_RAD_PER_S_PER_T * 1e-6
+        ctx.in_dtypes = (grad.dtype, None if b0 is None else (b0.dtype, b0.shape))
+        inc = 0.5 * dt * (w[:, 1:] + w[:, :-1])
+        C = torch.empty_like(w)  # (4, M) running integral, C[:, 0] = 0
+        C[:, 0] = 0.0
+        torch.cumsum(inc, -1, out=C[:, 1:])
+        m, tau_np = _query_index(t_q, dt, M, max(M - 2, 0))
+        mi = torch.as_tensor(m, device=dev)
+        tau = torch.as_tensor(tau_np, dtype=w.dtype, device=dev)
+        g0 = w.index_select(1, mi)
+        g1 = w.index_select(1, mi + 1)
+        I = C.index_select(1, mi) + tau * g0 + 0.5 * tau * tau * (g1 - g0) / dt  # (4, Q)
+        ctx.dt, ctx.M, ctx.m, ctx.diffusion = dt, M, m, diffusion
+        if not diffusion:
+            ctx.save_for_backward(tau)
+            return I.T, None, None
+        ws, Cs = w[:3], C[:3]
+        Imid = Cs[:, :-1] + 0.5 * dt * ws[:, :-1] + 0.125 * dt * (ws[:, 1:] - ws[:, :-1])
+        inc1 = dt / 6.0 * (Cs[:, :-1] + 4.0 * Imid + Cs[:, 1:])
+        sq = (Cs * Cs).sum(0)
+        inc2 = dt / 6.0 * (sq[:-1] + 4.0 * (Imid * Imid).sum(0) + sq[1:])
+        J1n = torch.cat([torch.zeros_like(inc1[:, :1]), torch.cumsum(inc1, -1)], -1)
+        J2n = torch.cat([torch.zeros_like(inc2[:1]), torch.cumsum(inc2, -1)], -1)
+        m2, h_np = _query_index(t_q, dt, M, M - 1)
+        m2i = torch.as_tensor(m2, device=dev)
+        h = torch.as_tensor(h_np, dtype=w.dtype, device=dev)
+        Cm = Cs.index_select(1, m2i)  # (3, Q)
+        Iq = I[:3]
+        J1 = J1n.index_select(1, m2i) + 0.5 * h * (Cm + Iq)
+        J2 = J2n.index_select(0, m2i) + 0.5 * h * ((Cm * Cm).sum(0) + (Iq * Iq).sum(0))
+        ctx.m2 = m2
+        ctx.save_for_backward(tau, h, Cs, Imid, Cm, Iq)
+        return I.T, J1.T, J2
+
+    @staticmethod
+    def backward(ctx, gI, gJ1, gJ2):
+        dt, M, m = ctx.dt, ctx.M, ctx.m
+        tau = ctx.saved_tensors[0]
+        dev, fdt = tau.device, tau.dtype
+        gq = gI.T.contiguous() if gI is not None else torch.zeros((4, m.size), dtype=fdt, device=dev)  # (4, Q)
+        mi = torch.as_tensor(m, device=dev)
+        gw = torch.empty((4, M), dtype=fdt, device=dev)
+        if ctx.diffusion and (gJ1 is not None or gJ2 is not None):
+            _, h, Cs, Imid, Cm, Iq = ctx.saved_tensors
+            m2 = ctx.m2
+            Q = m2.size
+            g1 = gJ1.T if gJ1 is not None else torch.zeros((3, Q), dtype=fdt, device=dev)
+            g2 = gJ2 if gJ2 is not None else torch.zeros(Q, dtype=fdt, device=dev)
+            gq[:3] += 0.5 * h * g1 + h * g2 * Iq
+            # d/d inc1_j (3 rows) and d/d inc2_j (row 3) of J1n, J2n read at m2: sums over queries with m2 > j
+            P = _suffix_at(torch.cat([g1, g2[None, :]], 0), m2, M)  # (4, M-1)
+            G = torch.addcmul(P[:3], Imid, P[3:4], value=2.0)  # d/d Imid = (2 dt / 3) G
+            Qs = torch.empty((4, M), dtype=fdt, device=dev)  # P_j + P_{j-1} (P_{-1} = P_{M-1} = 0)
+            Qs[:, :-1] = P
+            Qs[:, -1] = 0.0
+            Qs[:, 1:] += P
+            # dense d/dC_j (3 rows): inc1 (dt/6), inc2 (dt/3 C_j), Imid (2 dt / 3), then the sparse reads
+            dC = Qs[:3].mul_(dt / 6.0)
+            dC.addcmul_(Cs, Qs[3:4], value=dt / 3.0)
+            dC[:, :-1].add_(G, alpha=2.0 * dt / 3.0)
+            m2i = torch.as_tensor(m2, device=dev)
+            dC.index_add_(1, m2i, 0.5 * h * g1 + h * g2 * Cm)
+            dC.index_add_(1, mi, gq[:3])
+            # adjoint of the running sum: g_inc_j = sum_{i > j} dC_i = total - sum_{i <= j} dC_i
+            cs = torch.cumsum(dC, 1)
+            g_inc = torch.sub(cs[:, -1:], cs[:, :-1])  # (3, M-1)
+            gw[:3, :-1] = g_inc
+            gw[:3, -1] = 0.0
+            gw[:3, 1:] += g_inc
+            gw[:3].mul_(0.5 * dt)
+            # Imid_j = C_j + dt (0.375 w_j + 0.125 w_{j+1})
+            gw[:3, :-1].add_(G, alpha=0.375 * dt * 2.0 * dt / 3.0)
+            gw[:3, 1:].add_(G, alpha=0.125 * dt * 2.0 * dt / 3.0)
+            rows = slice(3, 4)
+        else:
+            rows = slice(0, 4)
+        # rows without dense parts: the adjoint of reading the running sum C at sparse indices
+        g_inc = _suffix_at(gq[rows], m, M)
+        gw[rows, :-1] = g_inc
+        gw[rows, -1] = 0.0
+        gw[rows, 1:] += g_inc
+        gw[rows].mul_(0.5 * dt)
+        # direct terms of the partial interval: tau g0 + tau^2 (g1 - g0) / (2 dt)
+        q2 = 0.5 * tau * tau / dt
+        gw.index_add_(1, mi, gq * (tau - q2))
+        gw.index_add_(1, mi + 1, gq * q2)
+        g_dtype, b_info = ctx.in_dtypes
+        g_grad = (gw[:3] * GAMMA_RAD_PER_S_PER_MT).to(g_dtype) if ctx.needs_input_grad[0] else None
+        g_b0 = None
+        if b_info is not None and ctx.needs_input_grad[1]:
+            g_b0 = (gw[3] * (GAMMA_RAD_PER_S_PER_T * 1e-6)).to(b_info[0]).reshape(b_info[1])
+        return g_grad, g_b0, None, None, None

@@ -40,6 +40,25 @@ def _groups(kind, parent, child, conj_np, device):
     return out
 
 
+def add_rows_(out: torch.Tensor, index: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
+    """``out.index_add_(0, index, src)``; complex tensors through their real views (the same additions,
+    bit-identical: on CPU torch's complex index_add_ takes a generic scatter path ~6x slower than the
+    real one).  Not for autograd-tracked tensors (used inside the hand-written adjoints)."""
+    if out.is_complex() and out.is_contiguous() and not out.is_conj() and not src.is_conj() and out.dim() >= 1:
+        torch.view_as_real(out).reshape(out.shape[0], -1).index_add_(0, index, torch.view_as_real(src).reshape(src.shape[0], -1))
+        return out
+    return out.index_add_(0, index, src)
+
+
+def take_rows(X: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``X.index_select(0, index)`` (a fresh tensor); complex through the real view (same values,
+    ~1.7x faster on CPU).  Not for autograd-tracked tensors (used inside the hand-written adjoints)."""
+    if X.is_complex() and X.is_contiguous() and not X.is_conj() and X.dim() >= 1:
+        r = torch.view_as_real(X).reshape(X.shape[0], -1).index_select(0, index)
+        return torch.view_as_complex(r.reshape((index.shape[0],) + tuple(X.shape[1:]) + (2,)))
+    return X.index_select(0, index)
+
+
 def _split_generic(A, coefs, groups, n_out):
     """Plain autograd version (used when the coefficients require a gradient)."""
     out = torch.zeros((n_out, A.shape[1]), dtype=A.dtype, device=A.device)
@@ -53,7 +72,7 @@ def _split_generic(A, coefs, groups, n_out):
 
 def _scaled_gather(X, rows, coefs, ranges, is_conj):
     """op(X[rows] * coefs[kind]) with one coefficient row per kind range; op = conj for conjugating groups."""
-    src = X.index_select(0, rows)  # fresh tensor: scaled in place, one coefficient row per kind range
+    src = take_rows(X, rows)  # fresh tensor: scaled in place, one coefficient row per kind range
     for q, a, b in ranges:
         src[a:b].mul_(coefs[q])
     if is_conj:
@@ -66,7 +85,7 @@ def _split(A, coefs, groups, n_out):
     cc = coefs.conj()
     for is_conj, kind, par, child, ranges in groups:
         # c conj(x) = conj(conj(c) x)
-        out.index_add_(0, child, _scaled_gather(A, par, cc if is_conj else coefs, ranges, is_conj))
+        add_rows_(out, child, _scaled_gather(A, par, cc if is_conj else coefs, ranges, is_conj))
     return out
 
 
@@ -75,7 +94,7 @@ def _split_adjoint(G, coefs, groups, n_in):
     cc = coefs.conj()
     for is_conj, kind, par, child, ranges in groups:
         # y = c x: grad_x = conj(c) g;  y = c conj(x): grad_x = conj(conj(c) g)
-        out.index_add_(0, par, _scaled_gather(G, child, cc, ranges, is_conj))
+        add_rows_(out, par, _scaled_gather(G, child, cc, ranges, is_conj))
     return out
 
 

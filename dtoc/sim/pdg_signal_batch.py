@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from dtoc.sim import pdg_signal as _sig
+from dtoc.sim.pdg_rfsplit import add_rows_, take_rows
 from dtoc.sim.pdg_signal import _DIFF_TAYLOR_MAX, _cis, _time_factor, _time_key, voxel_factor
 
 
@@ -42,13 +43,15 @@ def _taylor_orders(xs: np.ndarray, tol: float) -> np.ndarray:
     return np.where(ok.any(1), ok.argmax(1), 30).astype(np.int64)
 
 
-def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg) -> list:
+def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None) -> list:
     """Signals of several intervals with the same number T of ADC samples.
 
     Args:
         items: list of (n, iv_view, Y, Kj): interval index, emitting view of its graph (emit = 0..J-1,
             tau_s of the emitting states), emitting amplitudes (J, V) complex, their k (J, 4) float64.
         mom, vox, graph, bounds_t, cfg: as for :func:`dtoc.sim.pdg_signal.emit_signal_gemm`.
+        expand: optional map (R, U) -> (R, V) applied once to the concatenated amplitudes (the items'
+            Y are then per-tissue-tuple rows (J, U); one gather for the batch instead of one per interval).
     Returns:
         list of (C, T) complex signals, one per item (before the ADC phase).
     """
@@ -65,6 +68,8 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg) -> list:
     own_np = np.repeat(np.arange(G), Js)
     J = int(own_np.size)
     Y = torch.cat([it[2] for it in items], 0) if G > 1 else items[0][2]
+    if expand is not None:
+        Y = expand(Y)
     Kj = torch.cat([it[3] for it in items], 0) if G > 1 else items[0][3]
     tau = np.concatenate([it[1].tau_s for it in items])
     own = torch.as_tensor(own_np, device=dev)
@@ -302,8 +307,8 @@ class _BatchedGemm(torch.autograd.Function):
         # kernels in voxel-major layout KT (V, nK * Co * T) = exp(-i (mx x + my y)) tf (coil): the
         # per-axis factors are gathered by voxel rows (no transposed copy); interval k's kernel is the
         # column block [k Co T, (k + 1) Co T), a strided (V, Co T) operand of the products
-        SPT = (_cis(-vox.xg[:, None] * mtx.reshape(1, -1)).index_select(0, vox.ix_t())
-               * _cis(-vox.yg[:, None] * mty.reshape(1, -1)).index_select(0, vox.iy_t())).reshape(-1, G, T)
+        SPT = (take_rows(_cis(-vox.xg[:, None] * mtx.reshape(1, -1)), vox.ix_t())
+               * take_rows(_cis(-vox.yg[:, None] * mty.reshape(1, -1)), vox.iy_t())).reshape(-1, G, T)
         Ks = {}
         signs = list(plan["tfs"])
         for i, sgn in enumerate(signs):
@@ -321,11 +326,11 @@ class _BatchedGemm(torch.autograd.Function):
         out = torch.zeros((J, Co, T), dtype=W.dtype, device=W.device)
         raws = []
         for st in plan["steps"]:
-            C = W.index_select(0, st["rows"]) * st["Pt"]
+            C = take_rows(W, st["rows"]) * st["Pt"]
             K = Ks[st["sgn"]]
             s_c = None
             for r, rr in enumerate(st["orders"]):
-                Cr = C if r == 0 else C.index_select(0, rr["pos_t"]) * rr["dr"][None, :]
+                Cr = C if r == 0 else take_rows(C, rr["pos_t"]) * rr["dr"][None, :]
                 blocks = torch.split(Cr, rr["sizes"], 0)
                 Gr = torch.cat([blk @ K[:, g * CT:(g + 1) * CT] for blk, g in zip(blocks, rr["kix"])], 0).reshape(-1, Co, T)
                 w = rr["mask"]
@@ -335,8 +340,8 @@ class _BatchedGemm(torch.autograd.Function):
                     w = wr if w is None else w * wr
                 if w is not None:
                     Gr = Gr * w[:, None, :]
-                s_c = Gr if r == 0 else s_c.index_add(0, rr["pos_t"], Gr)
-            out.index_add_(0, st["rows"], s_c)
+                s_c = Gr if r == 0 else add_rows_(s_c, rr["pos_t"], Gr)  # s_c: a fresh product, not saved
+            add_rows_(out, st["rows"], s_c)
         ctx.plan, ctx.Ks, ctx.GT = plan, Ks, (G, T)
         ctx.save_for_backward(W, E, ndl, *raws)
         return out
@@ -360,13 +365,13 @@ class _BatchedGemm(torch.autograd.Function):
         gndl = torch.zeros_like(ndl) if need_ndl else None
         ri = 0
         for st in plan["steps"]:
-            C = W.index_select(0, st["rows"]) * st["Pt"]
+            C = take_rows(W, st["rows"]) * st["Pt"]
             K = Ks[st["sgn"]]
             gKc = gKcs.get(st["sgn"])
-            g_c = goutc.index_select(0, st["rows"])  # conj(G_out) of the step's rows
+            g_c = take_rows(goutc, st["rows"])  # conj(G_out) of the step's rows
             gCc = torch.empty_like(C)  # every row written by the order-0 products
             for r, rr in enumerate(st["orders"]):
-                g_r = g_c if r == 0 else g_c.index_select(0, rr["pos_t"])
+                g_r = g_c if r == 0 else take_rows(g_c, rr["pos_t"])
                 w = rr["mask"]
                 if r > 0:
                     raw = raws[ri]
@@ -382,7 +387,7 @@ class _BatchedGemm(torch.autograd.Function):
                 if w is not None:
                     g_r = g_r * w[:, None, :]
                 gz = g_r.reshape(g_r.shape[0], Co * T)
-                Cr = C if r == 0 else C.index_select(0, rr["pos_t"]) * rr["dr"][None, :]
+                Cr = C if r == 0 else take_rows(C, rr["pos_t"]) * rr["dr"][None, :]
                 a = 0
                 if r == 0:
                     for n_b, g in zip(rr["sizes"], rr["kix"]):
@@ -399,8 +404,8 @@ class _BatchedGemm(torch.autograd.Function):
                         if gKc is not None:
                             gKc[:, g * CT:(g + 1) * CT].addmm_(Cr[a:a + n_b].T, b)
                         a += n_b
-                    gCc.index_add_(0, rr["pos_t"], torch.cat(parts, 0) * rr["dr"][None, :])
-            gWc.index_add_(0, st["rows"], gCc * st["Pt"])
+                    add_rows_(gCc, rr["pos_t"], torch.cat(parts, 0) * rr["dr"][None, :])
+            add_rows_(gWc, st["rows"], gCc * st["Pt"])
         gY = (gWc * E).conj() if need_y else None
         gkx = gky = gbm = None
         if need_kx or need_ky or need_bm:
