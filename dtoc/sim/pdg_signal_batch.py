@@ -70,6 +70,7 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None) -> l
     Y = torch.cat([it[2] for it in items], 0) if G > 1 else items[0][2]
     if expand is not None:
         Y = expand(Y)
+    Ys = torch.split(Y, Js, 0) if G > 1 else (Y,)  # per-item voxel amplitudes (the far states' exact path)
     Kj = torch.cat([it[3] for it in items], 0) if G > 1 else items[0][3]
     tau = np.concatenate([it[1].tau_s for it in items])
     own = torch.as_tensor(own_np, device=dev)
@@ -108,7 +109,7 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None) -> l
 
     if getattr(cfg, "fused_signal_adjoint", False):
         out = _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np, Dmax, vox, G, Co, T, rdt)
-        return _finish(out, vf, own, items, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg)
+        return _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg)
 
     # weights common to both kernel classes: A exp(-i k.r) exp(-D b_mid)
     W = Y * vox.spatial_phase(Kj[:, 0].to(rdt), Kj[:, 1].to(rdt))
@@ -186,10 +187,10 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None) -> l
                 m = plus[in_c] if sgn > 0 else ~plus[in_c]
                 s_c = s_c * torch.as_tensor(m, device=dev).to(rdt)[:, None, :]
             out = out.index_add(0, rows_c, s_c)
-    return _finish(out, vf, own, items, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg)
+    return _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg)
 
 
-def _finish(out, vf, own, items, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg) -> list:
+def _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg) -> list:
     """Voxel factor, sum of the states per interval, exact evaluation of the far (strong-diffusion) states."""
     out = out * vf[:, None, :]
     sig = torch.zeros((G, Co, T), dtype=cdt, device=dev).index_add(0, own, out)
@@ -197,12 +198,12 @@ def _finish(out, vf, own, items, far, own_np, G, Co, T, cdt, dev, mom, vox, grap
     if far.any():
         import copy
 
-        for g, (n, ivv, Yg, Kg) in enumerate(items):
+        for g, (n, ivv, _, Kg) in enumerate(items):
             f = far[own_np == g]
             if f.any():
                 sub = copy.copy(ivv)
                 sub.emit = ivv.emit[f]
-                res[g] = res[g] + _sig.emit_signal_direct(sub, Yg, Kg, mom, n, vox, graph, bounds_t, cfg)
+                res[g] = res[g] + _sig.emit_signal_direct(sub, Ys[g], Kg, mom, n, vox, graph, bounds_t, cfg)
     return res
 
 
