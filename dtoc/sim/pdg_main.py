@@ -99,16 +99,8 @@ def _evolve(iv, A, K, mom, n, vox, dt, tr_t):
     E1 = torch.exp(-dt * vox.r1)
     E2 = torch.exp(-dt * vox.r2)
     nT = int(tr_t.sum())
-    dM = (mom.I_bound[n + 1] - mom.I_bound[n]).to(K.dtype)
-    K_end = K + tr_t[:, None].to(K.dtype) * dM[None, :]
-    if vox.has_diffusion:
-        k3 = K[:, :3]
-        u = k3 - mom.I_bound[n][:3][None, :]
-        dJ1 = mom.J1_bound[n + 1] - mom.J1_bound[n]
-        dJ2 = mom.J2_bound[n + 1] - mom.J2_bound[n]
-        b_tr = (u * u).sum(1) * dt + 2.0 * (u * dJ1[None, :]).sum(1) + dJ2
-        b_z = (k3 * k3).sum(1) * dt
-        b = torch.where(tr_t, b_tr, b_z).to(vox.r1.dtype)
+    K_end, b = _k_and_b(iv, K, mom, n, vox, dt, tr_t)
+    if b is not None:
         facT = E2[None, :] * torch.exp(-b[:nT, None] * vox.d[None, :])
         facZ = E1[None, :] * torch.exp(-b[nT:, None] * vox.d[None, :])
     else:
