@@ -43,6 +43,17 @@ def _taylor_orders(xs: np.ndarray, tol: float) -> np.ndarray:
     return np.where(ok.any(1), ok.argmax(1), 30).astype(np.int64)
 
 
+def _class_rows(cls, far, orders, own_np):
+    """Per T2' kernel class c (0: all samples tau + dt >= 0, 1: all < 0, 2: crossing zero) with its kernel
+    signs, the expanded (not far) state rows, sorted by (interval, descending Taylor order) so that the rows
+    of order >= r are a prefix of each interval's block."""
+    expanded = ~far
+    for c, signs in ((0, (1.0,)), (1, (-1.0,)), (2, (1.0, -1.0))):
+        in_c = np.where((cls == c) & expanded)[0]
+        if in_c.size:
+            yield c, signs, in_c[np.lexsort((-orders[in_c], own_np[in_c]))]
+
+
 def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None) -> list:
     """Signals of several intervals with the same number T of ADC samples.
 
@@ -140,13 +151,7 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None) -> l
 
     kern_cache = {}
     out = torch.zeros((J, Co, T), dtype=cdt, device=dev)
-    expanded = ~far
-    for c, signs in ((0, (1.0,)), (1, (-1.0,)), (2, (1.0, -1.0))):
-        in_c = np.where((cls == c) & expanded)[0]
-        if not in_c.size:
-            continue
-        # sort by (interval, descending Taylor order): rows with order >= r are a prefix of each interval's block
-        in_c = in_c[np.lexsort((-orders[in_c], own_np[in_c]))]
+    for c, signs, in_c in _class_rows(cls, far, orders, own_np):
         rows_c = torch.as_tensor(in_c, device=dev)
         Wc = W.index_select(0, rows_c)
         for sgn in signs:
@@ -227,12 +232,7 @@ def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np
         tfs[sgn] = tl[0].T[:, None, :] if all(k == keys[0] for k in keys) else torch.stack(tl, 0).permute(2, 0, 1)  # (V, 1|G, T)
     dn = vox.d / Dmax
     steps = []
-    expanded = ~far
-    for c, signs in ((0, (1.0,)), (1, (-1.0,)), (2, (1.0, -1.0))):
-        in_c = np.where((cls == c) & expanded)[0]
-        if not in_c.size:
-            continue
-        in_c = in_c[np.lexsort((-orders[in_c], own_np[in_c]))]
+    for c, signs, in_c in _class_rows(cls, far, orders, own_np):
         rows_c = torch.as_tensor(in_c, device=dev)
         for sgn in signs:
             if not vox.has_t2d:
