@@ -257,6 +257,7 @@ def full_loss(twin, imager, ctx, cfg: OptimizeConfig, edges0: torch.Tensor, stat
         return _finish(twin, imager, ctx, cfg, x, state, n_img)
     x.requires_grad_(True)
     opt = _make_opt(cfg, x, lr)
+    weights = full_weights(cfg)
     try:
         for it in range(start_it, cfg.iters):
             idx = (it // cfg.augment_every) % n_img
@@ -265,7 +266,7 @@ def full_loss(twin, imager, ctx, cfg: OptimizeConfig, edges0: torch.Tensor, stat
 
             def closure():
                 opt.zero_grad()
-                total, terms, _ = evaluate(twin, imager, ctx, full_weights(cfg), x, idx)
+                total, terms, _ = evaluate(twin, imager, ctx, weights, x, idx)
                 total.backward()
                 with torch.no_grad():
                     x.grad.mul_(free)
@@ -318,10 +319,11 @@ def _pgd(twin, imager, ctx, cfg, x, state, progress, start_it, n_img, lr, checkp
     """
     P = twin.projector
     free = twin.free_t
+    weights = full_weights(cfg)
 
     def val_grad(e, idx):
         e = e.detach().requires_grad_(True)
-        total, terms, _ = evaluate(twin, imager, ctx, full_weights(cfg), e, idx)
+        total, terms, _ = evaluate(twin, imager, ctx, weights, e, idx)
         (g,) = torch.autograd.grad(total, e)
         return float(total.detach()), torch.where(free, g, torch.zeros_like(g)), terms
 
