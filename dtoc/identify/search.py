@@ -128,17 +128,7 @@ def identify(data: IdentData, declared: HardwareModel | None = None, *, max_effe
 
 def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_effects: int = 6, threshold: float = 10.0,
               kinds=None, explained_ratio: float = 1.2, progress=None) -> IdentifyResult:
-    """Trace the residual of ``declared`` on ``data`` to missing effects (see module docstring).
-
-    Args:
-        data: the measurement.
-        declared: declared hardware model (None: ideal hardware).
-        max_effects: cap on added effects.
-        threshold: minimum held-out score (chi-square units) to add an effect.
-        kinds: restrict the candidate library to these kinds (default: all).
-        explained_ratio: held-out RMS / noise bound for ``explained``.
-        progress: optional callable(str) for progress lines.
-    """
+    """Body of :func:`identify` (same arguments), run under its thread setting."""
     say = progress or (lambda s: None)
     twin = Twin(declared, data, {c: 1.0 for c in data.channels()})
     pred0 = twin.predict()
