@@ -452,6 +452,40 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
             zi = np.where(R["is_z"])[0]
             e[zi] = envelope(R["k"][zi]) * np.exp(-np.abs(R["tau"][zi]) / bnd.t2d)
         emit_b.append(e)
+    ctx = dict(raw=raw, ir=ir, rf_order=rf_order, bnd=bnd, dt_int=dt_int, adc_lo=adc_lo, adc_hi=adc_hi, bounds_t=bounds_t, cfg=cfg)
+    intervals, keeps = _prune(ctx, emit_b, _latent(ctx, emit_b))
+
+    def graph_of(ivs):
+        return PDGGraph(
+            intervals=ivs, rf_order=rf_order, adc_times_s=adc_t, adc_order=adc_order, adc_phase_rad=adc_ph,
+            tau_ignored=tau_ignored, config=cfg, n_fine=ir.n_fine,
+        )
+
+    graph = graph_of(intervals)
+    if cfg.calibrate_emission and phantom is not None and not final_z_readout and adc_t.size and graph.n_emitting_total:
+        from dtoc.sim.pdg_main import emission_peaks  # the main pass imports this module
+
+        peaks = emission_peaks(ir, phantom, graph, cfg)
+        tot = float(np.sum(phantom.pd)) or 1.0
+        emit_c = []
+        for n, R in enumerate(raw):
+            e = np.where(keeps[n], emit_b[n], 0.0)
+            if n in peaks:
+                e = np.zeros_like(e)
+                src = np.where(keeps[n])[0][intervals[n].emit]  # raw index of each emitting state
+                e[src] = peaks[n] / tot / np.maximum(R["mag"][src], 1e-300)
+            emit_c.append(e)
+        intervals, _ = _prune(ctx, emit_c, _latent(ctx, emit_c), restrict=keeps)
+        graph = graph_of(intervals)
+        graph.meta["calibrated_intervals"] = len(peaks)
+    return graph
+
+
+def _latent(ctx, emit_b) -> list:
+    """Per interval, per state: bound on what the state can still contribute to any ADC sample (its own
+    emission ``emit_b`` or, through the RF-splitting edges, that of any descendant), per unit amplitude."""
+    raw, ir, rf_order, bnd, dt_int = ctx["raw"], ctx["ir"], ctx["rf_order"], ctx["bnd"], ctx["dt_int"]
+    NI = len(raw)
     latent = [None] * NI
     for n in range(NI - 1, -1, -1):
         R = raw[n]
@@ -467,14 +501,25 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
             np.maximum.at(best, C["e_par"], via)
             L = np.maximum(L, best)
         latent[n] = L
+    return latent
 
-    # --- prune and re-index (forward) -----------------------------------------------------------
+
+def _prune(ctx, emit_b, latent, restrict=None) -> tuple[list, list]:
+    """Drop the states whose amplitude bound x latent bound is below ``min_latent_signal`` (and those
+    left without a kept parent), re-index, mark the emitters; ``restrict``: per interval, a mask of
+    the raw states that may be kept at all.  Returns the interval graphs and the per-interval keep
+    masks over the raw states."""
+    raw, cfg, adc_lo, adc_hi, bounds_t = ctx["raw"], ctx["cfg"], ctx["adc_lo"], ctx["adc_hi"], ctx["bounds_t"]
+    NI = len(raw)
     intervals: list[IntervalGraph] = []
-    prev_keep = None
+    keeps = []
+    prev_keep = prev_newi = None
     for n in range(NI):
         R = raw[n]
         S = R["is_z"].size
         keepm = R["mag"] * latent[n] >= cfg.min_latent_signal
+        if restrict is not None:
+            keepm &= restrict[n]
         keepm[R["eq"]] = True
         if n == 0:
             ec = ep = ek = np.zeros(0, dtype=np.int64)
@@ -516,8 +561,6 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
             )
         )
         prev_keep = keepm
+        keeps.append(keepm)
         prev_newi = newi
-    return PDGGraph(
-        intervals=intervals, rf_order=rf_order, adc_times_s=adc_t, adc_order=adc_order, adc_phase_rad=adc_ph,
-        tau_ignored=tau_ignored, config=cfg, n_fine=ir.n_fine,
-    )
+    return intervals, keeps

@@ -231,7 +231,7 @@ def _emit_view(iv):
     return sub
 
 
-def _loop(ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_signal: bool, final_state: bool):
+def _loop(ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_signal: bool, final_state: bool, probe=None):
     """Main loop: k recursion (autograd, (S, 4) per interval), amplitudes by :mod:`dtoc.sim.pdg_evolve`
     (one autograd node with a hand-written adjoint), then the signal of every emitting interval."""
     from dtoc.sim.pdg_evolve import make_steps, propagate, run_propagation
@@ -262,7 +262,7 @@ def _loop(ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_sign
         with torch.no_grad():
             _, A, _ = propagate(steps, A0, bs, tis.d, rec, True, "none")
         return [], tis.expand(A), K
-    batcher = _SignalBatcher(graph, steps, _emitting_k(Ks, steps), mom, vox, bounds_t, cfg, tis.expand)
+    batcher = _SignalBatcher(graph, steps, _emitting_k(Ks, steps), mom, vox, bounds_t, cfg, tis.expand, probe)
     if not torch.is_grad_enabled() or not any(b is not None and b.requires_grad for b in bs):
         # amplitudes do not depend on the gradient waveform (no diffusion, or no autograd): stream,
         # each interval's emitting rows go to the signal batcher as they are reached
@@ -350,9 +350,12 @@ class _SignalBatcher:
     the kernels (G x C x T x V) and weights (sum of J x V) they form (2**21 elements); 'direct' /
     'separable' intervals and very large kernels one by one."""
 
-    def __init__(self, graph, steps, Kjs, mom, vox, bounds_t, cfg, expand=None):
-        """``Kjs``: per interval, the k (J, 4) of its emitting states (see :func:`_emitting_k`)."""
+    def __init__(self, graph, steps, Kjs, mom, vox, bounds_t, cfg, expand=None, probe: dict | None = None):
+        """``Kjs``: per interval, the k (J, 4) of its emitting states (see :func:`_emitting_k`);
+        ``probe``: if a dict, the batched path records there the per-state peak |signal| (interval ->
+        (J,) array, see :func:`emission_peaks`)."""
         self.graph, self.steps, self.Kjs, self.mom, self.vox, self.bounds_t, self.cfg = graph, steps, Kjs, mom, vox, bounds_t, cfg
+        self.probe = probe
         self.expand = expand or (lambda A: A)
         self.budget = 4 * cfg.chunk_elems  # larger kernels: per-interval path (chunked, checkpointed)
         # batches of ~2M complex elements: large enough to amortise the per-operation overhead, small
@@ -382,7 +385,8 @@ class _SignalBatcher:
     def _flush(self, items) -> None:
         from dtoc.sim.pdg_signal_batch import emit_signal_batched
 
-        for (n, ivv, _, _), s in zip(items, emit_signal_batched(items, self.mom, self.vox, self.graph, self.bounds_t, self.cfg, self.expand)):
+        for (n, ivv, _, _), s in zip(items, emit_signal_batched(items, self.mom, self.vox, self.graph, self.bounds_t, self.cfg, self.expand,
+                                                                    probe=self.probe)):
             self.pieces.append((ivv.adc_start, s))
 
     def finish(self) -> list:
@@ -458,6 +462,23 @@ def run_main_pass(ir, phantom, graph, cfg, grad, b0_uT, initial_mz, dtype, devic
         inv[graph.adc_order] = np.arange(N)
         sig = sig.index_select(1, torch.as_tensor(inv, device=device))
     return sig
+
+
+def emission_peaks(ir, phantom, graph, cfg) -> dict:
+    """Peak |signal| (max over the interval's ADC samples and the coils; units of the simulated signal,
+    PD x voxels) of every emitting state, for the intervals evaluated by the batched 'gemm' path:
+    {interval n: (J_n,) array in ``graph.intervals[n].emit`` order}.  One forward pass, float32, no
+    autograd, the IR's demanded gradient, equilibrium Mz (= PD).  States evaluated exactly (strong
+    diffusion) are reported as +inf.  Used by :func:`dtoc.sim.pdg_graph.build_graph` for
+    ``PDGConfig.calibrate_emission``."""
+    import dataclasses
+
+    cfg = dataclasses.replace(cfg, calibrate_emission=False)
+    probe: dict = {}
+    with torch.no_grad():
+        g, vox, mom, bounds_t = _prepare(ir, phantom, graph, cfg, None, None, None, torch.float32, "cpu")
+        _loop(ir, g, vox, mom, bounds_t, cfg, torch.float32, "cpu", True, False, probe=probe)
+    return probe
 
 
 # ------------------------------------------------------------------------------------------------

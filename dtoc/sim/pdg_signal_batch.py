@@ -54,7 +54,7 @@ def _class_rows(cls, far, orders, own_np):
             yield c, signs, in_c[np.lexsort((-orders[in_c], own_np[in_c]))]
 
 
-def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None) -> list:
+def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, probe: dict | None = None) -> list:
     """Signals of several intervals with the same number T of ADC samples.
 
     Args:
@@ -63,6 +63,8 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None) -> l
         mom, vox, graph, bounds_t, cfg: as for :func:`dtoc.sim.pdg_signal.emit_signal_gemm`.
         expand: optional map (R, U) -> (R, V) applied once to the concatenated amplitudes (the items'
             Y are then per-tissue-tuple rows (J, U); one gather for the batch instead of one per interval).
+        probe: optional dict; receives {interval n: (J,) peak |signal| of each emitting state} (the
+            exactly evaluated far states: +inf); see :func:`dtoc.sim.pdg_main.emission_peaks`.
     Returns:
         list of (C, T) complex signals, one per item (before the ADC phase).
     """
@@ -120,7 +122,7 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None) -> l
 
     if getattr(cfg, "fused_signal_adjoint", False):
         out = _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np, Dmax, vox, G, Co, T, rdt)
-        return _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg)
+        return _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg, probe)
 
     # weights common to both kernel classes: A exp(-i k.r) exp(-D b_mid)
     W = Y * vox.spatial_phase(Kj[:, 0].to(rdt), Kj[:, 1].to(rdt))
@@ -192,12 +194,17 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None) -> l
                 m = plus[in_c] if sgn > 0 else ~plus[in_c]
                 s_c = s_c * torch.as_tensor(m, device=dev).to(rdt)[:, None, :]
             out = out.index_add(0, rows_c, s_c)
-    return _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg)
+    return _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg, probe)
 
 
-def _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg) -> list:
+def _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg, probe=None) -> list:
     """Voxel factor, sum of the states per interval, exact evaluation of the far (strong-diffusion) states."""
     out = out * vf[:, None, :]
+    if probe is not None:
+        peak = out.detach().abs().reshape(out.shape[0], -1).amax(1).double().cpu().numpy() if T else np.zeros(out.shape[0])
+        peak[far] = np.inf
+        for g, it in enumerate(items):
+            probe[it[0]] = peak[own_np == g]
     sig = torch.zeros((G, Co, T), dtype=cdt, device=dev).index_add(0, own, out)
     res = list(sig.unbind(0))
     if far.any():
