@@ -128,6 +128,31 @@ def test_ghost_ratio_of_a_synthetic_nyquist_ghost():
     assert float(metrics.ghost_ratio(ideal + 0.1 * np.roll(ideal, n // 2, axis=1), ideal)) == 0.0
 
 
+def test_object_mask_includes_dark_tissue_inside_the_object():
+    """A bright rim around a dark (5 % of max) interior, as a long-TE 7 T EPI of the head: the interior is
+    object, not ghost region; the ideal image scores no ghost and a real N/2 ghost is still measured."""
+    n = 32
+    ideal = np.zeros((n, n))
+    ideal[4:28, 8:24] = 1.0
+    ideal[6:26, 10:22] = 0.05  # below the 10 % threshold, enclosed by the rim
+    obj = metrics.object_mask(ideal)
+    assert obj.sum() == 24 * 16
+    assert float(metrics.ghost_ratio(ideal, ideal)) == 0.0
+    ghosted = ideal + 0.1 * np.roll(ideal, n // 2, axis=0)
+    gh = metrics.ghost_mask(obj)
+    want = (np.abs(ghosted) ** 2)[gh].sum() / (np.abs(ghosted) ** 2)[obj].sum()
+    assert want > 1e-3
+    assert float(metrics.ghost_ratio(ghosted, ideal)) == pytest.approx(want, rel=1e-12)
+    # a 2-pixel gap in the rim (as the longest 7 T echo train shows) still encloses the interior
+    ideal[4:6, 15:17] = 0.05
+    assert metrics.object_mask(ideal).sum() == 24 * 16
+    assert float(metrics.ghost_ratio(ideal, ideal)) == 0.0
+    # the closing does not erode an object that touches the image border
+    edge = np.zeros((n, n))
+    edge[0:5, 10:20] = 1.0
+    assert (metrics.object_mask(edge) == (edge > 0)).all()
+
+
 def test_kspace_errors():
     k0 = np.zeros((3, 4))
     k = k0.copy()

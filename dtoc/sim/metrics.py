@@ -32,9 +32,24 @@ def nrmse(image, ideal) -> torch.Tensor:
 
 
 def object_mask(ideal, threshold: float = 0.1) -> np.ndarray:
-    """Object region: pixels of the ideal magnitude image above ``threshold`` x its maximum (bool (ny, nx))."""
+    """Object region (bool (ny, nx)): pixels of the ideal magnitude image above ``threshold`` x its
+    maximum, closed (3x3, two iterations: gaps of up to ~4 pixels in the outline are bridged) and with
+    the holes filled (every pixel enclosed by the object belongs to it).
+
+    Closing and filling matter for T2*-weighted images: a long-TE EPI of the brain at 7 T has a bright
+    rim (fat) and bright CSF, but white and grey matter below 10 % of the maximum and, at the longest
+    echo train, gaps in the rim; without them that tissue lay outside the "object" and, where the
+    N/2-shifted head covers it, inside the ghost region, so the ideal image itself scored
+    2.36 / 1.60 / 1.04 % "ghost" at echo spacings 1.89 / 2.25 / 2.61 ms (0.23 / 0.31 / 0.61 % now).
+    """
+    from scipy import ndimage
+
     m = np.abs(_t(ideal).detach().cpu().numpy())
-    return m > threshold * m.max()
+    thr = m > threshold * m.max()
+    pad = 3  # closing must not erode at the image border (scipy treats outside as background)
+    obj = ndimage.binary_closing(np.pad(thr, pad), structure=np.ones((3,) * m.ndim, dtype=bool), iterations=2)
+    obj = obj[tuple(slice(pad, -pad) for _ in range(m.ndim))] | thr
+    return ndimage.binary_fill_holes(obj)
 
 
 def ghost_mask(obj: np.ndarray, phase_dim: int = -2) -> np.ndarray:
