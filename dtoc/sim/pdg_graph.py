@@ -292,6 +292,20 @@ def _bounds(ir: SequenceIR, config: PDGConfig, phantom) -> _Bounds:
     return b
 
 
+def _unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(a, axis=0, return_inverse=True)`` for a 2-D int64 array, by one ``np.lexsort`` over the
+    columns (same lexicographic row order and inverse; ~5x faster than sorting the rows as records)."""
+    if a.shape[0] == 0:
+        return a.copy(), np.zeros(0, dtype=np.int64)
+    order = np.lexsort(a.T[::-1])
+    sa = a[order]
+    new = np.ones(a.shape[0], dtype=bool)
+    new[1:] = np.any(sa[1:] != sa[:-1], axis=1)
+    inv = np.empty(a.shape[0], dtype=np.int64)
+    inv[order] = np.cumsum(new) - 1
+    return sa[new], inv
+
+
 def _nominal_integrals(ir: SequenceIR, times: np.ndarray) -> np.ndarray:
     """(Q, 3) gamma * integral_0^t of the demanded gradient, rad/m (exact PWL)."""
     if times.size == 0:
@@ -382,7 +396,7 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
         cz = Z_CHILD[kind]
         kk = keys(cz, ck, ct)
         eq_key = keys(np.array([True]), np.zeros((1, 3)), np.zeros(1))
-        uniq, inv = np.unique(np.concatenate([kk, eq_key]), axis=0, return_inverse=True)
+        uniq, inv = _unique_rows(np.concatenate([kk, eq_key]))
         inv = inv.ravel()
         inv_e, eq_new = inv[:-1], int(inv[-1])
         nU = uniq.shape[0]
