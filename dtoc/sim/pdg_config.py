@@ -67,6 +67,11 @@ class PDGConfig:
             the measured values do not, so fewer states reach the same image error
             (docs/simulator.md).  Applies to intervals evaluated by the batched 'gemm' path (the
             others keep their bounds).  Default False.
+        tissue_quantum: round every voxel's B1 and initial Mz / PD to multiples of this before the
+            tissue tuples are formed (``compress_tissues``), so that a smooth B1 map or a steady-state
+            initial Mz (dummy cycles) no longer makes every voxel its own tuple.  An approximation:
+            relative flip-angle error <= tissue_quantum / 2, initial-Mz error <= tissue_quantum / 2 x PD
+            (docs/simulator.md quantifies the image error).  Default 0 (exact, no rounding).
     """
 
     min_magnitude: float = 1e-6
@@ -86,6 +91,7 @@ class PDGConfig:
     compress_tissues: bool = True
     fused_signal_adjoint: bool = True
     calibrate_emission: bool = False
+    tissue_quantum: float = 0.0
 
     @classmethod
     def fast(cls, **overrides) -> "PDGConfig":

@@ -287,23 +287,33 @@ class _Tissues:
     built-in brain phantom without B1 map: 589 -> 225 (32x32), 2247 -> 262 (64x64), 34581 -> 96
     (256x256)) and the emitting rows are expanded to voxels for the signal.  With ``compress`` False
     (or when every voxel is distinct) the tuples are the voxels themselves.
+
+    A smooth B1 map, or an initial Mz from dummy cycles (which carries the voxel-scale pattern of the
+    dephased longitudinal pathways), makes every voxel distinct.  ``quantum`` > 0 rounds B1 and
+    Mz0/PD to multiples of it for every voxel (an approximation: relative flip-angle error <= quantum/2,
+    initial-Mz error <= quantum/2 x PD), after which voxels of the same tissue share a tuple again.
     """
 
-    def __init__(self, vox, compress: bool):
+    def __init__(self, vox, compress: bool, quantum: float = 0.0):
         dev = vox.pd.device
         ratio = vox.mz0 / vox.pd
+        b1 = vox.b1
+        if quantum > 0:
+            b1 = torch.round(b1 / quantum) * quantum
+            ratio = torch.round(ratio / quantum) * quantum
         inv = None
         if compress and vox.n > 1:
-            key = torch.stack([vox.r1, vox.r2, vox.d, vox.b1, ratio], 1).detach().cpu().numpy()
+            key = torch.stack([vox.r1, vox.r2, vox.d, b1, ratio], 1).detach().cpu().numpy()
             uniq, first, inv_np = np.unique(key, axis=0, return_index=True, return_inverse=True)
             if uniq.shape[0] < vox.n:
                 sel = torch.as_tensor(first, device=dev)
                 inv = torch.as_tensor(inv_np.reshape(-1), device=dev)
         if inv is None:
-            self.r1, self.r2, self.d, self.b1, self.mz0, self.pd = vox.r1, vox.r2, vox.d, vox.b1, vox.mz0, vox.pd
+            self.r1, self.r2, self.d, self.b1, self.pd = vox.r1, vox.r2, vox.d, b1, vox.pd
+            self.mz0 = vox.mz0 if quantum <= 0 else ratio * vox.pd
         else:
             pick = lambda t: t.index_select(0, sel)  # noqa: E731
-            self.r1, self.r2, self.d, self.b1, self.mz0 = pick(vox.r1), pick(vox.r2), pick(vox.d), pick(vox.b1), pick(ratio)
+            self.r1, self.r2, self.d, self.b1, self.mz0 = pick(vox.r1), pick(vox.r2), pick(vox.d), pick(b1), pick(ratio)
             self.pd = torch.ones_like(self.r1)
             self.scale = vox.pd
         self.inv = inv
@@ -320,7 +330,7 @@ class _Tissues:
 
 
 def _tissue_classes(vox, cfg) -> _Tissues:
-    return _Tissues(vox, cfg.compress_tissues)
+    return _Tissues(vox, cfg.compress_tissues, cfg.tissue_quantum)
 
 
 _BATCH_ELEMS = 2**21
