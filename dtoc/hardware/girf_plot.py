@@ -14,7 +14,6 @@ The frequency axis runs to the kernel's Nyquist frequency or to the end of the f
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from dtoc.constants import AXES

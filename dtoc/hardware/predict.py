@@ -132,7 +132,6 @@ def plot_prediction(ir: SequenceIR, res: dict[str, Any], path, title: str = "", 
     """PNG, 4 panels: demanded (dashed) vs realized (solid) gradients over the whole sequence and in a
     zoom around the middle ADC events (ADC windows shaded); realized minus demanded gradient; k error at
     the ADC samples in units of dk = 2 pi / FOV (rad/m when the FOV is unknown), EPI line means marked."""
-    
     import matplotlib
 
     matplotlib.use("Agg")

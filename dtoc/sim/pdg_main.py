@@ -341,7 +341,6 @@ def _emitting_k(Ks, steps):
     concatenated k of all intervals (one autograd node instead of one per interval)."""
     if not Ks:
         return []
-    dev = Ks[0].device
     emit_n = [n for n, st in enumerate(steps) if n < len(Ks) and st.emit is not None]
     out = [None] * len(Ks)
     if not emit_n:

@@ -437,10 +437,16 @@ def _time_factor(dtr, rate, vox: VoxelData, key):
         if used + dtr.numel() * vox.n > _TIME_FACTOR_CACHE_ELEMS:
             return None
         with torch.no_grad():
-            tf = torch.exp(torch.complex(torch.clamp(-dtr[:, None] * rate[None], max=80.0), -dtr[:, None] * vox.omega[None]))
+            tf = _decay_phase(dtr, rate, vox.omega)
         vox.cache[ck] = tf
         vox.cache["tf_elems"] = used + tf.numel()
     return tf
+
+
+def _decay_phase(dtr: torch.Tensor, rate: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
+    """(t, V) exp(-dt (rate + i omega)) for times ``dtr`` (t,) s, rates (V,) 1/s and off-resonance (V,) rad/s
+    (the exponent's real part clamped at +80: the mirrored T2' kernel only grows on masked-out samples)."""
+    return torch.exp(torch.complex(torch.clamp(-dtr[:, None] * rate[None], max=80.0), -dtr[:, None] * omega[None]))
 
 
 def _time_key(dtt: np.ndarray, sgn: float):

@@ -30,7 +30,7 @@ import torch
 
 from dtoc.sim import pdg_signal as _sig
 from dtoc.sim.pdg_rfsplit import add_rows_, take_rows
-from dtoc.sim.pdg_signal import _DIFF_TAYLOR_MAX, _cis, _time_factor, _time_key, voxel_factor
+from dtoc.sim.pdg_signal import _DIFF_TAYLOR_MAX, _cis, _decay_phase, _time_factor, _time_key, voxel_factor
 
 
 def _taylor_orders(xs: np.ndarray, tol: float) -> np.ndarray:
@@ -41,6 +41,27 @@ def _taylor_orders(xs: np.ndarray, tol: float) -> np.ndarray:
     terms = np.cumprod(xs[:, None] / np.arange(1, 31)[None, :], axis=1)  # (J, 30): x^(R+1)/(R+1)!, R = 0..29
     ok = terms <= tol
     return np.where(ok.any(1), ok.argmax(1), 30).astype(np.int64)
+
+
+def _time_factors(dtt: np.ndarray, dtr: torch.Tensor, sgn: float, vox) -> tuple[list, bool]:
+    """Per interval g, the (T, V) kernel time factor exp(-dt (1/T2 + sgn/T2' + i omega)) of T2' class sign
+    ``sgn`` (cached per simulate call, :func:`dtoc.sim.pdg_signal._time_factor`; computed per interval when
+    the cache is full), and whether every interval has the same sample times (then all entries are the
+    same factor)."""
+    G = dtt.shape[0]
+    rate = vox.r2 + (sgn * vox.r2d if vox.has_t2d else 0.0)
+    keys = [_time_key(dtt[g], sgn if vox.has_t2d else 0.0) for g in range(G)]
+    tfs = [_time_factor(dtr[g], rate, vox, k) for g, k in enumerate(keys)]
+    if any(t is None for t in tfs):  # cache full: compute per interval
+        tfs = [_decay_phase(dtr[g], rate, vox.omega) for g in range(G)]
+    return tfs, all(k == keys[0] for k in keys)
+
+
+def _tau_factor(utau_t: torch.Tensor, sgn: float, vox) -> torch.Tensor:
+    """(U, V) exp(-tau (sgn / T2' + i omega)) for the distinct dephasing times ``utau_t`` (s) of the emitting states."""
+    mag = (torch.clamp(-sgn * utau_t[:, None] * vox.r2d[None], max=80.0) if vox.has_t2d
+           else torch.zeros((utau_t.shape[0], vox.n), dtype=utau_t.dtype, device=utau_t.device))
+    return torch.exp(torch.complex(mag, -utau_t[:, None] * vox.omega[None]))
 
 
 def _class_rows(cls, far, orders, own_np):
@@ -137,13 +158,8 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
     dtr = torch.as_tensor(dtt, dtype=rdt, device=dev)
 
     def kernel(sgn):
-        rate = vox.r2 + (sgn * vox.r2d if vox.has_t2d else 0.0)
-        keys = [_time_key(dtt[g], sgn if vox.has_t2d else 0.0) for g in range(G)]
-        tfs = [_time_factor(dtr[g], rate, vox, k) for g, k in enumerate(keys)]
-        if any(t is None for t in tfs):  # cache full: compute per interval
-            tfs = [torch.exp(torch.complex(torch.clamp(-dtr[g][:, None] * rate[None], max=80.0), -dtr[g][:, None] * vox.omega[None]))
-                   for g in range(G)]
-        if all(k == keys[0] for k in keys):
+        tfs, shared = _time_factors(dtt, dtr, sgn, vox)
+        if shared:
             K = SP * tfs[0][None]
         else:
             K = SP * torch.stack(tfs, 0)
@@ -157,9 +173,7 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
         rows_c = torch.as_tensor(in_c, device=dev)
         Wc = W.index_select(0, rows_c)
         for sgn in signs:
-            Pt = torch.exp(torch.complex(torch.clamp(-sgn * utau_t[:, None] * vox.r2d[None], max=80.0) if vox.has_t2d
-                                         else torch.zeros((utau.size, V), dtype=rdt, device=dev),
-                                         -utau_t[:, None] * vox.omega[None]))  # (U, V)
+            Pt = _tau_factor(utau_t, sgn, vox)  # (U, V)
             C = Wc * Pt.index_select(0, tinv_t.index_select(0, rows_c))
             if sgn not in kern_cache:
                 kern_cache[sgn] = kernel(sgn)
@@ -222,7 +236,6 @@ def _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, 
 def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np, Dmax, vox, G, Co, T, rdt):
     """(J, Co, T) products of the expanded states through :class:`_BatchedGemm` (same terms and order as the generic path)."""
     dev = Y.device
-    V = vox.n
     empty = torch.zeros(0, dtype=rdt, device=dev)
     utau, tinv = np.unique(tau, return_inverse=True)
     utau_t = torch.as_tensor(utau, dtype=rdt, device=dev)
@@ -230,13 +243,8 @@ def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np
     dtr = torch.as_tensor(dtt, dtype=rdt, device=dev)
     tfs = {}
     for sgn in ((1.0, -1.0) if vox.has_t2d else (1.0,)):
-        rate = vox.r2 + (sgn * vox.r2d if vox.has_t2d else 0.0)
-        keys = [_time_key(dtt[g], sgn if vox.has_t2d else 0.0) for g in range(G)]
-        tl = [_time_factor(dtr[g], rate, vox, k) for g, k in enumerate(keys)]
-        if any(t is None for t in tl):
-            tl = [torch.exp(torch.complex(torch.clamp(-dtr[g][:, None] * rate[None], max=80.0), -dtr[g][:, None] * vox.omega[None]))
-                  for g in range(G)]
-        tfs[sgn] = tl[0].T[:, None, :] if all(k == keys[0] for k in keys) else torch.stack(tl, 0).permute(2, 0, 1)  # (V, 1|G, T)
+        tl, shared = _time_factors(dtt, dtr, sgn, vox)
+        tfs[sgn] = tl[0].T[:, None, :] if shared else torch.stack(tl, 0).permute(2, 0, 1)  # (V, 1|G, T)
     dn = vox.d / Dmax
     steps = []
     for c, signs, in_c in _class_rows(cls, far, orders, own_np):
@@ -244,9 +252,7 @@ def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np
         for sgn in signs:
             if not vox.has_t2d:
                 sgn = 1.0
-            Pt = torch.exp(torch.complex(torch.clamp(-sgn * utau_t[:, None] * vox.r2d[None], max=80.0) if vox.has_t2d
-                                         else torch.zeros((utau.size, V), dtype=rdt, device=dev),
-                                         -utau_t[:, None] * vox.omega[None]))
+            Pt = _tau_factor(utau_t, sgn, vox)
             Pt_rows = Pt.index_select(0, torch.as_tensor(tinv[in_c], device=dev))
             mask_c = None
             if c == 2:
