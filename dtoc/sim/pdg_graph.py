@@ -483,11 +483,12 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
         tot = float(np.sum(phantom.pd)) or 1.0
         emit_c = []
         for n, R in enumerate(raw):
-            e = np.where(keeps[n], emit_b[n], 0.0)
-            if n in peaks:
-                e = np.zeros_like(e)
-                src = np.where(keeps[n])[0][intervals[n].emit]  # raw index of each emitting state
-                e[src] = peaks[n] / tot / np.maximum(R["mag"][src], 1e-300)
+            if n not in peaks:  # not evaluated by the batched path: keep the bounds
+                emit_c.append(np.where(keeps[n], emit_b[n], 0.0))
+                continue
+            e = np.zeros(R["is_z"].size)
+            src = np.where(keeps[n])[0][intervals[n].emit]  # raw index of each emitting state
+            e[src] = peaks[n] / tot / np.maximum(R["mag"][src], 1e-300)
             emit_c.append(e)
         intervals, _ = _prune(ctx, emit_c, _latent(ctx, emit_c), restrict=keeps)
         graph = graph_of(intervals)

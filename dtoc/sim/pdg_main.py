@@ -145,13 +145,20 @@ def _k_and_b(iv, K, mom, n, vox, dt, tr_t):
     K_end = K + tr_t[:, None].to(K.dtype) * dM[None, :]
     if not vox.has_diffusion:
         return K_end, None
-    k3 = K[:, :3]
-    u = k3 - mom.I_bound[n][:3][None, :]
-    dJ1 = mom.J1_bound[n + 1] - mom.J1_bound[n]
-    dJ2 = mom.J2_bound[n + 1] - mom.J2_bound[n]
-    b_tr = (u * u).sum(1) * dt + 2.0 * (u * dJ1[None, :]).sum(1) + dJ2
-    b_z = (k3 * k3).sum(1) * dt
-    return K_end, torch.where(tr_t, b_tr, b_z).to(vox.r1.dtype)
+    b = _b_integral(K[:, :3], mom.I_bound[n][:3][None, :], mom.J1_bound[n + 1] - mom.J1_bound[n],
+                    mom.J2_bound[n + 1] - mom.J2_bound[n], dt, tr_t)
+    return K_end, b.to(vox.r1.dtype)
+
+
+def _b_integral(k3, I_start, dJ1, dJ2, dt, tr):
+    """Diffusion b-integral of states over an interval (S,): int |k(t)|^2 dt, with k(t) = k3 + I(t) - I_start
+    for transverse states (dJ1 = int I dt, dJ2 = int |I|^2 dt over the interval, I the moment since the
+    sequence start; so int |u + I|^2 = |u|^2 dt + 2 u . dJ1 + dJ2 with u = k3 - I_start) and |k3|^2 dt for
+    longitudinal ones (k frozen); broadcasting over states."""
+    u = k3 - I_start
+    b_tr = (u * u).sum(-1) * dt + 2.0 * (u * dJ1).sum(-1) + dJ2
+    b_z = (k3 * k3).sum(-1) * dt
+    return torch.where(tr, b_tr, b_z)
 
 
 _K_PATH_MAX_ELEMS = 2 * 10**7  # largest (all states x intervals) path matrix; longer graphs use the recursion
@@ -202,13 +209,9 @@ def _k_and_b_all(graph, C, mom, vox, bounds_t, final_state):
     own = torch.as_tensor(np.repeat(np.arange(NI), sizes), device=dev)
     tr_all = torch.as_tensor(np.concatenate([~iv.is_z for iv in ivs]), device=dev)
     dt = torch.as_tensor(np.diff(np.asarray(bounds_t, dtype=np.float64)), device=dev).index_select(0, own)
-    k3 = K_all[:, :3]
-    u = k3 - mom.I_bound[:-1, :3].index_select(0, own)
-    dJ1 = (mom.J1_bound[1:] - mom.J1_bound[:-1]).index_select(0, own)
-    dJ2 = (mom.J2_bound[1:] - mom.J2_bound[:-1]).index_select(0, own)
-    b_tr = (u * u).sum(1) * dt + 2.0 * (u * dJ1).sum(1) + dJ2
-    b_z = (k3 * k3).sum(1) * dt
-    bs = list(torch.split(torch.where(tr_all, b_tr, b_z).to(vox.r1.dtype), sizes, 0))
+    b = _b_integral(K_all[:, :3], mom.I_bound[:-1, :3].index_select(0, own), (mom.J1_bound[1:] - mom.J1_bound[:-1]).index_select(0, own),
+                    (mom.J2_bound[1:] - mom.J2_bound[:-1]).index_select(0, own), dt, tr_all)
+    bs = list(torch.split(b.to(vox.r1.dtype), sizes, 0))
     if not final_state:
         bs[-1] = None
     return Ks, bs, K_fin
