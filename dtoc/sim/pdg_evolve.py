@@ -20,7 +20,7 @@ adjoint recursion (torch's convention for complex gradients, grad = dL/dRe + i d
     lambda_n = fac_n * mu_n + scatter(dL/dY_n at emit_n)     (dL/dA_n; fac is real)
 
 The T1 recovery does not depend on A or b, so it has no adjoint term.  Exactly the same numbers as
-the generic path (tests/test_sim_perf_evolve.py).
+the generic path up to rounding (tests/test_sim_perf_equivalence.py).
 """
 
 from __future__ import annotations

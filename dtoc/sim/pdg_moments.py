@@ -101,9 +101,8 @@ def _diffusion_moments(w, C, dt, t_q, I_q):
     z1 = torch.zeros(3, 1, dtype=w.dtype, device=w.device)
     J1n = torch.cat([z1, torch.cumsum(inc1, -1)], -1)  # (3, M)
     J2n = torch.cat([z1[0], torch.cumsum(inc2, -1)], -1)  # (M,)
-    t = np.clip(t_q, 0.0, (M - 1) * dt)
-    m = np.clip(np.floor(t / dt + 1e-9).astype(np.int64), 0, M - 1)
-    h = torch.as_tensor(t - m * dt, dtype=w.dtype, device=w.device)
+    m, h_np = _query_index(t_q, dt, M, M - 1)
+    h = torch.as_tensor(h_np, dtype=w.dtype, device=w.device)
     mi = torch.as_tensor(m, device=w.device)
     Cm = C[:, mi].T  # (Q, 3)
     J1 = J1n[:, mi].T + 0.5 * h[:, None] * (Cm + I_q)
@@ -147,25 +146,12 @@ class _MomentsAt(torch.autograd.Function):
     def forward(ctx, grad, b0, dt, t_q, diffusion):
         M = grad.shape[-1]
         dev = grad.device
-        w = torch.empty((4, M), dtype=torch.float64, device=dev)
-        w[:3] = grad
-        w[:3] *= GAMMA_RAD_PER_S_PER_MT
-        if b0 is None:
-            w[3] = 0.0
-        else:
-            w[3] = b0.reshape(-1)
-            w[3] *= GAMMA_RAD_PER_S_PER_T * 1e-6
+        w = _k_waveform(grad, b0)  # forward of a custom Function: no autograd nodes
         ctx.in_dtypes = (grad.dtype, None if b0 is None else (b0.dtype, b0.shape))
-        inc = 0.5 * dt * (w[:, 1:] + w[:, :-1])
-        C = torch.empty_like(w)  # (4, M) running integral, C[:, 0] = 0
-        C[:, 0] = 0.0
-        torch.cumsum(inc, -1, out=C[:, 1:])
-        m, tau_np = _query_index(t_q, dt, M, max(M - 2, 0))
-        mi = torch.as_tensor(m, device=dev)
+        C = pwl_cumulative(w, dt)  # (4, M) running integral, C[:, 0] = 0
+        I = pwl_integral_at(w, dt, t_q, cumulative=C)  # (4, Q)
+        m, tau_np = _query_index(t_q, dt, M, max(M - 2, 0))  # the same indices, for the adjoint
         tau = torch.as_tensor(tau_np, dtype=w.dtype, device=dev)
-        g0 = w.index_select(1, mi)
-        g1 = w.index_select(1, mi + 1)
-        I = C.index_select(1, mi) + tau * g0 + 0.5 * tau * tau * (g1 - g0) / dt  # (4, Q)
         ctx.dt, ctx.M, ctx.m, ctx.diffusion = dt, M, m, diffusion
         if not diffusion:
             ctx.save_for_backward(tau)
