@@ -278,10 +278,6 @@ def _pct(x) -> str:
     return "-" if x is None else f"{100 * x:.2g} %"
 
 
-def _fb(d):
-    return d["t_fwd_bwd_s"] if d and d.get("ok") else None
-
-
 def matched(res: dict) -> list[dict]:
     """Per MRzero setting: the cheapest dtoc setting (fwd+bwd) whose NRMSE <= MRzero's at that setting."""
     rows = []
