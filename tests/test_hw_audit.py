@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dtoc.errors import InputError
-from dtoc.hardware.girf_io import GirfData, load_girf
+from dtoc.hardware.girf_io import load_girf
 from dtoc.hardware.measurement import k_from_G, load_measurement
 from dtoc.hardware.npzio import save_npz
 

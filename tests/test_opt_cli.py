@@ -164,3 +164,22 @@ def test_golden_gre_amplitude_limited_regression(tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     r = _dtoc("check", out, "--gmax", "19")  # the limit is active: a tighter one is violated
     assert r.returncode != 0
+
+
+def test_phantom_option_changes_the_figures_not_the_gre_waveform(tmp_path):
+    """`--phantom brain-noscalp` (the paper's kind of phantom) is recorded in the manifest and changes the
+    image figures; the GRE default (k-space warm start, no image term) does not look at the phantom, so
+    the exported waveform is byte-identical: the pre-compensation is not fitted to one object."""
+    model = REPO / "girf" / "paper_eddy_both.json"
+    m = {}
+    for ph in ("brain", "brain-noscalp"):
+        r = _dtoc("optimize", REPO / "sequences" / "gre_small.yaml", "--model", model, "-o", tmp_path / f"{ph}.seq",
+                  "--json", tmp_path / f"{ph}.json", "--gmax", "20", "--warm-iters", "60", "--threads", "1", "--phantom", ph)
+        assert r.returncode == 0, r.stderr
+        m[ph] = json.loads((tmp_path / f"{ph}.json").read_text())
+        assert m[ph]["phantom"] == {"builtin": ph}
+    assert m["brain"]["output"]["sha256"] == m["brain-noscalp"]["output"]["sha256"]
+    assert abs(m["brain"]["before"]["nrmse"] - m["brain-noscalp"]["before"]["nrmse"]) > 0.01
+    r = _dtoc("optimize", REPO / "sequences" / "gre_small.yaml", "--model", model, "-o", tmp_path / "x.seq",
+              "--phantom", "brain-noscalp:zz")
+    assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.seq").exists()

@@ -9,7 +9,7 @@ import pytest
 from dtoc.constants import mT_per_m_from_hz_per_m
 from dtoc.errors import InputError
 from dtoc.seq.build import SpecLimitWarning, build, build_ir, build_to_file, seq_bytes
-from dtoc.seq.spec import EpiSpec, GreSpec, load_spec, parse_spec
+from dtoc.seq.spec import EpiSpec, load_spec, parse_spec
 
 REPO = Path(__file__).resolve().parents[1]
 SEQ = REPO / "sequences"

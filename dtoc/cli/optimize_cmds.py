@@ -32,7 +32,7 @@ def optimize_cmd(
     w_rf: Optional[float] = typer.Option(None, "--w-rf", help="weight of the realized-gradient-during-RF term"),
     augment: Optional[int] = typer.Option(None, "--augment", help="number of rotated phantoms (0 = none)"),
     no_discard: bool = typer.Option(False, "--no-discard", help="keep every sample (no post-hoc skipping)"),
-    phantom: Optional[str] = typer.Option(None, "--phantom", help="phantom: brain, brain:N or a .npz"),
+    phantom: Optional[str] = typer.Option(None, "--phantom", help="phantom: brain, brain:N, brain-noscalp[:N] (no fat/skull) or a .npz"),
     seed: Optional[int] = typer.Option(None, "--seed", help="random seed"),
     threads: Optional[int] = typer.Option(None, "--threads", help="torch threads (fixed for reproducibility)"),
     device: str = typer.Option("cpu", "--device", help="torch device (cpu, cuda, ...)"),
@@ -58,16 +58,10 @@ def optimize_cmd(
                  "warm_iters": warm_iters, "lr": lr, "augment_rotations": augment, "seed": seed, "threads": threads,
                  "discard": False if no_discard else None, "weights": weights or None}
     cfg = load_config(ir.kind, config, overrides)
-    ph = None
-    if phantom is not None:
-        from dtoc.sim.phantom import resolve_phantom
-
-        ph = resolve_phantom(phantom, matrix=ir.matrix[:2] if ir.matrix else None,
-                             fov_m=ir.fov_m[:2] if ir.fov_m else None)
     ir.meta.setdefault("spec_path", str(base) if base.suffix.lower() in (".yaml", ".yml") else None)
     res = _run_with_progress(lambda progress: optimize_sequence(
         ir, out=out, girf=girf, model=model, config=cfg, config_path=config, manifest_path=json_out, png_path=png,
-        force=force, resume=resume, checkpoint_path=checkpoint, device=device, phantom=ph, progress=progress,
+        force=force, resume=resume, checkpoint_path=checkpoint, device=device, phantom=phantom, progress=progress,
         base_path=base))
     m = res.manifest
     if as_json:

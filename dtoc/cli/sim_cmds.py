@@ -24,7 +24,7 @@ def simulate_cmd(
     seq: Path = typer.Argument(..., help="Base sequence: .seq file or spec .yaml."),
     girf: Optional[Path] = typer.Option(None, "--girf", help="GIRF .npz (hardware model = this GIRF)."),
     model: Optional[Path] = typer.Option(None, "--model", help="Hardware model file (.json)."),
-    phantom: Optional[str] = typer.Option(None, "--phantom", help="Phantom .npz, or 'brain' / 'brain:N' (built-in; default: brain at the image matrix)."),
+    phantom: Optional[str] = typer.Option(None, "--phantom", help="Phantom .npz, or 'brain' / 'brain:N' / 'brain-noscalp[:N]' (built-in head; noscalp: without fat and skull; default: brain at the image matrix)."),
     field_T: float = typer.Option(3.0, "--field", help="Field strength of the built-in phantom's tissue values, T (3 or 7)."),
     b0_map: bool = typer.Option(False, "--b0-map", help="Built-in phantom: add its smooth B0 map."),
     b1_map: bool = typer.Option(False, "--b1-map", help="Built-in phantom: add its smooth B1 map."),

@@ -171,7 +171,6 @@ def _screen_exp_family(ws: Workspace, ctx: Context, out_axis: int | None, in_axi
 
     out_axis None means the B0 channel.  Returns (alpha, tau, OptionResult).
     """
-    N = ws.data.N
 
     def stats(taus, cache_key=None):
         if cache_key is not None and cache_key not in ctx.cache:

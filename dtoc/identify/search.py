@@ -160,7 +160,7 @@ def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_eff
             break
         chi_old = _chi2(ws)
         saved = [copy.deepcopy(f.effect.state_dict()) for f in twin.found]
-        f = twin.add(best.kind, best.axis, best.input_axis, best.params, best.score, best.position, best.notes)
+        twin.add(best.kind, best.axis, best.input_axis, best.params, best.score, best.position, best.notes)
         twin.refit()
         pred = twin.predict()
         ws_new = Workspace(data, sigma, folds, pred)

@@ -21,7 +21,6 @@ Everything is seeded and deterministic for fixed ``threads``.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 from typing import Callable
 

@@ -13,11 +13,15 @@ When ``g_pre`` breaks the hard limits the paper offers two fallbacks:
   be pre-emphasised within gmax is first lowered and lengthened at constant moment, TR growing by the
   extra lobe length); the TE/TR found are
   reported (the exported file keeps the base TE, as in the paper's constant-TE comparison).
-* **constant TE**: ``g_pre`` is projected onto the limits (the same hard-limit projection as the
-  optimizer) and the samples that then miss their k-space target are skipped with the threshold
-  that minimises the image error (partial-Fourier-like).  NOTE: the paper instead shrank the
-  k-space extent and rescaled prewinder / phase-encode / spoiler amplitudes before pre-emphasis;
-  this projection-based variant is a simpler stand-in and is reported as such.
+* **constant TE** (the paper's, :func:`constant_te`; GRE-like sequences): the k-space extent shrinks
+  by n = 0, 1, 2, ... grid steps until the pre-emphasised waveform meets gmax: the first n samples of
+  every readout and the n outermost phase-encode lines on either side are left out (zero-filled),
+  the prewinder / phase-encode lobes end on the first kept sample instead of the ADC start (n dwells
+  longer, so lower), the phase-encode rewinders follow, and the spoiler keeps its moment spread
+  over the whole gap to the next RF pulse.  TE, TR and the ADC are those of the base.
+* where that does not apply, ``g_pre`` is projected onto the limits and the samples that then miss
+  their k-space target are skipped with the threshold that minimises the image error; for GRE this
+  projection variant is computed too and reported beside the paper's fallback.
 """
 
 from __future__ import annotations
@@ -104,11 +108,133 @@ def run_preemphasis(ir, twin, ctx, imager, limits) -> dict:
         return {"edges": edges, "keep_mask": np.ones(ir.n_adc_samples, bool), "report": {**report, "fallback": None}}
     proj = P.project(edges, n_iter=60)
     keep, thr, nr = choose_discard(twin, imager, ctx, torch.as_tensor(proj))
-    report.update({"fallback": "constant-TE (projection + sample skipping)", "skip_threshold_dk": None if not math.isfinite(thr) else thr})
+    projection = {"fallback": "constant-TE (projection + sample skipping)", "skip_threshold_dk": None if not math.isfinite(thr) else thr,
+                  "nrmse": nr, "skipped_fraction": float(np.mean(~keep))}
     vte = variable_te(ir, twin, limits, fit)
     if vte is not None:
         report["variable_te"] = vte
-    return {"edges": proj, "keep_mask": keep, "report": report}
+    cte = constant_te(ir, twin, limits, fit)
+    if cte is None:
+        report.update(projection)
+        return {"edges": proj, "keep_mask": keep, "report": report}
+    report.update({"fallback": "constant-TE (k-space extent shrink, paper)", "shrink_dk": cte["n"],
+                   "projection_variant": projection})
+    return {"edges": P.project(cte["edges"], n_iter=60), "keep_mask": cte["keep_mask"], "report": report}
+
+
+def _trapezoid(g_start: float, g_end: float, n_raster: int, area: float, slew_step: float) -> np.ndarray | None:
+    """(n_raster + 1,) raster-edge values from ``g_start`` to ``g_end`` with piecewise-linear area
+    ``area`` (mT/m x rasters): ramp at ``slew_step`` mT/m per raster to a plateau P, hold, ramp to
+    ``g_end``; P by bisection (the area grows with P).  None when the area does not fit."""
+    if n_raster < 1:
+        return None
+    t = np.arange(n_raster + 1, dtype=np.float64)
+
+    def shape(P):  # exact while both ramps fit: |P - g_start| + |P - g_end| <= slew_step * n_raster
+        up = g_start + np.sign(P - g_start) * np.minimum(abs(P - g_start), slew_step * t)
+        down = g_end + np.sign(P - g_end) * np.minimum(abs(P - g_end), slew_step * (n_raster - t))
+        return up + down - P
+
+    def area_of(P):
+        e = shape(P)
+        return float(0.5 * (e[:-1] + e[1:]).sum())
+
+    if abs(g_start - g_end) > slew_step * n_raster:
+        return None
+    lo = 0.5 * (g_start + g_end - slew_step * n_raster)
+    hi = 0.5 * (g_start + g_end + slew_step * n_raster)
+    if not (area_of(lo) <= area <= area_of(hi)):
+        return None
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        if area_of(mid) < area:
+            lo = mid
+        else:
+            hi = mid
+    return shape(0.5 * (lo + hi))
+
+
+def constant_te(ir, twin, limits, fit, max_shrink: int | None = None, min_shrink: int = 0) -> dict | None:
+    """The paper's constant-TE fallback: smallest k-space shrink n (grid steps) whose pre-emphasised
+    waveform meets gmax (see the module doc).  n = 0 rebuilds the lobes with the slew headroom only
+    (plain pre-emphasis of the base may break smax on its ramps, not gmax).  Returns {"n", "edges" (3, N+1), "keep_mask"} or None
+    when it does not apply (no readout / phase axis, ADC samples off the raster edges, nothing fits).
+
+    The rebuilt lobes ramp at smax / (1 + sum a_n), as in :func:`variable_te`, because pre-emphasis
+    raises a ramp's slew by that factor."""
+    from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
+    from dtoc.optimize.limits import edges_to_played
+
+    ro, pe = ir.readout_axis, ir.phase_axis
+    if ir.kind != "gre" or ro is None or pe is None or not ir.adc or ir.dk_rad_per_m is None:
+        return None
+    P = twin.projector
+    e0 = np.asarray(ir.edge_grad_mT_per_m, dtype=np.float64)
+    free = np.asarray(P.free, dtype=bool)
+    r = ir.raster_s
+    to_area = 1.0 / (GAMMA_RAD_PER_S_PER_MT * r)  # rad/m -> mT/m x rasters
+    dk = ir.dk_rad_per_m
+    k0 = ir.nominal_kspace_rad_per_m()
+    gain = 1.0 + float(np.sum(fit["alpha"]))
+    step = 0.98 * limits.smax_T_per_m_per_s * (1.0 - limits.slew_margin) * 1e3 * r / gain  # mT/m per raster
+    gmax = limits.gmax_eff_mT_per_m
+    # per readout: edge indices of its samples, the free run around it, its phase-encode value
+    lines, start = [], 0
+    for a in ir.adc:
+        idx = (a.sample_times_s - 0.0) / r
+        if np.any(np.abs(idx - np.round(idx)) > 1e-6):
+            return None
+        idx = np.round(idx).astype(int)
+        both = free[ro] & free[pe]
+        lo = idx[0]
+        while lo > 0 and both[lo - 1]:
+            lo -= 1
+        hi = idx[-1]
+        while hi < len(both) - 1 and both[hi + 1]:
+            hi += 1
+        lines.append({"idx": idx, "lo": lo - 1, "hi": hi + 1, "s": slice(start, start + a.num_samples)})
+        start += a.num_samples
+    if any(ln["lo"] < 0 or ln["hi"] >= e0.shape[1] for ln in lines):
+        return None
+    ky = np.array([np.median(k0[pe, ln["s"]]) / dk[pe] for ln in lines])
+    levels = np.unique(np.round(ky, 6))
+    n_samp = min(len(ln["idx"]) for ln in lines)
+    top = max_shrink if max_shrink is not None else min(n_samp - 1, (len(levels) - 1) // 2)
+
+    def build(n: int):
+        e = e0.copy()
+        keep = np.ones(ir.n_adc_samples, dtype=bool)
+        lo_ky, hi_ky = levels[n], levels[len(levels) - 1 - n]
+        for ln, kyl in zip(lines, ky):
+            i_n, i_last = ln["idx"][n], ln["idx"][-1]
+            keep[ln["s"].start:ln["s"].start + n] = False
+            kyc = float(np.clip(kyl, lo_ky, hi_ky))
+            if abs(kyc - kyl) > 1e-6:
+                keep[ln["s"]] = False
+            for ax in (ro, pe):
+                base_pre = 0.5 * (e0[ax, ln["lo"]:i_n][...] + e0[ax, ln["lo"] + 1:i_n + 1]).sum()
+                base_post = 0.5 * (e0[ax, i_last:ln["hi"]] + e0[ax, i_last + 1:ln["hi"] + 1]).sum()
+                d = (kyc - kyl) * dk[pe] * to_area if ax == pe else 0.0
+                seg1 = _trapezoid(e0[ax, ln["lo"]], e0[ax, i_n], i_n - ln["lo"], base_pre + d, step)
+                seg2 = _trapezoid(e0[ax, i_last], e0[ax, ln["hi"]], ln["hi"] - i_last, base_post - d, step)
+                if seg1 is None or seg2 is None:
+                    return None, None
+                e[ax, ln["lo"]:i_n + 1] = seg1
+                e[ax, i_last:ln["hi"] + 1] = seg2
+        return e, keep
+
+    for n in range(min_shrink, top + 1):
+        e, keep = build(n)
+        if e is None:
+            continue
+        with torch.no_grad():
+            pre = apply_preemphasis(torch.as_tensor(e), r, fit["alpha"], fit["tau_s"]).numpy()
+        pre = np.where(free, pre, e0)
+        fine = edges_to_played(pre, twin.base_fine, twin.fine_mask)
+        if np.abs(fine).max() <= gmax:
+            return {"n": n, "edges": pre, "keep_mask": keep}
+    return None
+
 
 
 def variable_te(ir, twin, limits, fit, max_steps: int = 2000) -> dict | None:

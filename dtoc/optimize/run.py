@@ -64,16 +64,26 @@ def free_edges(ir) -> np.ndarray:
 
 
 def make_phantoms(ir, cfg: OptimizeConfig, phantom=None) -> list:
-    """The phantom (built-in brain at the sequence's matrix/FOV unless given) and rotated copies."""
-    from dtoc.sim.phantom import brain_phantom, rotate
+    """The phantom and its rotated copies (data augmentation).
 
-    if phantom is None:
-        if not ir.matrix or not ir.fov_m:
+    ``phantom``: a :class:`~dtoc.sim.phantom.Phantom`; or a spec of
+    :func:`~dtoc.sim.phantom.resolve_phantom` ('brain', 'brain-noscalp', 'brain:N', a ``.npz`` path);
+    None = 'brain'.  Built-in phantoms are made at the sequence's matrix (``cfg.phantom_size``
+    overrides it) and FOV, with 7 T tissue values for EPI (the paper's 7 T experiment), 3 T otherwise.
+    """
+    from dtoc.sim.phantom import Phantom, is_builtin_spec, resolve_phantom, rotate
+
+    if not isinstance(phantom, Phantom):
+        spec = "brain" if phantom is None else str(phantom)
+        if is_builtin_spec(spec) and (not ir.matrix or not ir.fov_m):
             raise InputError("sequence has no matrix/FOV definitions: cannot build the phantom")
-        n = cfg.phantom_size or int(ir.matrix[0])
-        ny = cfg.phantom_size or int(ir.matrix[1] if len(ir.matrix) > 1 else ir.matrix[0])
-        field = 7.0 if ir.kind == "epi" else 3.0
-        phantom = brain_phantom((ny, n), field_T=field, fov_m=(ir.fov_m[0], ir.fov_m[1]))
+        matrix = None
+        if ir.matrix:
+            nx = cfg.phantom_size or int(ir.matrix[0])
+            ny = cfg.phantom_size or int(ir.matrix[1] if len(ir.matrix) > 1 else ir.matrix[0])
+            matrix = (ny, nx)
+        fov = (ir.fov_m[0], ir.fov_m[1]) if ir.fov_m else None
+        phantom = resolve_phantom(spec, matrix=matrix, fov_m=fov, field_T=7.0 if ir.kind == "epi" else 3.0)
     out = [phantom]
     if cfg.augment_rotations > 0:
         rng = np.random.default_rng(cfg.seed)
@@ -201,6 +211,8 @@ def optimize_sequence(base, *, out=None, girf=None, model=None, config: Optimize
         config: :class:`OptimizeConfig` (default: built from ``config_path`` and the sequence kind).
         resume: checkpoint to continue from.  checkpoint_path: where to save checkpoints (default:
             ``<out>.ckpt.npz`` on Ctrl-C only).
+        phantom: a :class:`~dtoc.sim.phantom.Phantom` or a phantom spec (see :func:`make_phantoms`);
+            None = the built-in head 'brain'.
         with_image: simulate images (default: when the image weight is > 0 or for reporting).
     Returns:
         :class:`RunOutputs` (manifest dict, output IR, arrays for plots).
@@ -319,6 +331,7 @@ def optimize_sequence(base, *, out=None, girf=None, model=None, config: Optimize
                      "n_free_variables": int(free.sum()), "duration_s": ir.duration_s},
         "versions": _versions(),
         "device": str(device),
+        "phantom": _phantom_record(phantom),
         "before": _public(before),
         "after": _public(after),
         "samples_discarded": int(np.sum(~keep)),
@@ -424,6 +437,20 @@ def _inputs(base, girf, model, config_path, resume) -> dict:
             continue
         out[key] = {"path": str(p), "sha256": sha256_file(p)}
     return out
+
+
+def _phantom_record(phantom) -> dict:
+    """What the manifest says of the phantom: a built-in spec, a file (with sha256) or an in-memory object."""
+    from dtoc.sim.phantom import Phantom, is_builtin_spec
+
+    if phantom is None:
+        return {"builtin": "brain"}
+    if isinstance(phantom, Phantom):
+        return {"builtin": None, "path": "<in-memory>"}
+    spec = str(phantom)
+    if is_builtin_spec(spec):
+        return {"builtin": spec}
+    return {"builtin": None, "path": spec, "sha256": sha256_file(spec)}
 
 
 def _jsonable(o):

@@ -249,6 +249,7 @@ def brain_phantom(
     seed: int = 0,
     *,
     lesion: bool = True,
+    scalp: bool = True,
     oversample: int | None = None,
 ) -> Phantom:
     """Built-in 2D (axial) numerical brain phantom, deterministic, any matrix size.
@@ -268,6 +269,10 @@ def brain_phantom(
         b1: add a smooth relative B1 map; else ones.
         seed: selects the cortical folding pattern and the B0 map coefficients.
         lesion: include a small white-matter lesion.
+        scalp: include the extracranial fat and the skull.  ``False`` leaves a brain-only head (CSF,
+            grey and white matter, as the BrainWeb "3T" phantom of MRzero that the paper used): its
+            outer edge is the dim CSF rim instead of the bright one-voxel fat ring, so it carries much
+            less energy at the k-space edge (docs/results.md, Figure 5).
         oversample: sub-samples per voxel and axis.
     Returns:
         :class:`Phantom` with voxel_shape 'box'.
@@ -282,6 +287,8 @@ def brain_phantom(
     uy = ((np.arange(ny)[:, None] - ny / 2 + sub[None, :]) * 2.0 / ny).ravel()
     vv, uu = np.meshgrid(uy, ux, indexing="ij")
     lab = _label_map(uu, vv, seed, lesion)
+    if not scalp:
+        lab[(lab == TISSUES.index("fat")) | (lab == TISSUES.index("skull"))] = TISSUES.index("background")
     fractions = {}
     for ti, name in enumerate(TISSUES):
         if name == "background":
@@ -487,18 +494,30 @@ def save_phantom(phantom: Phantom, path: str | os.PathLike, force: bool = False)
     return atomic_write_bytes(path, buf.getvalue(), force=force)
 
 
+#: Names of the built-in phantom specs (``name`` or ``name:N``) accepted by :func:`resolve_phantom`.
+BUILTIN_PHANTOMS = ("brain", "brain-noscalp")
+
+
+def is_builtin_spec(spec) -> bool:
+    """True when ``spec`` names a built-in phantom (``brain``, ``brain-noscalp:32``, ...)."""
+    return str(spec).split(":", 1)[0] in BUILTIN_PHANTOMS
+
+
 def resolve_phantom(spec, *, matrix=None, fov_m=None, field_T: float = 3.0, b0: bool = False, b1: bool = False, seed: int = 0) -> Phantom:
-    """A phantom from a CLI-style spec: None / 'brain' (built-in at ``matrix``), 'brain:N' (N x N), or a .npz path."""
-    if spec is None or str(spec) == "brain" or str(spec).startswith("brain:"):
-        if spec is not None and str(spec).startswith("brain:"):
+    """A phantom from a CLI-style spec: None / 'brain' (built-in head at ``matrix``), 'brain:N' (N x N),
+    'brain-noscalp' / 'brain-noscalp:N' (the same without extracranial fat and skull, see
+    :func:`brain_phantom`), or a .npz path."""
+    name, _, size = ("brain" if spec is None else str(spec)).partition(":")
+    if name in BUILTIN_PHANTOMS:
+        if size:
             try:
-                n = int(str(spec).split(":", 1)[1])
+                n = int(size)
             except ValueError:
-                raise InputError(f"phantom {spec!r}: expected brain:N with an integer N") from None
+                raise InputError(f"phantom {spec!r}: expected {name}:N with an integer N") from None
             matrix = (n, n)
         if matrix is None:
-            raise InputError("phantom: matrix unknown; give --phantom brain:N or a .npz file")
+            raise InputError(f"phantom: matrix unknown; give --phantom {name}:N or a .npz file")
         if fov_m is None:
             raise InputError("phantom: field of view unknown; give a .npz phantom with fov_m")
-        return brain_phantom(matrix, field_T=field_T, fov_m=fov_m, b0=b0, b1=b1, seed=seed)
+        return brain_phantom(matrix, field_T=field_T, fov_m=fov_m, b0=b0, b1=b1, seed=seed, scalp=name == "brain")
     return load_phantom(spec)
