@@ -122,6 +122,17 @@ def run_preemphasis(ir, twin, ctx, imager, limits) -> dict:
     return {"edges": P.project(cte["edges"], n_iter=60), "keep_mask": cte["keep_mask"], "report": report}
 
 
+def _edge_area(e: np.ndarray) -> float:
+    """Area of a piecewise-linear waveform given by its raster-edge values, mT/m x rasters."""
+    return float(0.5 * (e[:-1] + e[1:]).sum())
+
+
+def _emphasis_slew_T_per_m_per_s(limits, fit) -> float:
+    """Slew for rebuilt lobes that pre-emphasis may still overdrive within smax: pre-emphasis raises a
+    ramp's slew by (1 + sum a_n) (the paper's piecewise-constant base had no ramps to overdrive)."""
+    return 0.98 * (limits.smax_T_per_m_per_s * (1.0 - limits.slew_margin)) / (1.0 + float(np.sum(fit["alpha"])))
+
+
 def _trapezoid(g_start: float, g_end: float, n_raster: int, area: float, slew_step: float) -> np.ndarray | None:
     """(n_raster + 1,) raster-edge values from ``g_start`` to ``g_end`` with piecewise-linear area
     ``area`` (mT/m x rasters): ramp at ``slew_step`` mT/m per raster to a plateau P, hold, ramp to
@@ -136,8 +147,7 @@ def _trapezoid(g_start: float, g_end: float, n_raster: int, area: float, slew_st
         return up + down - P
 
     def area_of(P):
-        e = shape(P)
-        return float(0.5 * (e[:-1] + e[1:]).sum())
+        return _edge_area(shape(P))
 
     if abs(g_start - g_end) > slew_step * n_raster:
         return None
@@ -157,11 +167,10 @@ def _trapezoid(g_start: float, g_end: float, n_raster: int, area: float, slew_st
 def constant_te(ir, twin, limits, fit, max_shrink: int | None = None, min_shrink: int = 0) -> dict | None:
     """The paper's constant-TE fallback: smallest k-space shrink n (grid steps) whose pre-emphasised
     waveform meets gmax (see the module doc).  n = 0 rebuilds the lobes with the slew headroom only
-    (plain pre-emphasis of the base may break smax on its ramps, not gmax).  Returns {"n", "edges" (3, N+1), "keep_mask"} or None
-    when it does not apply (no readout / phase axis, ADC samples off the raster edges, nothing fits).
+    (plain pre-emphasis of the base may break smax on its ramps, not gmax).  Returns {"n", "edges"
+    (3, N+1), "keep_mask"} or None when it does not apply (no readout / phase axis, ADC samples off the raster edges, nothing fits).
 
-    The rebuilt lobes ramp at smax / (1 + sum a_n), as in :func:`variable_te`, because pre-emphasis
-    raises a ramp's slew by that factor."""
+    The rebuilt lobes ramp at :func:`_emphasis_slew_T_per_m_per_s`, as in :func:`variable_te`."""
     from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
     from dtoc.optimize.limits import edges_to_played
 
@@ -175,17 +184,16 @@ def constant_te(ir, twin, limits, fit, max_shrink: int | None = None, min_shrink
     to_area = 1.0 / (GAMMA_RAD_PER_S_PER_MT * r)  # rad/m -> mT/m x rasters
     dk = ir.dk_rad_per_m
     k0 = ir.nominal_kspace_rad_per_m()
-    gain = 1.0 + float(np.sum(fit["alpha"]))
-    step = 0.98 * limits.smax_T_per_m_per_s * (1.0 - limits.slew_margin) * 1e3 * r / gain  # mT/m per raster
+    step = _emphasis_slew_T_per_m_per_s(limits, fit) * 1e3 * r  # mT/m per raster
     gmax = limits.gmax_eff_mT_per_m
     # per readout: edge indices of its samples, the free run around it, its phase-encode value
+    both = free[ro] & free[pe]
     lines, start = [], 0
     for a in ir.adc:
-        idx = (a.sample_times_s - 0.0) / r
+        idx = a.sample_times_s / r
         if np.any(np.abs(idx - np.round(idx)) > 1e-6):
             return None
         idx = np.round(idx).astype(int)
-        both = free[ro] & free[pe]
         lo = idx[0]
         while lo > 0 and both[lo - 1]:
             lo -= 1
@@ -212,8 +220,8 @@ def constant_te(ir, twin, limits, fit, max_shrink: int | None = None, min_shrink
             if abs(kyc - kyl) > 1e-6:
                 keep[ln["s"]] = False
             for ax in (ro, pe):
-                base_pre = 0.5 * (e0[ax, ln["lo"]:i_n][...] + e0[ax, ln["lo"] + 1:i_n + 1]).sum()
-                base_post = 0.5 * (e0[ax, i_last:ln["hi"]] + e0[ax, i_last + 1:ln["hi"] + 1]).sum()
+                base_pre = _edge_area(e0[ax, ln["lo"]:i_n + 1])
+                base_post = _edge_area(e0[ax, i_last:ln["hi"] + 1])
                 d = (kyc - kyl) * dk[pe] * to_area if ax == pe else 0.0
                 seg1 = _trapezoid(e0[ax, ln["lo"]], e0[ax, i_n], i_n - ln["lo"], base_pre + d, step)
                 seg2 = _trapezoid(e0[ax, i_last], e0[ax, ln["hi"]], ln["hi"] - i_last, base_post - d, step)
@@ -260,11 +268,9 @@ def variable_te(ir, twin, limits, fit, max_steps: int = 2000) -> dict | None:
         sp_dur = math.ceil(sp_dur * sp_amp / a_max / step_ms) * step_ms
         sp_amp = sp_amp * spec.spoiler_duration_ms / sp_dur
     extra_tr_ms = sp_dur - spec.spoiler_duration_ms
-    # ramps: pre-emphasis raises a ramp's slew by the same factor, so the rebuilt base ramps at most
-    # smax / (1 + sum a_n) (the paper's piecewise-constant base had no ramps to overdrive)
-    smax_eff = limits.smax_T_per_m_per_s * (1.0 - limits.slew_margin)
+    # ramps: the rebuilt base ramps at what pre-emphasis may still overdrive within smax
     sys2 = spec.system.model_copy(update={"max_slew_T_per_m_per_s": min(spec.system.max_slew_T_per_m_per_s,
-                                                                        0.98 * smax_eff / (1.0 + float(np.sum(fit["alpha"]))))})
+                                                                        _emphasis_slew_T_per_m_per_s(limits, fit))})
 
     def ok(i: int) -> bool:
         s2 = spec.model_copy(update={"te_ms": spec.te_ms + i * step_ms, "tr_ms": spec.tr_ms + i * step_ms + extra_tr_ms,
