@@ -57,21 +57,29 @@ def main():
 
         models["3x3 GIRF (KCL 2024, 5000 taps)"] = HardwareModel([girf_effect(import_girf([shared]))])
     models["exp_eddy 2 terms (1 ms, 100 ms), all axes"] = HardwareModel(
-        [build_effect("exp_eddy", {"alpha": [0.1, 0.1], "tau_s": [1e-3, 0.1]})])
-    seqs = {"EPI 64x64 esp 0.73 ms": REPO / "sequences" / "epi_esp073.seq",
-            "GRE 32x32, 32 reps": REPO / "sequences" / "gre_paper.seq"}
+        [build_effect("exp_eddy", {"alpha": [0.1, 0.1], "tau_s": [1e-3, 0.1]})]
+    )
+    seqs = {
+        "EPI 64x64 esp 0.73 ms": REPO / "sequences" / "epi_esp073.seq",
+        "GRE 32x32, 32 reps": REPO / "sequences" / "gre_paper.seq",
+    }
     rows = []
     for sname, sp in seqs.items():
         ir = load_sequence(sp)
         for mname, m in models.items():
             for dtype in (torch.float32, torch.float64):
                 tmin, tmed = _time(m, ir.grad_mT_per_m, ir.dt_fine_s, dtype)
-                rows.append(f"| {sname} | {ir.n_fine} | {mname} | {str(dtype).split('.')[-1]} | {tmin * 1e3:.1f} | {tmed * 1e3:.1f} |")
+                rows.append(
+                    f"| {sname} | {ir.n_fine} | {mname} | {str(dtype).split('.')[-1]} | {tmin * 1e3:.1f} | {tmed * 1e3:.1f} |"
+                )
                 print(rows[-1], flush=True)
-    body = ("Forward + backward (w.r.t. the demanded waveform) of the hardware model on the IR's fine grid "
-            "(dt = 5 us), batch 1, 3 axes, model frozen (as in the optimizer); min and median of 7 after one warm-up "
-            f"(load average at start {load0:.1f}: other jobs shared the CPU, so the median is noisy).\n\n"
-            "| sequence | samples per axis | model | dtype | min (ms) | median (ms) |\n|---|---|---|---|---|---|\n" + "\n".join(rows))
+    body = (
+        "Forward + backward (w.r.t. the demanded waveform) of the hardware model on the IR's fine grid "
+        "(dt = 5 us), batch 1, 3 axes, model frozen (as in the optimizer); min and median of 7 after one warm-up "
+        f"(load average at start {load0:.1f}: other jobs shared the CPU, so the median is noisy).\n\n"
+        "| sequence | samples per axis | model | dtype | min (ms) | median (ms) |\n|---|---|---|---|---|---|\n"
+        + "\n".join(rows)
+    )
     write_section("hardware", "Hardware twin", body, "python -m bench.bench_hardware")
 
 

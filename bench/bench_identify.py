@@ -58,7 +58,8 @@ def main() -> None:
         "`identify` call after a warm-up run; CPU = process CPU time (both cores); load = 1-min load average "
         "at start (other jobs sharing the machine inflate the wall time). Target: under 60 s.\n\n"
         "| waveforms x axes x samples | torch threads | wall (s) | CPU (s) | load | effects found | alpha / tau found | "
-        "held-out rmse / true noise | screening rounds |\n|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows)
+        "held-out rmse / true noise | screening rounds |\n|---|---|---|---|---|---|---|---|---|\n"
+        + "\n".join(rows)
         + "\n\n`identify` runs with 1 torch thread by default (`threads=1`); its large numpy products use einsum "
         "(single-threaded) rather than multi-threaded BLAS. On this shared machine a first version with default "
         "threading took 127 s wall (39 s CPU) for the same case: thread oversubscription, not arithmetic."

@@ -57,11 +57,18 @@ def main() -> None:
             tc = _t(lambda: check_file(out))
             back = read_seq(out)
         err = np.abs(back.grad_mT_per_m - new.grad_mT_per_m).max()
-        kerr = (np.abs(back.kspace_rad_per_m().numpy() - new.kspace_rad_per_m().numpy())[:2] / new.dk_rad_per_m[:2, None]).max()
+        kerr = (
+            np.abs(back.kspace_rad_per_m().numpy() - new.kspace_rad_per_m().numpy())[:2] / new.dk_rad_per_m[:2, None]
+        ).max()
         with quiet():
             k_pp = ir.source.calculate_kspace()[0]
         kpp = (np.abs(k_pp - ir.nominal_kspace_rad_per_m() / (2 * np.pi))[:2] * np.array(ir.fov_m[:2])[:, None]).max()
-        for what, t in (("build (spec -> bytes)", tb), ("read_seq", tr), ("write_seq (all free blocks changed)", tw), ("check_file", tc)):
+        for what, t in (
+            ("build (spec -> bytes)", tb),
+            ("read_seq", tr),
+            ("write_seq (all free blocks changed)", tw),
+            ("check_file", tc),
+        ):
             rows.append(f"| {name} | {what} | {t[0] * 1e3:.0f} | {t[1] * 1e3:.0f} |")
         prec.append(f"| {name} | {len(ir.block_edges_s) - 1} | {err:.2e} | {kerr:.2e} | {kpp:.2e} |")
     body = (

@@ -32,8 +32,11 @@ RESULTS = REPO / "docs" / "results.md"
 SHARED_GIRF = REPO.parent / "shared" / "data" / "girf" / "kcl_7T_terra_2023" / "7T_1pcterms.mat"
 
 PUBLISHED_FIG5 = {  # gmax: (PE NRMSE %, DTO NRMSE %, PE skipped %, DTO skipped %)
-    10: (9.31, 3.83, 49.2, 14.3), 15: (6.63, 2.86, 34.4, 6.64), 20: (6.19, 2.21, 26.4, 3.13),
-    25: (2.76, 0.72, 9.18, 0.0), 30: (2.76, 0.72, 9.18, 0.0),
+    10: (9.31, 3.83, 49.2, 14.3),
+    15: (6.63, 2.86, 34.4, 6.64),
+    20: (6.19, 2.21, 26.4, 3.13),
+    25: (2.76, 0.72, 9.18, 0.0),
+    30: (2.76, 0.72, 9.18, 0.0),
 }
 EDDY = {"short": ([0.1], [1e-3]), "long": ([0.1], [0.1]), "both": ([0.1, 0.1], [1e-3, 0.1])}
 #: Phantom of the GRE experiments: the built-in brain without extracranial fat and skull, like the paper's
@@ -66,22 +69,84 @@ def scenarios(only: str | None):
         gre = REPO / "sequences" / "gre_paper_fig5.yaml"  # the paper's amplitudes (see its header)
         ph = GRE_PHANTOM
         for ek in ("short", "long", "both"):
-            out.append(dict(name=f"gre_{ek}_unconstrained", family="gre", base=gre, eddy=ek, gmax=50.0, smax=500.0, method="dto", phantom=ph))
-        out.append(dict(name="gre_both_unconstrained_preemphasis", family="gre", base=gre, eddy="both", gmax=50.0, smax=500.0,
-                        method="preemphasis", phantom=ph))
+            out.append(
+                dict(
+                    name=f"gre_{ek}_unconstrained",
+                    family="gre",
+                    base=gre,
+                    eddy=ek,
+                    gmax=50.0,
+                    smax=500.0,
+                    method="dto",
+                    phantom=ph,
+                )
+            )
+        out.append(
+            dict(
+                name="gre_both_unconstrained_preemphasis",
+                family="gre",
+                base=gre,
+                eddy="both",
+                gmax=50.0,
+                smax=500.0,
+                method="preemphasis",
+                phantom=ph,
+            )
+        )
         for g in (10, 15, 20, 25, 30):
             for m in ("dto", "preemphasis"):
-                out.append(dict(name=f"gre_both_g{g}_{m}", family="gre-amp", base=gre, eddy="both", gmax=float(g), smax=500.0, method=m,
-                                phantom=ph))
+                out.append(
+                    dict(
+                        name=f"gre_both_g{g}_{m}",
+                        family="gre-amp",
+                        base=gre,
+                        eddy="both",
+                        gmax=float(g),
+                        smax=500.0,
+                        method=m,
+                        phantom=ph,
+                    )
+                )
         for m in ("dto", "preemphasis"):
-            out.append(dict(name=f"gre_both_full_{m}", family="gre-full", base=gre, eddy="both", gmax=13.0, smax=130.0, method=m, phantom=ph))
+            out.append(
+                dict(
+                    name=f"gre_both_full_{m}",
+                    family="gre-full",
+                    base=gre,
+                    eddy="both",
+                    gmax=13.0,
+                    smax=130.0,
+                    method=m,
+                    phantom=ph,
+                )
+            )
         for g in (10, 15, 20, 25, 30):  # the same DTO on dtoc's default head phantom (with scalp fat): transparency
-            out.append(dict(name=f"gre_both_g{g}_dto_head", family="gre-amp-head", base=gre, eddy="both", gmax=float(g), smax=500.0,
-                            method="dto", phantom="brain"))
+            out.append(
+                dict(
+                    name=f"gre_both_g{g}_dto_head",
+                    family="gre-amp-head",
+                    base=gre,
+                    eddy="both",
+                    gmax=float(g),
+                    smax=500.0,
+                    method="dto",
+                    phantom="brain",
+                )
+            )
     if only in (None, "epi"):
         for e in EPI_ESP:
-            out.append(dict(name=f"epi_esp{e}", family="epi", base=REPO / "sequences" / f"epi_esp{e}.yaml",
-                            eddy=None, gmax=72.0, smax=180.0, method="dto", esp_ms=int(e) / 100))
+            out.append(
+                dict(
+                    name=f"epi_esp{e}",
+                    family="epi",
+                    base=REPO / "sequences" / f"epi_esp{e}.yaml",
+                    eddy=None,
+                    gmax=72.0,
+                    smax=180.0,
+                    method="dto",
+                    esp_ms=int(e) / 100,
+                )
+            )
     return out
 
 
@@ -100,20 +165,25 @@ def run_one(sc: dict, tmpdir: Path, girf_model, quick: bool, threads: int) -> di
     cfg = load_config(ir.kind, None, over)
     hw = girf_model if sc["eddy"] is None else eddy_model(sc["eddy"])
     out = tmpdir / f"{sc['name']}.seq"
-    res = optimize_sequence(ir, out=out, config=cfg, hardware=hw, force=True, base_path=sc["base"], phantom=sc.get("phantom"))
+    res = optimize_sequence(
+        ir, out=out, config=cfg, hardware=hw, force=True, base_path=sc["base"], phantom=sc.get("phantom")
+    )
     m = res.manifest
     sysspec = SystemSpec(max_grad_mT_per_m=sc["gmax"], max_slew_T_per_m_per_s=sc["smax"], grad_raster_s=ir.raster_s)
     chk = check_file(out, sysspec)
     base_viol = [v for v in __import__("dtoc.seq.check", fromlist=["check_ir_limits"]).check_ir_limits(ir, sysspec)]
     return {
         **{k: (str(v) if isinstance(v, Path) else v) for k, v in sc.items()},
-        "before": m["before"], "after": m["after"],
+        "before": m["before"],
+        "after": m["after"],
         "skipped_pct": 100.0 * m["samples_discarded_fraction"],
         "limit_violations": sum(1 for v in chk.violations if v.rule in LIMIT_RULES),
         "other_check_rules": sorted({v.rule for v in chk.violations} - LIMIT_RULES),
         "base_limit_violations": len(base_viol),
         "preemphasis": m.get("preemphasis"),
-        "stage_times_s": m["stage_times_s"], "time_s": time.time() - t0, "n_adc": ir.n_adc_samples,
+        "stage_times_s": m["stage_times_s"],
+        "time_s": time.time() - t0,
+        "n_adc": ir.n_adc_samples,
         "load_avg_1min": __import__("os").getloadavg()[0],
     }
 
@@ -144,8 +214,10 @@ def gre_phantom_anchor() -> dict:
                 keep = np.ones((ir.n_adc_samples // n, n), dtype=bool)
                 keep[:, :drop] = False
                 img = im.image(sig, keep_mask=torch.as_tensor(keep.ravel()))
-                out[spec][f"drop_first_{drop}"] = {"skipped_pct": 100.0 * drop / n,
-                                                   "nrmse": float(metrics.nrmse(img, im.targets[0]))}
+                out[spec][f"drop_first_{drop}"] = {
+                    "skipped_pct": 100.0 * drop / n,
+                    "nrmse": float(metrics.nrmse(img, im.targets[0])),
+                }
     return out
 
 
@@ -157,10 +229,15 @@ def _anchor_text(r) -> str:
         return "; ".join(f"{v['skipped_pct']:.2f} % skipped -> {100 * v['nrmse']:.2f} %" for v in a.values())
 
     a = r["anchor"]
-    return ("Ideal hardware, exact k-space, only the first 1 / 2 / 3 samples of every line left out (NRMSE, computed in "
-            f"this run): `{GRE_PHANTOM}`: " + parts(a[GRE_PHANTOM]) + "; default head `brain`: " + parts(a["brain"]) +
-            ". The paper's DTO at gmax 20 skipped 3.13 % (one sample per line) at 2.21 % NRMSE in total, which fits the "
-            "brain-only phantom and not the head.")
+    return (
+        "Ideal hardware, exact k-space, only the first 1 / 2 / 3 samples of every line left out (NRMSE, computed in "
+        f"this run): `{GRE_PHANTOM}`: "
+        + parts(a[GRE_PHANTOM])
+        + "; default head `brain`: "
+        + parts(a["brain"])
+        + ". The paper's DTO at gmax 20 skipped 3.13 % (one sample per line) at 2.21 % NRMSE in total, which fits the "
+        "brain-only phantom and not the head."
+    )
 
 
 def _proj_variant(p) -> str:
@@ -176,50 +253,77 @@ def _f(v, pct=False, nd=2):
 
 def write_results(rows: list[dict], quick: bool, machine: str) -> None:
     by = {r["name"]: r for r in rows if "error" not in r}
-    L = ["# Results: the paper's experiments with dtoc", "",
-         "Generated by `python -m bench.paper` (do not edit by hand). " + machine,
-         ("**Quick (smoke) run: reduced iterations; not the reference numbers.**" if quick else ""), "",
-         "NRMSE = ||abs(I) - abs(I0)|| / ||abs(I0)|| of the plain-iFFT image against the ideal-hardware image "
-         "(docs/metrics.md); skipped = samples left out by the post-hoc discarding (threshold chosen to "
-         "minimise NRMSE). k errors are over all ADC samples. Every exported file was checked with "
-         "`dtoc check` rules at the scenario's limits: column *viol.* counts amplitude/slew violations.", ""]
-    L += ["## GRE, unconstrained (50 mT/m, 500 T/m/s)", "",
-          "| eddy currents | method | NRMSE before % | NRMSE after % | k rmse before (rad/m) | k rmse after (rad/m) | max k err after (dk) | skipped % | viol. | time (s) |",
-          "|---|---|---|---|---|---|---|---|---|---|"]
-    for ek, name in (("short", "gre_short_unconstrained"), ("long", "gre_long_unconstrained"), ("both", "gre_both_unconstrained"),
-                     ("both", "gre_both_unconstrained_preemphasis")):
+    L = [
+        "# Results: the paper's experiments with dtoc",
+        "",
+        "Generated by `python -m bench.paper` (do not edit by hand). " + machine,
+        ("**Quick (smoke) run: reduced iterations; not the reference numbers.**" if quick else ""),
+        "",
+        "NRMSE = ||abs(I) - abs(I0)|| / ||abs(I0)|| of the plain-iFFT image against the ideal-hardware image "
+        "(docs/metrics.md); skipped = samples left out by the post-hoc discarding (threshold chosen to "
+        "minimise NRMSE). k errors are over all ADC samples. Every exported file was checked with "
+        "`dtoc check` rules at the scenario's limits: column *viol.* counts amplitude/slew violations.",
+        "",
+    ]
+    L += [
+        "## GRE, unconstrained (50 mT/m, 500 T/m/s)",
+        "",
+        "| eddy currents | method | NRMSE before % | NRMSE after % | k rmse before (rad/m) | k rmse after (rad/m) | max k err after (dk) | skipped % | viol. | time (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for ek, name in (
+        ("short", "gre_short_unconstrained"),
+        ("long", "gre_long_unconstrained"),
+        ("both", "gre_both_unconstrained"),
+        ("both", "gre_both_unconstrained_preemphasis"),
+    ):
         r = by.get(name)
         if r:
-            L.append(f"| {ek} | {r['method']} | {_f(r['before']['nrmse'], True)} | {_f(r['after']['nrmse'], True)} | "
-                     f"{_f(r['before']['kspace_rmse_rad_per_m'])} | {_f(r['after']['kspace_rmse_rad_per_m'])} | "
-                     f"{_f(r['after']['kspace_max_dk'], nd=3)} | {r['skipped_pct']:.2f} | {r['limit_violations']} | {r['time_s']:.0f} |")
-    L += ["", "The pre-emphasis baseline acts only where dtoc may change the waveform: not inside the RF periods, which "
-          "stay fixed blocks of the exported file (as for DTO; the paper's L_tRF). Its 90 ms term would have to continue "
-          "through them, so even without limits it leaves the k-space error and NRMSE of the preemphasis row above; DTO "
-          "compensates around the fixed periods.", ""]
-    L += ["", "## GRE, amplitude-limited (both eddy currents, smax 500 T/m/s): Figure 5", "",
-          "Published (paper Figure 5) beside ours. PE = first-order pre-emphasis (Eq. 2, coefficients fitted here) "
-          "with the paper's constant-TE fallback: the k-space extent shrinks by n grid steps (first n samples of each "
-          "readout and n phase-encode lines on either side left out, lobes rebuilt to end on the first kept sample) "
-          "until the pre-emphasised waveform meets gmax (docs/optimize.md). The column 'PE projection variant' is "
-          "dtoc's alternative fallback (pre-emphasis projected onto the limits, samples skipped at the NRMSE-optimal "
-          "threshold), for comparison. Our PE NRMSE (10-11 %) is set mostly by the RF periods, in which dtoc's "
-          "pre-emphasis may not act (as DTO may not): unconstrained, with no sample skipped, it is already "
-          f"{_f((by.get('gre_both_unconstrained_preemphasis') or {}).get('after', {}).get('nrmse'), True)} % (section above); "
-          "the paper's pre-emphasis ran through them (its PE at gmax 32: 0.002 %).", "",
-          "Base sequence: sequences/gre_paper_fig5.yaml, the paper's GRE with the paper's gradient amplitudes "
-          "(prewinder -24.7 mT/m, outermost phase encode 23.0 mT/m, readout 7.34, spoiler 17.6) and real 500 T/m/s ramps "
-          "on a 10 us raster; the ramps cost 60 us of TE (3.21 ms instead of 3.15 ms). (sequences/gre_paper.yaml keeps TE "
-          "3.15 ms and therefore needs a -28.9 mT/m prewinder: infeasible at gmax 25 before any eddy-current correction.)", "",
-          f"Phantom (all GRE experiments): the built-in brain without extracranial fat and skull (`{GRE_PHANTOM}`, "
-          "dtoc.sim.phantom.brain_phantom(scalp=False)), because the paper's phantom is of that kind: its published code "
-          "builds BrainWeb subject 20 with MRzero's '3T' configuration, which holds grey matter, white matter and CSF only "
-          "(interpolated to 32x32, 14 receive coils combined by SOS). dtoc's default head phantom adds a bright one-voxel "
-          "fat ring whose k-space edge energy is several times larger, and the figure is dominated by the samples at the "
-          "start of each readout that the limits make unreachable: " + _anchor_text(by.get("gre_anchor")) + " The same DTO "
-          "on the head phantom is in the last two columns, for transparency; the DTO / PE ratios compare methods on one phantom.", "",
-          "| gmax mT/m | PE NRMSE % (paper) | PE NRMSE % (ours) | DTO NRMSE % (paper) | DTO NRMSE % (ours) | PE skipped % (paper) | PE skipped % (ours) | DTO skipped % (paper) | DTO skipped % (ours) | DTO <= paper | DTO / PE NRMSE (paper) | DTO / PE NRMSE (ours) | viol. | DTO time (s) | DTO NRMSE % (ours, head phantom) | DTO skipped % (head) | PE projection variant: NRMSE % / skipped % |",
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            L.append(
+                f"| {ek} | {r['method']} | {_f(r['before']['nrmse'], True)} | {_f(r['after']['nrmse'], True)} | "
+                f"{_f(r['before']['kspace_rmse_rad_per_m'])} | {_f(r['after']['kspace_rmse_rad_per_m'])} | "
+                f"{_f(r['after']['kspace_max_dk'], nd=3)} | {r['skipped_pct']:.2f} | {r['limit_violations']} | {r['time_s']:.0f} |"
+            )
+    L += [
+        "",
+        "The pre-emphasis baseline acts only where dtoc may change the waveform: not inside the RF periods, which "
+        "stay fixed blocks of the exported file (as for DTO; the paper's L_tRF). Its 90 ms term would have to continue "
+        "through them, so even without limits it leaves the k-space error and NRMSE of the preemphasis row above; DTO "
+        "compensates around the fixed periods.",
+        "",
+    ]
+    L += [
+        "",
+        "## GRE, amplitude-limited (both eddy currents, smax 500 T/m/s): Figure 5",
+        "",
+        "Published (paper Figure 5) beside ours. PE = first-order pre-emphasis (Eq. 2, coefficients fitted here) "
+        "with the paper's constant-TE fallback: the k-space extent shrinks by n grid steps (first n samples of each "
+        "readout and n phase-encode lines on either side left out, lobes rebuilt to end on the first kept sample) "
+        "until the pre-emphasised waveform meets gmax (docs/optimize.md). The column 'PE projection variant' is "
+        "dtoc's alternative fallback (pre-emphasis projected onto the limits, samples skipped at the NRMSE-optimal "
+        "threshold), for comparison. Our PE NRMSE (10-11 %) is set mostly by the RF periods, in which dtoc's "
+        "pre-emphasis may not act (as DTO may not): unconstrained, with no sample skipped, it is already "
+        f"{_f((by.get('gre_both_unconstrained_preemphasis') or {}).get('after', {}).get('nrmse'), True)} % (section above); "
+        "the paper's pre-emphasis ran through them (its PE at gmax 32: 0.002 %).",
+        "",
+        "Base sequence: sequences/gre_paper_fig5.yaml, the paper's GRE with the paper's gradient amplitudes "
+        "(prewinder -24.7 mT/m, outermost phase encode 23.0 mT/m, readout 7.34, spoiler 17.6) and real 500 T/m/s ramps "
+        "on a 10 us raster; the ramps cost 60 us of TE (3.21 ms instead of 3.15 ms). (sequences/gre_paper.yaml keeps TE "
+        "3.15 ms and therefore needs a -28.9 mT/m prewinder: infeasible at gmax 25 before any eddy-current correction.)",
+        "",
+        f"Phantom (all GRE experiments): the built-in brain without extracranial fat and skull (`{GRE_PHANTOM}`, "
+        "dtoc.sim.phantom.brain_phantom(scalp=False)), because the paper's phantom is of that kind: its published code "
+        "builds BrainWeb subject 20 with MRzero's '3T' configuration, which holds grey matter, white matter and CSF only "
+        "(interpolated to 32x32, 14 receive coils combined by SOS). dtoc's default head phantom adds a bright one-voxel "
+        "fat ring whose k-space edge energy is several times larger, and the figure is dominated by the samples at the "
+        "start of each readout that the limits make unreachable: "
+        + _anchor_text(by.get("gre_anchor"))
+        + " The same DTO "
+        "on the head phantom is in the last two columns, for transparency; the DTO / PE ratios compare methods on one phantom.",
+        "",
+        "| gmax mT/m | PE NRMSE % (paper) | PE NRMSE % (ours) | DTO NRMSE % (paper) | DTO NRMSE % (ours) | PE skipped % (paper) | PE skipped % (ours) | DTO skipped % (paper) | DTO skipped % (ours) | DTO <= paper | DTO / PE NRMSE (paper) | DTO / PE NRMSE (ours) | viol. | DTO time (s) | DTO NRMSE % (ours, head phantom) | DTO skipped % (head) | PE projection variant: NRMSE % / skipped % |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for g, (pe_n, dto_n, pe_s, dto_s) in PUBLISHED_FIG5.items():
         d, p = by.get(f"gre_both_g{g}_dto"), by.get(f"gre_both_g{g}_preemphasis")
         if not d:
@@ -231,46 +335,80 @@ def write_results(rows: list[dict], quick: bool, machine: str) -> None:
         head = f"{_f(h['after']['nrmse'], True)} | {h['skipped_pct']:.2f}" if h else "- | -"
         pe_skip = f"{p['skipped_pct']:.2f}" if p else "-"
         viol = d["limit_violations"] + (p["limit_violations"] if p else 0) + (h["limit_violations"] if h else 0)
-        L.append(f"| {g} | {pe_n} | {_f(p['after']['nrmse'], True) if p else '-'} | {dto_n} | {_f(d['after']['nrmse'], True)} | "
-                 f"{pe_s} | {pe_skip} | {dto_s} | {d['skipped_pct']:.2f} | {'yes' if ok else 'NO'} | "
-                 f"{rel_p} | {rel_o} | {viol} | {d['time_s']:.0f} | {head} | {_proj_variant(p)} |")
+        L.append(
+            f"| {g} | {pe_n} | {_f(p['after']['nrmse'], True) if p else '-'} | {dto_n} | {_f(d['after']['nrmse'], True)} | "
+            f"{pe_s} | {pe_skip} | {dto_s} | {d['skipped_pct']:.2f} | {'yes' if ok else 'NO'} | "
+            f"{rel_p} | {rel_o} | {viol} | {d['time_s']:.0f} | {head} | {_proj_variant(p)} |"
+        )
     pe_rows = [by.get(f"gre_both_g{g}_preemphasis") for g in PUBLISHED_FIG5]
-    vte = [(g, r["preemphasis"].get("variable_te")) for g, r in zip(PUBLISHED_FIG5, pe_rows) if r and r.get("preemphasis")]
+    vte = [
+        (g, r["preemphasis"].get("variable_te")) for g, r in zip(PUBLISHED_FIG5, pe_rows) if r and r.get("preemphasis")
+    ]
     if vte:
-        L += ["", "Pre-emphasis coefficients fitted to the model (alpha, tau): " +
-              ", ".join(f"{a:.4f} / {t * 1e3:.3g} ms" for a, t in zip(pe_rows[0]["preemphasis"]["coefficients"]["alpha"],
-                                                                   pe_rows[0]["preemphasis"]["coefficients"]["tau_s"]))
-              + " (paper: 0.1392 / 0.89 ms and 0.1108 / 90 ms).", "",
-              "Variable-TE fallback (TE, TR for which pre-emphasis meets gmax; paper: 10 -> 4.23/13.14 ms, 15 -> 3.68/11.34 ms, 20 -> 3.4/10.4 ms): " +
-              "; ".join(f"gmax {g}: " + (f"TE {v['te_ms']:.2f} ms, TR {v['tr_ms']:.2f} ms" if v and v.get("te_ms") else (v.get("note", "n.a.") if v else "not needed / n.a."))
-                        for g, v in vte)]
-    L += ["", "## GRE, fully constrained (13 mT/m, 130 T/m/s, both eddy currents)", "",
-          "| method | NRMSE before % | NRMSE after % | max k err (dk) | skipped % | viol. | time (s) |", "|---|---|---|---|---|---|---|"]
+        L += [
+            "",
+            "Pre-emphasis coefficients fitted to the model (alpha, tau): "
+            + ", ".join(
+                f"{a:.4f} / {t * 1e3:.3g} ms"
+                for a, t in zip(
+                    pe_rows[0]["preemphasis"]["coefficients"]["alpha"],
+                    pe_rows[0]["preemphasis"]["coefficients"]["tau_s"],
+                )
+            )
+            + " (paper: 0.1392 / 0.89 ms and 0.1108 / 90 ms).",
+            "",
+            "Variable-TE fallback (TE, TR for which pre-emphasis meets gmax; paper: 10 -> 4.23/13.14 ms, 15 -> 3.68/11.34 ms, 20 -> 3.4/10.4 ms): "
+            + "; ".join(
+                f"gmax {g}: "
+                + (
+                    f"TE {v['te_ms']:.2f} ms, TR {v['tr_ms']:.2f} ms"
+                    if v and v.get("te_ms")
+                    else (v.get("note", "n.a.") if v else "not needed / n.a.")
+                )
+                for g, v in vte
+            ),
+        ]
+    L += [
+        "",
+        "## GRE, fully constrained (13 mT/m, 130 T/m/s, both eddy currents)",
+        "",
+        "| method | NRMSE before % | NRMSE after % | max k err (dk) | skipped % | viol. | time (s) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for m in ("dto", "preemphasis"):
         r = by.get(f"gre_both_full_{m}")
         if r:
-            L.append(f"| {m} | {_f(r['before']['nrmse'], True)} | {_f(r['after']['nrmse'], True)} | {_f(r['after']['kspace_max_dk'], nd=3)} | "
-                     f"{r['skipped_pct']:.2f} | {r['limit_violations']} | {r['time_s']:.0f} |")
-    L += ["", "## EPI with the measured 7 T GIRF (kcl_7T_terra_2023), 72 mT/m, 180 T/m/s", "",
-          "Target: ghost-to-signal ratio < 1 % after optimization at every echo spacing; the base at 0.73 ms violates slew. "
-          "The ghost ratio (docs/metrics.md) is the energy in the N/2-shifted object region outside the object (object: "
-          "the ideal image above 10 % of its maximum, closed and holes filled); the IDEAL-hardware image of the same sequence already "
-          "has a little energy there (Gibbs ringing, T2* blurring along the 64-line echo train), listed as 'ghost of the "
-          "ideal image'; the excess over it is what the gradient chain adds. (Before the closing and filling, white and grey "
-          "matter of the long-TE 7 T images, below 10 % of the CSF maximum, fell outside the object and partly inside the "
-          "ghost region: the ideal images at 1.89 / 2.25 / 2.61 ms scored 2.36 / 1.60 / 1.04 % 'ghost'.)", "",
-          "| echo spacing (ms) | base limit violations | ghost before % | ghost after % | ghost of the ideal image % | ghost excess after % | NRMSE before % | NRMSE after % | max k err before (dk) | after (dk) | viol. (exported) | ghost < 1 % | excess < 1 % | time (s) |",
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            L.append(
+                f"| {m} | {_f(r['before']['nrmse'], True)} | {_f(r['after']['nrmse'], True)} | {_f(r['after']['kspace_max_dk'], nd=3)} | "
+                f"{r['skipped_pct']:.2f} | {r['limit_violations']} | {r['time_s']:.0f} |"
+            )
+    L += [
+        "",
+        "## EPI with the measured 7 T GIRF (kcl_7T_terra_2023), 72 mT/m, 180 T/m/s",
+        "",
+        "Target: ghost-to-signal ratio < 1 % after optimization at every echo spacing; the base at 0.73 ms violates slew. "
+        "The ghost ratio (docs/metrics.md) is the energy in the N/2-shifted object region outside the object (object: "
+        "the ideal image above 10 % of its maximum, closed and holes filled); the IDEAL-hardware image of the same sequence already "
+        "has a little energy there (Gibbs ringing, T2* blurring along the 64-line echo train), listed as 'ghost of the "
+        "ideal image'; the excess over it is what the gradient chain adds. (Before the closing and filling, white and grey "
+        "matter of the long-TE 7 T images, below 10 % of the CSF maximum, fell outside the object and partly inside the "
+        "ghost region: the ideal images at 1.89 / 2.25 / 2.61 ms scored 2.36 / 1.60 / 1.04 % 'ghost'.)",
+        "",
+        "| echo spacing (ms) | base limit violations | ghost before % | ghost after % | ghost of the ideal image % | ghost excess after % | NRMSE before % | NRMSE after % | max k err before (dk) | after (dk) | viol. (exported) | ghost < 1 % | excess < 1 % | time (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for e in EPI_ESP:
         r = by.get(f"epi_esp{e}")
         if r:
             gr = r["after"]["ghost_ratio"]
             gi, gx = r["after"].get("ghost_ratio_ideal"), r["after"].get("ghost_ratio_excess")
-            L.append(f"| {int(e) / 100:.2f} | {r['base_limit_violations']} | {_f(r['before']['ghost_ratio'], True, 3)} | {_f(gr, True, 3)} | "
-                     f"{_f(gi, True, 3)} | {_f(gx, True, 3)} | "
-                     f"{_f(r['before']['nrmse'], True)} | {_f(r['after']['nrmse'], True)} | {_f(r['before']['kspace_max_dk'], nd=3)} | "
-                     f"{_f(r['after']['kspace_max_dk'], nd=3)} | {r['limit_violations']} | {'yes' if gr is not None and gr < 0.01 else 'NO'} | "
-                     f"{'-' if gx is None else ('yes' if gx < 0.01 else 'NO')} | {r['time_s']:.0f} |")
+            L.append(
+                f"| {int(e) / 100:.2f} | {r['base_limit_violations']} | {_f(r['before']['ghost_ratio'], True, 3)} | {_f(gr, True, 3)} | "
+                f"{_f(gi, True, 3)} | {_f(gx, True, 3)} | "
+                f"{_f(r['before']['nrmse'], True)} | {_f(r['after']['nrmse'], True)} | {_f(r['before']['kspace_max_dk'], nd=3)} | "
+                f"{_f(r['after']['kspace_max_dk'], nd=3)} | {r['limit_violations']} | {'yes' if gr is not None and gr < 0.01 else 'NO'} | "
+                f"{'-' if gx is None else ('yes' if gx < 0.01 else 'NO')} | {r['time_s']:.0f} |"
+            )
     errs = [r for r in rows if "error" in r]
     if errs:
         L += ["", "## Scenarios that failed", ""] + [f"- {r['name']}: {r['error']}" for r in errs]
@@ -284,8 +422,13 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--names", nargs="*", default=None, help="run only these scenario names")
     ap.add_argument("--json", type=Path, default=None, help="also dump this run's rows as JSON here")
-    ap.add_argument("--from-json", type=Path, nargs="*", default=None,
-                    help="no runs: merge these row dumps into bench/paper_rows.json and regenerate the docs")
+    ap.add_argument(
+        "--from-json",
+        type=Path,
+        nargs="*",
+        default=None,
+        help="no runs: merge these row dumps into bench/paper_rows.json and regenerate the docs",
+    )
     a = ap.parse_args(argv)
     import torch
 
@@ -313,8 +456,10 @@ def main(argv=None):
             sys.stderr.write(f"[bench.paper] {sc['name']} ...\n")
             try:
                 r = run_one(sc, tmp, girf, a.quick, a.threads)
-                sys.stderr.write(f"[bench.paper] {sc['name']}: NRMSE {r['before']['nrmse']} -> {r['after']['nrmse']}, "
-                                 f"skipped {r['skipped_pct']:.2f} %, viol {r['limit_violations']}, {r['time_s']:.0f} s\n")
+                sys.stderr.write(
+                    f"[bench.paper] {sc['name']}: NRMSE {r['before']['nrmse']} -> {r['after']['nrmse']}, "
+                    f"skipped {r['skipped_pct']:.2f} %, viol {r['limit_violations']}, {r['time_s']:.0f} s\n"
+                )
             except Exception as e:  # noqa: BLE001 - a failing scenario is reported, not hidden
                 traceback.print_exc()
                 r = {**{k: str(v) for k, v in sc.items()}, "error": f"{type(e).__name__}: {e}"}
@@ -352,7 +497,10 @@ def _merge_rows(new: list[dict]) -> list[dict]:
 
 
 def _write_bench(rows, write_section, quick):
-    body = ["| scenario | method | time (s) | warm start (s) | full loss (s) | discard (s) | load avg at end |", "|---|---|---|---|---|---|---|"]
+    body = [
+        "| scenario | method | time (s) | warm start (s) | full loss (s) | discard (s) | load avg at end |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         if r.get("family") == "anchor":
             continue
@@ -360,14 +508,23 @@ def _write_bench(rows, write_section, quick):
             body.append(f"| {r['name']} | {r['method']} | failed | | | |")
             continue
         st = r["stage_times_s"]
-        body.append(f"| {r['name']} | {r['method']} | {r['time_s']:.1f} | {st.get('warm_start_s', 0):.1f} | "
-                    f"{st.get('full_loss_s', 0):.1f} | {st.get('discard_s', 0):.1f} | {r.get('load_avg_1min', float('nan')):.1f} |")
+        body.append(
+            f"| {r['name']} | {r['method']} | {r['time_s']:.1f} | {st.get('warm_start_s', 0):.1f} | "
+            f"{st.get('full_loss_s', 0):.1f} | {st.get('discard_s', 0):.1f} | {r.get('load_avg_1min', float('nan')):.1f} |"
+        )
     body.append("")
-    body.append("Targets (issue 5): < 120 s per GRE scenario, < 60 s per EPI scenario on this 2-core CPU. "
-                "Time includes loading the spec, building the PDG graph, target images and the final check. "
-                "The 1-minute load average shows how busy the machine was (2 cores; above 2 the numbers are inflated by other work)."
-                + (" Quick run." if quick else ""))
-    write_section("optimize", "dtoc optimize: paper scenarios", "\n".join(body), "python -m bench.paper" + (" --quick" if quick else ""))
+    body.append(
+        "Targets (issue 5): < 120 s per GRE scenario, < 60 s per EPI scenario on this 2-core CPU. "
+        "Time includes loading the spec, building the PDG graph, target images and the final check. "
+        "The 1-minute load average shows how busy the machine was (2 cores; above 2 the numbers are inflated by other work)."
+        + (" Quick run." if quick else "")
+    )
+    write_section(
+        "optimize",
+        "dtoc optimize: paper scenarios",
+        "\n".join(body),
+        "python -m bench.paper" + (" --quick" if quick else ""),
+    )
 
 
 if __name__ == "__main__":

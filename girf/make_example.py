@@ -45,9 +45,17 @@ def make() -> GirfData:
     H0 = np.stack([0.02 * s * tau / (1 + s * tau) * lp for tau in B0_TAU])
     dt, t0, h = freq_to_taps(f, H)
     _, _, h0 = freq_to_taps(f, H0)
-    return GirfData(dt_s=dt, t0_s=t0, h=h, h0=h0, source="girf/make_example.py (self-made parametric model)",
-                    notes=["synthetic 7 T-like GIRF: fc 10.7 kHz, 3 % resonances at 1.1/1.3/0.9 kHz, 1 % cross terms, "
-                           "0.02 uT/(mT/m) high-pass B0 terms; see girf/make_example.py"])
+    return GirfData(
+        dt_s=dt,
+        t0_s=t0,
+        h=h,
+        h0=h0,
+        source="girf/make_example.py (self-made parametric model)",
+        notes=[
+            "synthetic 7 T-like GIRF: fc 10.7 kHz, 3 % resonances at 1.1/1.3/0.9 kHz, 1 % cross terms, "
+            "0.02 uT/(mT/m) high-pass B0 terms; see girf/make_example.py"
+        ],
+    )
 
 
 if __name__ == "__main__":

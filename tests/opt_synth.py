@@ -27,18 +27,28 @@ def gre_ir(n: int = 16, reps: int | None = None, fov_m: float = 0.032) -> Sequen
     for r in range(reps):
         o = r * per
         p = -(half + 1) * gr / 4.0
-        e[0, o + 21:o + 25] = p
-        e[0, o + 25:o + 25 + n + 1] = gr
-        e[0, o + 26 + n:o + 36 + n] = 17.6
+        e[0, o + 21 : o + 25] = p
+        e[0, o + 25 : o + 25 + n + 1] = gr
+        e[0, o + 26 + n : o + 36 + n] = 17.6
         j = r % n
         pe = (j - half) * gr / 4.0
-        e[1, o + 21:o + 25] = pe
-        e[1, o + 26 + n:o + 30 + n] = -pe
-        rf.append(RFEvent(block=2 * r, t_start_s=o * R, t_center_s=o * R + 1e-3, duration_s=2e-3,
-                          flip_angle_rad=np.deg2rad(15), phase_rad=float(np.deg2rad(117) * r * (r + 1) / 2 % (2 * np.pi)),
-                          freq_offset_hz=0.0, use="excitation"))
-        adc.append(ADCEvent(block=2 * r + 1, t_start_s=o * R + 2.5e-3, num_samples=n, dwell_s=R,
-                            phase_rad=rf[-1].phase_rad))
+        e[1, o + 21 : o + 25] = pe
+        e[1, o + 26 + n : o + 30 + n] = -pe
+        rf.append(
+            RFEvent(
+                block=2 * r,
+                t_start_s=o * R,
+                t_center_s=o * R + 1e-3,
+                duration_s=2e-3,
+                flip_angle_rad=np.deg2rad(15),
+                phase_rad=float(np.deg2rad(117) * r * (r + 1) / 2 % (2 * np.pi)),
+                freq_offset_hz=0.0,
+                use="excitation",
+            )
+        )
+        adc.append(
+            ADCEvent(block=2 * r + 1, t_start_s=o * R + 2.5e-3, num_samples=n, dwell_s=R, phase_rad=rf[-1].phase_rad)
+        )
         edges_s += [o * R, o * R + 2e-3]
     edges_s.append(per * reps * R)
     free = np.zeros((3, 2 * e.shape[1] - 1), bool)
@@ -46,9 +56,20 @@ def gre_ir(n: int = 16, reps: int | None = None, fov_m: float = 0.032) -> Sequen
     fe = (idx % per) >= 20
     fe[-1] = False
     free[:2, ::2] = fe
-    return SequenceIR(raster_s=R, grad_mT_per_m=edges_to_fine(e), block_edges_s=np.array(edges_s), rf=rf, adc=adc,
-                      free_mask=free, fov_m=(fov_m, fov_m, fov_m), matrix=(n, n), kind="gre", readout_axis=0,
-                      phase_axis=1, meta={"synthetic": True})
+    return SequenceIR(
+        raster_s=R,
+        grad_mT_per_m=edges_to_fine(e),
+        block_edges_s=np.array(edges_s),
+        rf=rf,
+        adc=adc,
+        free_mask=free,
+        fov_m=(fov_m, fov_m, fov_m),
+        matrix=(n, n),
+        kind="gre",
+        readout_axis=0,
+        phase_axis=1,
+        meta={"synthetic": True},
+    )
 
 
 def eddy_model(alphas=(0.1, 0.1), taus_s=(1e-3, 100e-3)):

@@ -5,14 +5,12 @@ import json
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli as _run  # noqa: E402
 
 from dtoc.errors import InputError
 from dtoc.hardware.girf_io import load_girf
 from dtoc.hardware.measurement import k_from_G, load_measurement
 from dtoc.hardware.npzio import save_npz
-
-
-from cli_helpers import run_cli as _run  # noqa: E402
 
 
 def _strict_json(text):
@@ -28,23 +26,26 @@ def _lowpass(L=64, dt=10e-6):
     tri = tri / tri.sum()
     h = np.zeros((3, 3, L))
     for a in range(3):
-        h[a, a, L // 2 - 4:L // 2 + 5] = tri
+        h[a, a, L // 2 - 4 : L // 2 + 5] = tri
     h[1, 0, L // 2] = 0.01
     h0 = np.zeros((3, L))
     h0[:, L // 2] = 0.05
     return {"dt": np.float64(dt), "t0": np.float64(-(L // 2) * dt), "h": h, "h0": h0}
 
 
-@pytest.mark.parametrize("change,match", [
-    (lambda z: {**z, "h": z["h"] * 1000}, "DC gain of self term x->x is 1000.*units off by 1e3"),
-    (lambda z: {**z, "h": z["h"] / z["dt"]}, "density in 1/s"),
-    (lambda z: {**z, "h": -z["h"]}, "DC gain of self term x->x is -1"),
-    (lambda z: {**z, "h": 0 * z["h"]}, "DC gain of self term x->x is 0"),
-    (lambda z: {**z, "dt": z["dt"] * 1e3}, "'dt' = 0.01 s is implausible"),
-    (lambda z: {**z, "t0": z["t0"] * 1e6}, "'t0' = -320 s is implausible"),
-    (lambda z: {**z, "h": z["h"] + 0.8 * np.eye(3)[::-1][..., None] * (np.arange(64) == 32)}, "cross term"),
-    (lambda z: {**z, "h0": z["h0"] * 1e4}, "B0 term x->b0 is 500 uT per mT/m"),
-])
+@pytest.mark.parametrize(
+    "change,match",
+    [
+        (lambda z: {**z, "h": z["h"] * 1000}, "DC gain of self term x->x is 1000.*units off by 1e3"),
+        (lambda z: {**z, "h": z["h"] / z["dt"]}, "density in 1/s"),
+        (lambda z: {**z, "h": -z["h"]}, "DC gain of self term x->x is -1"),
+        (lambda z: {**z, "h": 0 * z["h"]}, "DC gain of self term x->x is 0"),
+        (lambda z: {**z, "dt": z["dt"] * 1e3}, "'dt' = 0.01 s is implausible"),
+        (lambda z: {**z, "t0": z["t0"] * 1e6}, "'t0' = -320 s is implausible"),
+        (lambda z: {**z, "h": z["h"] + 0.8 * np.eye(3)[::-1][..., None] * (np.arange(64) == 32)}, "cross term"),
+        (lambda z: {**z, "h0": z["h0"] * 1e4}, "B0 term x->b0 is 500 uT per mT/m"),
+    ],
+)
 def test_implausible_girf_magnitudes_rejected(tmp_path, change, match):
     # defect: a GIRF with DC gain 1000 loaded fine and predicted 450 dk errors; one with dt in ms made
     # `dtoc predict` resample a 20 s kernel onto a 5 us grid and get killed for memory
@@ -78,13 +79,16 @@ def _meas(tmp_path, name, scale_G=1.0, scale_g=1.0, dt=10e-6, use_k=False, k_sca
     return tmp_path / name
 
 
-@pytest.mark.parametrize("kw,match", [
-    ({"scale_G": 1e-3}, "key 'G' is 0.001 times the demanded 'g'"),
-    ({"scale_G": 1e3}, "key 'G' is 1e\\+03 times"),
-    ({"use_k": True, "k_scale": 1 / (2 * np.pi)}, "key 'k' is 0.159 times"),
-    ({"scale_g": 1e-3, "scale_G": 1e-3}, "key 'g' peaks at 0.015 mT/m"),
-    ({"dt": 10e-3}, "key 'dt' = 0.01 s is implausible"),
-])
+@pytest.mark.parametrize(
+    "kw,match",
+    [
+        ({"scale_G": 1e-3}, "key 'G' is 0.001 times the demanded 'g'"),
+        ({"scale_G": 1e3}, "key 'G' is 1e\\+03 times"),
+        ({"use_k": True, "k_scale": 1 / (2 * np.pi)}, "key 'k' is 0.159 times"),
+        ({"scale_g": 1e-3, "scale_G": 1e-3}, "key 'g' peaks at 0.015 mT/m"),
+        ({"dt": 10e-3}, "key 'dt' = 0.01 s is implausible"),
+    ],
+)
 def test_implausible_measurement_units_rejected(tmp_path, kw, match):
     # defect: a measurement in T/m instead of mT/m was fitted into a GIRF with DC gain 0.001
     assert load_measurement(_meas(tmp_path, "ok.npz")).n_waveforms == 3
@@ -93,22 +97,30 @@ def test_implausible_measurement_units_rejected(tmp_path, kw, match):
         load_measurement(_meas(tmp_path, "bad.npz", **kw))
 
 
-@pytest.mark.parametrize("argv,match", [
-    (["girf", "import", "{g}", "-o", "{o}", "--shift-us", "nan"], "--shift-us must be a finite number"),
-    (["girf", "fit", "{m}", "-o", "{o}", "--fmax-khz", "nan"], "--fmax-khz must be a finite number > 0"),
-    (["girf", "fit", "{m}", "-o", "{o}", "--reg", "inf"], "--reg must be a finite number > 0"),
-    (["girf", "import", "{g}", "-o", "{o}"], "already a .npz"),
-    (["girf", "import", "{d}", "-o", "{o}"], "is a directory"),
-    (["predict", "{s}", "--device", "foo"], "--device 'foo' is not a torch device"),
-    (["predict", "{s}", "--girf", "{g}", "--png", "{g}"], "output exists"),
-])
+@pytest.mark.parametrize(
+    "argv,match",
+    [
+        (["girf", "import", "{g}", "-o", "{o}", "--shift-us", "nan"], "--shift-us must be a finite number"),
+        (["girf", "fit", "{m}", "-o", "{o}", "--fmax-khz", "nan"], "--fmax-khz must be a finite number > 0"),
+        (["girf", "fit", "{m}", "-o", "{o}", "--reg", "inf"], "--reg must be a finite number > 0"),
+        (["girf", "import", "{g}", "-o", "{o}"], "already a .npz"),
+        (["girf", "import", "{d}", "-o", "{o}"], "is a directory"),
+        (["predict", "{s}", "--device", "foo"], "--device 'foo' is not a torch device"),
+        (["predict", "{s}", "--girf", "{g}", "--png", "{g}"], "output exists"),
+    ],
+)
 def test_cli_bad_option_values(capsys, tmp_path, repo_root, argv, match):
     # defect: NaN options were accepted (a NaN delay was written into the GIRF), an unknown --device
     # ended in "unexpected RuntimeError"
     save_npz(tmp_path / "g.npz", _lowpass())
     m = _meas(tmp_path, "m.npz")
-    subs = {"{g}": tmp_path / "g.npz", "{o}": tmp_path / "o.npz", "{m}": m, "{d}": tmp_path,
-            "{s}": repo_root / "sequences" / "epi_small.seq"}
+    subs = {
+        "{g}": tmp_path / "g.npz",
+        "{o}": tmp_path / "o.npz",
+        "{m}": m,
+        "{d}": tmp_path,
+        "{s}": repo_root / "sequences" / "epi_small.seq",
+    }
     code, out, err = _run(capsys, *[subs.get(a, a) for a in argv])
     assert code == 2 and err.startswith("dtoc: error: ") and err.count("\n") == 1, err
     assert match in err and out == ""
@@ -157,8 +169,8 @@ def test_prisma_import_is_band_limited_like_the_published_kernel(shared_data, tm
 
 def test_show_png_and_predict_png(capsys, tmp_path, repo_root):
     from dtoc.hardware.girf_plot import plot_girf
-    from dtoc.hardware.predict import _zoom_window_ms, plot_prediction, predict
     from dtoc.hardware.model import HardwareModel, girf_effect
+    from dtoc.hardware.predict import _zoom_window_ms, plot_prediction, predict
     from dtoc.seq.read import read_seq
 
     save_npz(tmp_path / "g.npz", _lowpass())
@@ -175,7 +187,9 @@ def test_show_png_and_predict_png(capsys, tmp_path, repo_root):
     assert 0 < hi - lo < 6.0
     q = plot_prediction(ir, res, tmp_path / "p.png", title="gre")
     assert q.stat().st_size > 20_000
-    code, out, err = _run(capsys, "predict", repo_root / "sequences" / "gre_small.seq", "--girf", tmp_path / "g.npz", "--json")
+    code, out, err = _run(
+        capsys, "predict", repo_root / "sequences" / "gre_small.seq", "--girf", tmp_path / "g.npz", "--json"
+    )
     assert code == 0 and _strict_json(out)["epi"] is None
 
 
@@ -186,25 +200,35 @@ def test_is_epi_without_kind():
     r = 10e-6
     e = np.zeros((3, 61))
     e[0, 10:20], e[0, 30:40] = 5.0, -5.0
-    ir = SequenceIR(raster_s=r, grad_mT_per_m=edges_to_fine(e), block_edges_s=np.array([0.0, 60 * r]),
-                    adc=[ADCEvent(0, 11 * r, 4, 2 * r), ADCEvent(0, 31 * r, 4, 2 * r)], readout_axis=0)
+    ir = SequenceIR(
+        raster_s=r,
+        grad_mT_per_m=edges_to_fine(e),
+        block_edges_s=np.array([0.0, 60 * r]),
+        adc=[ADCEvent(0, 11 * r, 4, 2 * r), ADCEvent(0, 31 * r, 4, 2 * r)],
+        readout_axis=0,
+    )
     assert _is_epi(ir)
     e[0, 30:40] = 5.0
     ir.grad_mT_per_m = edges_to_fine(e)
     assert not _is_epi(ir)
 
 
-@pytest.mark.parametrize("effect,match", [
-    ('{"kind": "gain", "axis": "x", "params": {"factor": 1000}}', "factor = 1000 is implausible"),
-    ('{"kind": "delay", "axis": "x", "params": {"seconds": 2}}', "seconds = 2 is implausible"),
-    ('{"kind": "exp_eddy", "params": {"alpha": [0.1, 0.1], "tau_s": [1, 100]}}', "tau_s = 100 is implausible"),
-    ('{"kind": "slew_limit", "params": {"max_slew_T_per_m_per_s": 0.18}}', "max_slew_T_per_m_per_s = 0.18"),
-])
+@pytest.mark.parametrize(
+    "effect,match",
+    [
+        ('{"kind": "gain", "axis": "x", "params": {"factor": 1000}}', "factor = 1000 is implausible"),
+        ('{"kind": "delay", "axis": "x", "params": {"seconds": 2}}', "seconds = 2 is implausible"),
+        ('{"kind": "exp_eddy", "params": {"alpha": [0.1, 0.1], "tau_s": [1, 100]}}', "tau_s = 100 is implausible"),
+        ('{"kind": "slew_limit", "params": {"max_slew_T_per_m_per_s": 0.18}}', "max_slew_T_per_m_per_s = 0.18"),
+    ],
+)
 def test_implausible_model_file_parameters(tmp_path, effect, match):
     # defect: {"gain": 1000} in a model file predicted k errors of 1.3e4 rad/m without a word
     from dtoc.hardware.model import load_model
 
-    (tmp_path / "ok.json").write_text('{"effects": [{"kind": "exp_eddy", "params": {"alpha": [0.1], "tau_s": [1e-3]}}]}')
+    (tmp_path / "ok.json").write_text(
+        '{"effects": [{"kind": "exp_eddy", "params": {"alpha": [0.1], "tau_s": [1e-3]}}]}'
+    )
     assert len(load_model(tmp_path / "ok.json").effects) == 1
     (tmp_path / "m.json").write_text('{"effects": [%s]}' % effect)
     with pytest.raises(InputError, match=match):
@@ -217,7 +241,8 @@ def test_measurement_edge_files(tmp_path):
         np.save(f, np.zeros(3))
     with pytest.raises(InputError, match="not an .npz archive"):
         load_measurement(p)
-    g = np.zeros((1, 3, 10)); g[0, 0, 3:6] = 1.0
+    g = np.zeros((1, 3, 10))
+    g[0, 0, 3:6] = 1.0
     np.savez(tmp_path / "b.npz", dt="abc", g=g, G=g)
     with pytest.raises(InputError, match="must be a scalar number"):
         load_measurement(tmp_path / "b.npz")

@@ -4,11 +4,9 @@ import json
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli as _run  # noqa: E402
 
 from dtoc.hardware.npzio import save_npz
-
-
-from cli_helpers import run_cli as _run  # noqa: E402
 
 
 def _synthetic_ir():
@@ -29,13 +27,23 @@ def _synthetic_ir():
     edges = np.zeros((3, ex.size))
     edges[0] = ex
     fine = edges_to_fine(edges)
-    return SequenceIR(raster_s=r, grad_mT_per_m=fine, block_edges_s=np.array([0, (ex.size - 1) * r]),
-                      rf=[RFEvent(0, 0.0, 0.0, 0.0, np.pi / 2, 0.0, 0.0, "excitation")], adc=adc,
-                      fov_m=(0.25, 0.25, 0.003), kind="epi", readout_axis=0, phase_axis=1)
+    return SequenceIR(
+        raster_s=r,
+        grad_mT_per_m=fine,
+        block_edges_s=np.array([0, (ex.size - 1) * r]),
+        rf=[RFEvent(0, 0.0, 0.0, 0.0, np.pi / 2, 0.0, 0.0, "excitation")],
+        adc=adc,
+        fov_m=(0.25, 0.25, 0.003),
+        kind="epi",
+        readout_axis=0,
+        phase_axis=1,
+    )
 
 
 def test_girf_show_json_and_png(capsys, repo_root, tmp_path):
-    code, out, err = _run(capsys, "girf", "show", repo_root / "girf" / "example_7T.npz", "--json", "--png", tmp_path / "g.png")
+    code, out, err = _run(
+        capsys, "girf", "show", repo_root / "girf" / "example_7T.npz", "--json", "--png", tmp_path / "g.png"
+    )
     assert code == 0, err
     rows = {r["term"]: r for r in json.loads(out)["terms"]}
     assert rows["x->x"]["dc_gain"] == pytest.approx(1.0, abs=1e-9)
@@ -79,8 +87,16 @@ def test_predict_on_synthetic_epi(capsys, repo_root, tmp_path, monkeypatch):
 
     ir = _synthetic_ir()
     monkeypatch.setattr(rd, "load_sequence", lambda p, **k: ir)
-    code, out, err = _run(capsys, "predict", "x.seq", "--girf", repo_root / "girf" / "example_7T.npz", "--json",
-                          "--png", tmp_path / "p.png")
+    code, out, err = _run(
+        capsys,
+        "predict",
+        "x.seq",
+        "--girf",
+        repo_root / "girf" / "example_7T.npz",
+        "--json",
+        "--png",
+        tmp_path / "p.png",
+    )
     assert code == 0, err
     res = json.loads(out)
     assert res["grad_error"]["x"]["max_mT_per_m"] > 0.1
@@ -95,12 +111,15 @@ def test_predict_on_synthetic_epi(capsys, repo_root, tmp_path, monkeypatch):
     assert res["k_error"]["x"]["max_rad_per_m"] == 0.0 and res["b0_phase_max_rad"] == 0.0
 
 
-@pytest.mark.parametrize("argv,match", [
-    (["girf", "show", "missing.npz"], "not found"),
-    (["girf", "import", "missing.mat", "-o", "x.npz"], "not found"),
-    (["girf", "fit", "missing.npz", "-o", "x.npz"], "not found"),
-    (["predict", "x.seq", "--girf", "a.npz", "--model", "m.json"], "either"),
-])
+@pytest.mark.parametrize(
+    "argv,match",
+    [
+        (["girf", "show", "missing.npz"], "not found"),
+        (["girf", "import", "missing.mat", "-o", "x.npz"], "not found"),
+        (["girf", "fit", "missing.npz", "-o", "x.npz"], "not found"),
+        (["predict", "x.seq", "--girf", "a.npz", "--model", "m.json"], "either"),
+    ],
+)
 def test_cli_errors_are_one_line(capsys, tmp_path, monkeypatch, argv, match):
     monkeypatch.chdir(tmp_path)
     code, _, err = _run(capsys, *argv)

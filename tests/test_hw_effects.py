@@ -7,9 +7,9 @@ import pytest
 import scipy.signal
 import torch
 
+from dtoc.errors import InputError
 from dtoc.hardware.effects import B0Eddy, CrossEddy, Delay, ExpEddy, Gain, Girf, Lti, Offset, SlewLimit
 from dtoc.hardware.recursion import exp_response
-from dtoc.errors import InputError
 
 F64 = torch.float64
 
@@ -44,7 +44,9 @@ def test_exp_eddy_ramp_closed_form():
     T, nr = 400, 50
     t = np.arange(T) * dt
     g = np.minimum(t, nr * dt) * s
-    G, _ = ExpEddy(alpha, tau, axis="y")(torch.as_tensor(g).expand(1, 3, T).contiguous(), torch.zeros(1, T, dtype=F64), dt)
+    G, _ = ExpEddy(alpha, tau, axis="y")(
+        torch.as_tensor(g).expand(1, 3, T).contiguous(), torch.zeros(1, T, dtype=F64), dt
+    )
     Tr = nr * dt
     e = np.where(t <= Tr, s * tau * (1 - np.exp(-t / tau)), s * tau * (1 - np.exp(-Tr / tau)) * np.exp(-(t - Tr) / tau))
     np.testing.assert_allclose(G[0, 1].detach().numpy(), g - alpha * e, rtol=0, atol=1e-12 * g.max())
@@ -141,7 +143,9 @@ def _slew_reference(x, s):
 def test_slew_limit_matches_recursive_clamp():
     dt, smax = 10e-6, 180.0  # T/m/s -> 1.8 mT/m per 10 us
     rng = np.random.default_rng(3)
-    x = np.concatenate([np.zeros(5), np.full(20, 30.0), np.zeros(10), -np.linspace(0, 40, 8), rng.normal(0, 3, 60).cumsum()])
+    x = np.concatenate(
+        [np.zeros(5), np.full(20, 30.0), np.zeros(10), -np.linspace(0, 40, 8), rng.normal(0, 3, 60).cumsum()]
+    )
     g = torch.as_tensor(x).expand(1, 3, x.size).contiguous()
     G, _ = SlewLimit(smax, axis="z")(g, _b0(g), dt)
     ref = _slew_reference(x, smax * 1e3 * dt)
@@ -169,14 +173,17 @@ def test_girf_equals_direct_convolution_with_t0():
     for b in range(2):
         for o in range(3):
             full = sum(scipy.signal.convolve(g[b, i], h[o, i]) for i in range(3))  # index m <-> time (m + s0) dt
-            ref = full[-s0:-s0 + T]
+            ref = full[-s0 : -s0 + T]
             np.testing.assert_allclose(G[b, o].detach().numpy(), ref, rtol=0, atol=1e-9 * np.abs(ref).max())
         full0 = sum(scipy.signal.convolve(g[b, i], h0[i]) for i in range(3))
-        np.testing.assert_allclose(b0[b].detach().numpy(), full0[-s0:-s0 + T], rtol=0, atol=1e-9 * np.abs(full0).max())
+        np.testing.assert_allclose(
+            b0[b].detach().numpy(), full0[-s0 : -s0 + T], rtol=0, atol=1e-9 * np.abs(full0).max()
+        )
 
 
 def test_girf_resampled_10us_kernel_on_5us_waveform():
     """A smooth continuous GIRF sampled at 10 us, applied to a 5 us waveform, matches its 5 us sampling."""
+
     def kernel(dt, L):
         t0 = -(L // 2) * dt
         t = t0 + np.arange(L) * dt
@@ -186,6 +193,7 @@ def test_girf_resampled_10us_kernel_on_5us_waveform():
             h[(i + 1) % 3, i] = 0.02 * _smooth_kernel(t, delay=20e-6, width=30e-6) * dt
         h /= h[0, 0].sum()
         return h, t0
+
     h10, t10 = kernel(10e-6, 41)
     h5, t5 = kernel(5e-6, 81)
     dt, T = 5e-6, 2000
@@ -203,6 +211,7 @@ def test_girf_resampled_10us_kernel_on_5us_waveform():
 
 def test_girf_resampling_keeps_dc_gain():
     from dtoc.hardware.convolution import resample_kernel
+
     rng = np.random.default_rng(5)
     h = torch.as_tensor(rng.normal(0, 1, (2, 100)))
     for dt in (5e-6, 10e-6, 20e-6, 10.0067e-6):
@@ -217,7 +226,7 @@ def test_lti_zero_taps_is_identity_and_matches_convolution():
     torch.testing.assert_close(Lti(np.zeros((3, 9)), dt)(g, _b0(g), dt)[0], g)
     taps = rng.normal(0, 0.1, 9)
     G, _ = Lti(taps, dt, -4 * dt, axis="y")(g, _b0(g), dt)
-    ref = g[0, 1].numpy() + scipy.signal.convolve(g[0, 1].numpy(), taps)[4:4 + T]
+    ref = g[0, 1].numpy() + scipy.signal.convolve(g[0, 1].numpy(), taps)[4 : 4 + T]
     np.testing.assert_allclose(G[0, 1].detach().numpy(), ref, atol=1e-12)
     torch.testing.assert_close(G[0, [0, 2]], g[0, [0, 2]])
 
@@ -227,11 +236,20 @@ def _all_effects(dt):
     rng = np.random.default_rng(7)
     L = 7
     return [
-        Gain(1.05, axis="x"), Offset(0.2), Delay(1.37 * dt), Delay(-0.4 * dt, axis="z"),
-        ExpEddy([0.1, 0.05], [3 * dt, 40 * dt]), ExpEddy(0.1, 5 * dt, axis="y"),
-        CrossEddy(0.03, 4 * dt, axis="y", input_axis="x"), B0Eddy(0.2, 6 * dt, input_axis="z"),
-        Girf(np.eye(3)[:, :, None] * np.array([0.2, 0.5, 0.2, 0.1, 0, 0, 0]) + rng.normal(0, 0.01, (3, 3, L)), dt, -2 * dt,
-             rng.normal(0, 0.01, (3, L))),
+        Gain(1.05, axis="x"),
+        Offset(0.2),
+        Delay(1.37 * dt),
+        Delay(-0.4 * dt, axis="z"),
+        ExpEddy([0.1, 0.05], [3 * dt, 40 * dt]),
+        ExpEddy(0.1, 5 * dt, axis="y"),
+        CrossEddy(0.03, 4 * dt, axis="y", input_axis="x"),
+        B0Eddy(0.2, 6 * dt, input_axis="z"),
+        Girf(
+            np.eye(3)[:, :, None] * np.array([0.2, 0.5, 0.2, 0.1, 0, 0, 0]) + rng.normal(0, 0.01, (3, 3, L)),
+            dt,
+            -2 * dt,
+            rng.normal(0, 0.01, (3, L)),
+        ),
         Girf(rng.normal(0, 0.1, (3, 3, L)), 0.7 * dt, -1.3 * dt),  # resampled path
         Lti(rng.normal(0, 0.05, (3, 5)), dt, -dt),
         SlewLimit(2.0),

@@ -52,8 +52,19 @@ def setup(repo_root):
     G, b0 = _apply(eff, g)
     rng = np.random.default_rng(42)
     sG, sb = 0.02, 0.001
-    meas = Measurement(DT, g, G + rng.normal(0, sG, G.shape), None, b0 + rng.normal(0, sb, b0.shape),
-                       sG, None, sb, [f"w{i}" for i in range(len(g))], np.ones((len(g), 3), bool), "synthetic")
+    meas = Measurement(
+        DT,
+        g,
+        G + rng.normal(0, sG, G.shape),
+        None,
+        b0 + rng.normal(0, sb, b0.shape),
+        sG,
+        None,
+        sb,
+        [f"w{i}" for i in range(len(g))],
+        np.ones((len(g), 3), bool),
+        "synthetic",
+    )
     return gd, eff, meas
 
 
@@ -114,6 +125,7 @@ def test_fit_predicts_heldout_waveforms_at_noise_level(setup):
 
 def test_fit_rejects_unmeasured_axis_and_bad_options(setup):
     from dtoc.errors import InputError
+
     gd, eff, meas = setup
     m2 = meas.subset(slice(None))
     m2.axes_measured = m2.axes_measured.copy()

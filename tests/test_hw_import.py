@@ -73,8 +73,11 @@ def test_prisma_hdf5(gdir):
     gd = import_girf([gdir / "siemens_prisma_3T_2020" / f"GIRF_{a}.mat" for a in "XYZ"])
     assert gd.H0 is None  # B0 term only on request (unit undocumented)
     assert gd.to_time_domain().dt_s == pytest.approx(5e-6, rel=1e-3)
-    readme = {0: [1.000, 0.995, 0.970, 0.816, 0.539], 1: [1.000, 0.997, 0.969, 0.791, 0.477],
-              2: [1.000, 1.007, 1.032, 0.871, 0.515]}
+    readme = {
+        0: [1.000, 0.995, 0.970, 0.816, 0.539],
+        1: [1.000, 0.997, 0.969, 0.791, 0.477],
+        2: [1.000, 1.007, 1.032, 0.871, 0.515],
+    }
     for a, ref in readme.items():
         # at 20 kHz |H| changes by ~0.03 between neighbouring 12 Hz bins (measurement noise), and the file's
         # own 'freq' vector is off by half a bin, so the README figure is only that good there
@@ -114,11 +117,13 @@ def test_paper_epi_odd_even_offsets(gdir, repo_root):
 
     mat = scipy.io.loadmat(gdir / "kcl_7T_terra_2023" / "7T_1pcterms.mat", squeeze_me=True)
     e = ir.edge_grad_mT_per_m
-    conv = lambda g, h: np.convolve(g, np.real(h))[1498:1498 + g.size]  # noqa: E731  (t = 0 at tap 1498)
-    G = np.stack([conv(e[0], mat["hxx"]) + conv(e[1], mat["hyx"]), conv(e[1], mat["hyy"]) + conv(e[0], mat["hxy"]), e[2]])
+    conv = lambda g, h: np.convolve(g, np.real(h))[1498 : 1498 + g.size]  # noqa: E731  (t = 0 at tap 1498)
+    G = np.stack(
+        [conv(e[0], mat["hxx"]) + conv(e[1], mat["hyx"]), conv(e[1], mat["hyy"]) + conv(e[0], mat["hxy"]), e[2]]
+    )
     k = ir.kspace_rad_per_m(edges_to_fine(G)).numpy()
     k0 = ir.kspace_rad_per_m().numpy()
     b = np.cumsum([0] + [a.num_samples for a in ir.adc])
-    line = np.array([np.mean(k[0, b[i]:b[i + 1]] - k0[0, b[i]:b[i + 1]]) for i in range(len(ir.adc))])
+    line = np.array([np.mean(k[0, b[i] : b[i + 1]] - k0[0, b[i] : b[i + 1]]) for i in range(len(ir.adc))])
     ref = (line[1::2].mean() - line[0::2].mean()) / ir.dk_rad_per_m[0]
     assert ro["odd_minus_even_dk"] == pytest.approx(ref, rel=0.01)

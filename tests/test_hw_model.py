@@ -8,7 +8,14 @@ import torch
 
 from dtoc.errors import InputError
 from dtoc.hardware import (
-    GirfData, build_effect, load_girf, load_measurement, load_model, resolve_model, save_girf, save_measurement,
+    GirfData,
+    build_effect,
+    load_girf,
+    load_measurement,
+    load_model,
+    resolve_model,
+    save_girf,
+    save_measurement,
     save_model,
 )
 from dtoc.hardware.measurement import G_from_k, k_from_G
@@ -38,17 +45,19 @@ def test_identity_model_and_shapes():
 
 def test_chain_order_and_json_roundtrip(tmp_path):
     save_girf(_girf(), tmp_path / "h.npz")
-    spec = {"effects": [
-        {"kind": "girf", "file": "h.npz"},
-        {"kind": "delay", "axis": "x", "params": {"seconds": 2.5e-6}},
-        {"kind": "exp_eddy", "params": {"alpha": [0.1, 0.1], "tau_s": [1e-3, 0.1]}},
-        {"kind": "cross_eddy", "axis": "y", "input_axis": "x", "params": {"alpha": 0.01, "tau_s": 1e-3}},
-        {"kind": "b0_eddy", "input_axis": "z", "params": {"alpha_uT_per_mT_per_m": 0.05, "tau_s": 2e-3}},
-        {"kind": "gain", "axis": "z", "params": {"factor": 0.98}},
-        {"kind": "offset", "axis": "y", "params": {"mT_per_m": 0.01}},
-        {"kind": "lti", "axis": "x", "params": {"taps": [0.0, 0.01, -0.01], "dt_s": 1e-5, "t0_s": -1e-5}},
-        {"kind": "slew_limit", "params": {"max_slew_T_per_m_per_s": 200.0}},
-    ]}
+    spec = {
+        "effects": [
+            {"kind": "girf", "file": "h.npz"},
+            {"kind": "delay", "axis": "x", "params": {"seconds": 2.5e-6}},
+            {"kind": "exp_eddy", "params": {"alpha": [0.1, 0.1], "tau_s": [1e-3, 0.1]}},
+            {"kind": "cross_eddy", "axis": "y", "input_axis": "x", "params": {"alpha": 0.01, "tau_s": 1e-3}},
+            {"kind": "b0_eddy", "input_axis": "z", "params": {"alpha_uT_per_mT_per_m": 0.05, "tau_s": 2e-3}},
+            {"kind": "gain", "axis": "z", "params": {"factor": 0.98}},
+            {"kind": "offset", "axis": "y", "params": {"mT_per_m": 0.01}},
+            {"kind": "lti", "axis": "x", "params": {"taps": [0.0, 0.01, -0.01], "dt_s": 1e-5, "t0_s": -1e-5}},
+            {"kind": "slew_limit", "params": {"max_slew_T_per_m_per_s": 200.0}},
+        ]
+    }
     (tmp_path / "m.json").write_text(json.dumps(spec))
     m = load_model(tmp_path / "m.json")
     assert [e.kind for e in m.effects] == [e["kind"] for e in spec["effects"]]
@@ -107,19 +116,22 @@ def test_girf_save_is_deterministic_and_freq_domain_roundtrip(tmp_path):
     np.testing.assert_allclose(load_girf(tmp_path / "f1.npz").to_time_domain().h, gd.h, atol=1e-12)
 
 
-@pytest.mark.parametrize("arrays,match", [
-    ({"h": np.zeros((3, 3, 5))}, "'dt' missing"),
-    ({"h": np.zeros((3, 3, 5)), "dt": np.float64(np.nan)}, "'dt'"),
-    ({"h": np.zeros((3, 3, 5)), "dt": np.float64(-1e-5)}, "'dt' must be > 0"),
-    ({"h": np.zeros((2, 2, 5)), "dt": np.float64(1e-5)}, r"'h' must have shape \(3, 3, L\)"),
-    ({"h": np.full((3, 3, 5), np.nan), "dt": np.float64(1e-5)}, "'h' contains NaN"),
-    ({"h": np.zeros((3, 3, 5)), "dt": np.float64(1e-5), "h0": np.zeros((3, 4))}, "'h0' must have shape"),
-    ({"f": np.array([0.0, 2.0, 1.0, 3.0]), "H": np.zeros((3, 3, 4), complex)}, "'f' must be strictly increasing"),
-    ({"f": np.array([0.0, 1.0, 3.0, 4.0]), "H": np.zeros((3, 3, 4), complex)}, "'f' must be a uniform"),
-    ({"f": np.arange(4.0), "H": np.zeros((3, 4), complex)}, r"'H' must have shape \(3, 3, 4\)"),
-    ({"H": np.zeros((3, 3, 4), complex)}, "'f' missing"),
-    ({"x": np.zeros(3)}, "not a GIRF file"),
-])
+@pytest.mark.parametrize(
+    "arrays,match",
+    [
+        ({"h": np.zeros((3, 3, 5))}, "'dt' missing"),
+        ({"h": np.zeros((3, 3, 5)), "dt": np.float64(np.nan)}, "'dt'"),
+        ({"h": np.zeros((3, 3, 5)), "dt": np.float64(-1e-5)}, "'dt' must be > 0"),
+        ({"h": np.zeros((2, 2, 5)), "dt": np.float64(1e-5)}, r"'h' must have shape \(3, 3, L\)"),
+        ({"h": np.full((3, 3, 5), np.nan), "dt": np.float64(1e-5)}, "'h' contains NaN"),
+        ({"h": np.zeros((3, 3, 5)), "dt": np.float64(1e-5), "h0": np.zeros((3, 4))}, "'h0' must have shape"),
+        ({"f": np.array([0.0, 2.0, 1.0, 3.0]), "H": np.zeros((3, 3, 4), complex)}, "'f' must be strictly increasing"),
+        ({"f": np.array([0.0, 1.0, 3.0, 4.0]), "H": np.zeros((3, 3, 4), complex)}, "'f' must be a uniform"),
+        ({"f": np.arange(4.0), "H": np.zeros((3, 4), complex)}, r"'H' must have shape \(3, 3, 4\)"),
+        ({"H": np.zeros((3, 3, 4), complex)}, "'f' missing"),
+        ({"x": np.zeros(3)}, "not a GIRF file"),
+    ],
+)
 def test_bad_girf_files(tmp_path, arrays, match):
     save_npz(tmp_path / "bad.npz", arrays)
     with pytest.raises(InputError, match=match):
@@ -134,20 +146,23 @@ def test_bad_girf_not_npz_and_missing(tmp_path):
         load_girf(tmp_path / "nope.npz")
 
 
-@pytest.mark.parametrize("text,match", [
-    ('{"effects": [{"kind": "wobble"}]}', "unknown effect kind 'wobble'"),
-    ('{"effects": [{"kind": "gain", "params": {}}]}', "missing parameter"),
-    ('{"effects": [{"kind": "gain", "params": {"factor": 1, "x": 2}}]}', "unknown parameter"),
-    ('{"effects": [{"kind": "gain", "axis": "q", "params": {"factor": 1}}]}', "axis"),
-    ('{"effects": [{"kind": "exp_eddy", "params": {"alpha": 0.1, "tau_s": NaN}}]}', "finite"),
-    ('{"effects": [{"kind": "exp_eddy", "params": {"alpha": [0.1, 0.2], "tau_s": 1e-3}}]}', "same length"),
-    ('{"effects": [{"kind": "girf"}]}', "needs 'file'"),
-    ('{"effects": [{"kind": "girf", "file": "missing.npz"}]}', "not found"),
-    ('{"effects": [{"kind": "cross_eddy", "axis": "x", "params": {"alpha": 0.1, "tau_s": 1e-3}}]}', "input_axis"),
-    ('{"effecs": []}', "effecs"),
-    ('[1, 2]', "JSON object"),
-    ('{"effects": [', "not valid JSON"),
-])
+@pytest.mark.parametrize(
+    "text,match",
+    [
+        ('{"effects": [{"kind": "wobble"}]}', "unknown effect kind 'wobble'"),
+        ('{"effects": [{"kind": "gain", "params": {}}]}', "missing parameter"),
+        ('{"effects": [{"kind": "gain", "params": {"factor": 1, "x": 2}}]}', "unknown parameter"),
+        ('{"effects": [{"kind": "gain", "axis": "q", "params": {"factor": 1}}]}', "axis"),
+        ('{"effects": [{"kind": "exp_eddy", "params": {"alpha": 0.1, "tau_s": NaN}}]}', "finite"),
+        ('{"effects": [{"kind": "exp_eddy", "params": {"alpha": [0.1, 0.2], "tau_s": 1e-3}}]}', "same length"),
+        ('{"effects": [{"kind": "girf"}]}', "needs 'file'"),
+        ('{"effects": [{"kind": "girf", "file": "missing.npz"}]}', "not found"),
+        ('{"effects": [{"kind": "cross_eddy", "axis": "x", "params": {"alpha": 0.1, "tau_s": 1e-3}}]}', "input_axis"),
+        ('{"effecs": []}', "effecs"),
+        ("[1, 2]", "JSON object"),
+        ('{"effects": [', "not valid JSON"),
+    ],
+)
 def test_bad_model_files(tmp_path, text, match):
     p = tmp_path / "m.json"
     p.write_text(text)
@@ -167,9 +182,15 @@ def test_build_effect_api():
 def _meas_arrays(M=3, N=200, dt=1e-5):
     rng = np.random.default_rng(1)
     g = rng.normal(0, 1, (M, 3, N)).cumsum(-1)
-    return {"dt": np.float64(dt), "g": g, "G": g * 0.99, "b0": rng.normal(0, 0.1, (M, N)),
-            "sigma_G": np.float64(0.01), "labels": np.array(["a", "b", "c"][:M]),
-            "axes_measured": np.array([[1, 1, 0]] * M, dtype=bool)}
+    return {
+        "dt": np.float64(dt),
+        "g": g,
+        "G": g * 0.99,
+        "b0": rng.normal(0, 0.1, (M, N)),
+        "sigma_G": np.float64(0.01),
+        "labels": np.array(["a", "b", "c"][:M]),
+        "axes_measured": np.array([[1, 1, 0]] * M, dtype=bool),
+    }
 
 
 def test_measurement_roundtrip_and_k_derivation(tmp_path):
@@ -181,7 +202,10 @@ def test_measurement_roundtrip_and_k_derivation(tmp_path):
     assert m.k is None and np.isnan(m.G[:, 2]).all() and m.axes_measured[:, :2].all()
     k = m.realized_k()
     from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
-    np.testing.assert_allclose(k[:, :2, -1], GAMMA_RAD_PER_S_PER_MT * np.trapezoid(m.G[:, :2], dx=m.dt_s, axis=-1), rtol=1e-12)
+
+    np.testing.assert_allclose(
+        k[:, :2, -1], GAMMA_RAD_PER_S_PER_MT * np.trapezoid(m.G[:, :2], dx=m.dt_s, axis=-1), rtol=1e-12
+    )
     # smooth waveform: k -> G by central differences is accurate
     t = np.arange(1000) * 1e-5
     G = np.sin(2 * np.pi * 200 * t)[None, None].repeat(3, 1)
@@ -192,20 +216,23 @@ def test_measurement_roundtrip_and_k_derivation(tmp_path):
     assert m.subset([0, 2]).labels == ["a", "c"]
 
 
-@pytest.mark.parametrize("mutate,match", [
-    (lambda a: a.pop("dt"), "'dt' missing"),
-    (lambda a: a.update(dt=np.float64(0.0)), "'dt' must be > 0"),
-    (lambda a: a.update(dt=np.zeros(2)), "'dt' must be a scalar"),
-    (lambda a: a.pop("g"), "'g' missing"),
-    (lambda a: a.update(g=np.zeros((3, 2, 200))), r"'g' must have shape \(M, 3, N\)"),
-    (lambda a: (a.pop("G"), a.pop("b0")), "needs key 'G'"),
-    (lambda a: a.update(G=np.zeros((3, 3, 199))), r"'G' must have shape \(3, 3, 200\)"),
-    (lambda a: a["G"].__setitem__((0, 0, 3), np.nan), "'G' contains NaN"),
-    (lambda a: a.update(b0=np.zeros((3, 3, 200))), r"'b0' must have shape \(3, 200\)"),
-    (lambda a: a.update(sigma_G=np.float64(-1)), "'sigma_G'"),
-    (lambda a: a.update(labels=np.array(["a"])), "'labels'"),
-    (lambda a: a.update(axes_measured=np.ones((3, 2), bool)), "'axes_measured'"),
-])
+@pytest.mark.parametrize(
+    "mutate,match",
+    [
+        (lambda a: a.pop("dt"), "'dt' missing"),
+        (lambda a: a.update(dt=np.float64(0.0)), "'dt' must be > 0"),
+        (lambda a: a.update(dt=np.zeros(2)), "'dt' must be a scalar"),
+        (lambda a: a.pop("g"), "'g' missing"),
+        (lambda a: a.update(g=np.zeros((3, 2, 200))), r"'g' must have shape \(M, 3, N\)"),
+        (lambda a: (a.pop("G"), a.pop("b0")), "needs key 'G'"),
+        (lambda a: a.update(G=np.zeros((3, 3, 199))), r"'G' must have shape \(3, 3, 200\)"),
+        (lambda a: a["G"].__setitem__((0, 0, 3), np.nan), "'G' contains NaN"),
+        (lambda a: a.update(b0=np.zeros((3, 3, 200))), r"'b0' must have shape \(3, 200\)"),
+        (lambda a: a.update(sigma_G=np.float64(-1)), "'sigma_G'"),
+        (lambda a: a.update(labels=np.array(["a"])), "'labels'"),
+        (lambda a: a.update(axes_measured=np.ones((3, 2), bool)), "'axes_measured'"),
+    ],
+)
 def test_bad_measurement_files(tmp_path, mutate, match):
     arr = _meas_arrays()
     mutate(arr)

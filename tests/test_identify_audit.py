@@ -18,8 +18,8 @@ import struct
 import numpy as np
 import pytest
 import torch
-
 from cli_helpers import run_cli
+
 from dtoc.hardware.girf_io import save_girf
 from dtoc.hardware.model import HardwareModel, girf_effect
 from dtoc.identify import diagnostics
@@ -122,8 +122,9 @@ def test_amplitude_dependent_gain_is_not_explained_with_a_meaningful_note(setup)
     assert not r.explained
     notes = " | ".join(r.remaining)
     assert "amplitude" in notes
-    assert not any(n.startswith("narrow-band") and float(n.split("near ")[1].split(" kHz")[0]) < 1.0
-                   for n in r.remaining), notes  # the waveforms' own low-frequency content is not a resonance
+    assert not any(
+        n.startswith("narrow-band") and float(n.split("near ")[1].split(" kHz")[0]) < 1.0 for n in r.remaining
+    ), notes  # the waveforms' own low-frequency content is not a resonance
 
 
 def test_hysteresis_is_not_explained_and_noted(setup):
@@ -161,8 +162,21 @@ def test_png_has_one_row_per_measured_axis(setup, tmp_path, capsys):
     G = G0 + SIGMA * rng.standard_normal(g.shape)
     G[:, 2] = 1e6
     np.savez(tmp_path / "m.npz", dt=DT, g=g, G=G, axes_measured=axes)
-    argv = ["identify", str(tmp_path / "m.npz"), "--girf", str(tmp_path / "h.npz"), "-o", str(tmp_path / "u.json"),
-            "--json", str(tmp_path / "r.json"), "--png", str(tmp_path / "r.png"), "-q", "--max-effects", "1"]
+    argv = [
+        "identify",
+        str(tmp_path / "m.npz"),
+        "--girf",
+        str(tmp_path / "h.npz"),
+        "-o",
+        str(tmp_path / "u.json"),
+        "--json",
+        str(tmp_path / "r.json"),
+        "--png",
+        str(tmp_path / "r.png"),
+        "-q",
+        "--max-effects",
+        "1",
+    ]
     code, _, err = _run(argv, capsys)
     assert code == 0, err
     w, h = _png_size((tmp_path / "r.png").read_bytes())
@@ -200,12 +214,26 @@ def test_declared_model_variants(tmp_path, capsys):
     gd = lowpass_girf(DT)
     save_girf(gd, tmp_path / "h.npz")
     (tmp_path / "sub").mkdir()
-    (tmp_path / "sub" / "m.json").write_text(json.dumps(
-        {"effects": [{"kind": "girf", "file": "h.npz", "params": {}, "axis": None, "input_axis": None}]}))
-    code, _, err = _run(["identify", str(p), "--model", str(tmp_path / "sub" / "m.json"), "-o", str(tmp_path / "u.json")], capsys)
+    (tmp_path / "sub" / "m.json").write_text(
+        json.dumps({"effects": [{"kind": "girf", "file": "h.npz", "params": {}, "axis": None, "input_axis": None}]})
+    )
+    code, _, err = _run(
+        ["identify", str(p), "--model", str(tmp_path / "sub" / "m.json"), "-o", str(tmp_path / "u.json")], capsys
+    )
     assert code == 2 and "h.npz" in err and err.count("\n") == 1  # a model JSON whose GIRF file is missing
-    code, _, err = _run(["identify", str(p), "--model", str(tmp_path / "sub" / "m.json"), "--girf", str(tmp_path / "h.npz"),
-                         "-o", str(tmp_path / "u.json")], capsys)
+    code, _, err = _run(
+        [
+            "identify",
+            str(p),
+            "--model",
+            str(tmp_path / "sub" / "m.json"),
+            "--girf",
+            str(tmp_path / "h.npz"),
+            "-o",
+            str(tmp_path / "u.json"),
+        ],
+        capsys,
+    )
     assert code == 2 and "--girf" in err and "--model" in err
     assert not (tmp_path / "u.json").exists()
 

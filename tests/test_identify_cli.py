@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 import torch
-
 from cli_helpers import run_cli
+
 from dtoc.hardware.girf_io import save_girf
 from dtoc.hardware.model import HardwareModel, build_effect, girf_effect, load_model
 from dtoc.identify.synth import lowpass_girf, probe_waveforms, save_measurement, simulate_measurement
@@ -34,8 +34,19 @@ def files(tmp_path_factory):
 
 def test_end_to_end(files, capsys):
     d, meas = files
-    argv = ["identify", str(d / "meas.npz"), "--girf", str(d / "declared.npz"), "--json", str(d / "rep.json"),
-            "-o", str(d / "updated.json"), "--png", str(d / "res.png"), "-q"]
+    argv = [
+        "identify",
+        str(d / "meas.npz"),
+        "--girf",
+        str(d / "declared.npz"),
+        "--json",
+        str(d / "rep.json"),
+        "-o",
+        str(d / "updated.json"),
+        "--png",
+        str(d / "res.png"),
+        "-q",
+    ]
     code, out, err = _run(argv, capsys)
     assert code == 0, err
     assert "exp_eddy" in out and "explained" in out  # the table is on stdout
@@ -108,7 +119,9 @@ def test_bad_measurement_files(tmp_path, capsys, change, key):
 
 def test_unknown_kind_is_rejected(files, capsys, tmp_path):
     d, _ = files
-    code, _, err = _run(["identify", str(d / "meas.npz"), "-o", str(tmp_path / "u.json"), "--kinds", "delay,warp"], capsys)
+    code, _, err = _run(
+        ["identify", str(d / "meas.npz"), "-o", str(tmp_path / "u.json"), "--kinds", "delay,warp"], capsys
+    )
     assert code != 0 and "warp" in err
 
 
@@ -123,7 +136,9 @@ def test_axes_measured_are_respected(capsys, tmp_path):
     G[:, 2] = np.nan
     p = tmp_path / "m.npz"
     np.savez(p, dt=DT, g=g, G=G, axes_measured=axes)
-    code, out, err = _run(["identify", str(p), "-o", str(tmp_path / "u.json"), "--json", str(tmp_path / "r.json"), "-q"], capsys)
+    code, out, err = _run(
+        ["identify", str(p), "-o", str(tmp_path / "u.json"), "--json", str(tmp_path / "r.json"), "-q"], capsys
+    )
     assert code == 0, err
     rep = json.loads((tmp_path / "r.json").read_text())
     e = rep["effects"][0]

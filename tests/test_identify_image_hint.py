@@ -20,7 +20,9 @@ def test_delay_from_epi_raw_data(repo_root):
         G, b0 = true(torch.as_tensor(ir.grad_mT_per_m), ir.dt_fine_s)
         s = Imager(ir, [ph]).signal(G, b0, 0)
     rng = np.random.default_rng(0)
-    s_meas = s + torch.as_tensor(0.01 * float(s.abs().max()) * (rng.standard_normal(s.shape) + 1j * rng.standard_normal(s.shape)))
+    s_meas = s + torch.as_tensor(
+        0.01 * float(s.abs().max()) * (rng.standard_normal(s.shape) + 1j * rng.standard_normal(s.shape))
+    )
     r = fit_delays_to_raw(ir, ph, declared, s_meas, axes=("x",))
     assert abs(r.delays_s["x"] - 3.5e-6) < 0.1e-6
     assert r.loss_after < 0.3 * r.loss_before

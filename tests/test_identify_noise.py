@@ -140,8 +140,19 @@ def test_lti_toeplitz_statistics_equal_the_generic_ones(M):
     lags = list(range(-4, 12))
 
     def make(ms):
-        cols = np.stack([np.stack([np.concatenate([np.zeros(max(lag, 0)), g[m, 1, max(-lag, 0): N - max(lag, 0)],
-                                                   np.zeros(max(-lag, 0))]) for m in ms]) for lag in lags])
+        cols = np.stack(
+            [
+                np.stack(
+                    [
+                        np.concatenate(
+                            [np.zeros(max(lag, 0)), g[m, 1, max(-lag, 0) : N - max(lag, 0)], np.zeros(max(-lag, 0))]
+                        )
+                        for m in ms
+                    ]
+                )
+                for lag in lags
+            ]
+        )
         return {1: cols}, None
 
     A1, b1 = ws.unit_stats(make, len(lags), full=True)

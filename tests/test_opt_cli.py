@@ -17,8 +17,9 @@ FAST = ["--warm-iters", "40", "--iters", "2", "--threads", "1"]
 
 
 def _dtoc(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "dtoc", *map(str, args)], capture_output=True, text=True, cwd=cwd,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "dtoc", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=300
+    )
 
 
 @pytest.fixture(scope="module")
@@ -74,10 +75,13 @@ def test_existing_output_needs_force(run1):
     assert r.returncode != 0 and "--force" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("extra, match", [
-    (["--gmax", "1"], "gmax"),  # below the readout amplitude: no waveform can sample k-space
-    (["--smax", "5"], "smax"),  # fixed slice-select ramps already exceed it
-])
+@pytest.mark.parametrize(
+    "extra, match",
+    [
+        (["--gmax", "1"], "gmax"),  # below the readout amplitude: no waveform can sample k-space
+        (["--smax", "5"], "smax"),  # fixed slice-select ramps already exceed it
+    ],
+)
 def test_impossible_limits_one_line_nothing_written(tmp_path, extra, match):
     if not GIRF.exists():
         pytest.skip("girf/example_7T.npz absent")
@@ -155,8 +159,20 @@ def test_golden_gre_amplitude_limited_regression(tmp_path):
     golden = REPO / "sequences" / "golden_opt_gre_small.seq"
     model = REPO / "girf" / "paper_eddy_both.json"
     out = tmp_path / "g.seq"
-    r = _dtoc("optimize", REPO / "sequences" / "gre_small.yaml", "--model", model, "-o", out, "--gmax", "20",
-              "--warm-iters", "60", "--threads", "1")
+    r = _dtoc(
+        "optimize",
+        REPO / "sequences" / "gre_small.yaml",
+        "--model",
+        model,
+        "-o",
+        out,
+        "--gmax",
+        "20",
+        "--warm-iters",
+        "60",
+        "--threads",
+        "1",
+    )
     assert r.returncode == 0, r.stderr
     r = _dtoc("diff", golden, out, "--rtol", "1e-4", "--atol", "5e-3")
     assert r.returncode == 0, r.stdout + r.stderr
@@ -173,13 +189,37 @@ def test_phantom_option_changes_the_figures_not_the_gre_waveform(tmp_path):
     model = REPO / "girf" / "paper_eddy_both.json"
     m = {}
     for ph in ("brain", "brain-noscalp"):
-        r = _dtoc("optimize", REPO / "sequences" / "gre_small.yaml", "--model", model, "-o", tmp_path / f"{ph}.seq",
-                  "--json", tmp_path / f"{ph}.json", "--gmax", "20", "--warm-iters", "60", "--threads", "1", "--phantom", ph)
+        r = _dtoc(
+            "optimize",
+            REPO / "sequences" / "gre_small.yaml",
+            "--model",
+            model,
+            "-o",
+            tmp_path / f"{ph}.seq",
+            "--json",
+            tmp_path / f"{ph}.json",
+            "--gmax",
+            "20",
+            "--warm-iters",
+            "60",
+            "--threads",
+            "1",
+            "--phantom",
+            ph,
+        )
         assert r.returncode == 0, r.stderr
         m[ph] = json.loads((tmp_path / f"{ph}.json").read_text())
         assert m[ph]["phantom"] == {"builtin": ph}
     assert m["brain"]["output"]["sha256"] == m["brain-noscalp"]["output"]["sha256"]
     assert abs(m["brain"]["before"]["nrmse"] - m["brain-noscalp"]["before"]["nrmse"]) > 0.01
-    r = _dtoc("optimize", REPO / "sequences" / "gre_small.yaml", "--model", model, "-o", tmp_path / "x.seq",
-              "--phantom", "brain-noscalp:zz")
+    r = _dtoc(
+        "optimize",
+        REPO / "sequences" / "gre_small.yaml",
+        "--model",
+        model,
+        "-o",
+        tmp_path / "x.seq",
+        "--phantom",
+        "brain-noscalp:zz",
+    )
     assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.seq").exists()

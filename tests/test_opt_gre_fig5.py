@@ -118,7 +118,9 @@ def test_constant_te_fallback_is_the_papers_kspace_shrink():
         c = constant_te(ir, Twin(ir, model, P), lim, fit)
         assert c["n"] == n and np.mean(~c["keep_mask"]) == pytest.approx(skipped, abs=5e-4), (gmax, c["n"])
         # the rebuilt lobes themselves (no pre-emphasis, no eddy currents, shrink forced to n)
-        e = constant_te(ir, Twin(ir, None, P), Limits(1e3, 500.0), {"alpha": [], "tau_s": []}, max_shrink=n, min_shrink=n)
+        e = constant_te(
+            ir, Twin(ir, None, P), Limits(1e3, 500.0), {"alpha": [], "tau_s": []}, max_shrink=n, min_shrink=n
+        )
         assert e["n"] == n and np.array_equal(e["keep_mask"], c["keep_mask"])
         g = edges_to_fine(e["edges"])
         k = ir.kspace_rad_per_m(g).numpy()

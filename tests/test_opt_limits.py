@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from dtoc.errors import LimitError
-from dtoc.seq.ir import edges_to_fine
 from dtoc.optimize.limits import EdgeProjector, Limits, edges_to_played, limit_violations, waveform_extremes
+from dtoc.seq.ir import edges_to_fine
 
 RASTER = 10e-6
 

@@ -114,10 +114,9 @@ def test_moment_term_sees_a_cancelled_spoiler(ir):
     assert float(L.moment_term(tw.moments(g0), ctx)) == pytest.approx(0.0, abs=1e-20)
     g = g0.clone()
     # remove the x spoiler plateau (17.6 mT/m) of every TR, after the ADC: k at the samples is unchanged
-    spoil = (g[0] > 17.0)
+    spoil = g[0] > 17.0
     g[0, spoil] = 0.0
     k_same = tw.kspace(g)
     assert torch.allclose(k_same, ctx.k0_rad_per_m)
     m = float(L.moment_term(tw.moments(g), ctx))
     assert m > 1.0  # many dk of dephasing per repetition lost
-

@@ -3,9 +3,6 @@
 import json
 
 import pytest
-
-
-
 from cli_helpers import run_cli as _run  # noqa: E402
 
 
@@ -114,14 +111,23 @@ def test_system_spec_rejects_inf(tmp_path, capsys, small_seq):
     _one_line_error(code, err, "max_grad_mT_per_m: Input should be a finite number")
 
 
-@pytest.mark.parametrize("data,match", [
-    # a typo'd key is named first (it used to say only "echo_spacing_ms: Field required (and 1 more)")
-    ({"kind": "epi", "name": "a", "echospacing_ms": 0.8}, "echospacing_ms: unknown key"),
-    # a typo of 100 000 repetitions used to build for minutes; 250 m FOV (um typed as mm) built silently
-    ({"kind": "gre", "name": "a", "repetitions": 100000}, "repetitions: Input should be less than or equal to 4096"),
-    ({"kind": "epi", "name": "a", "echo_spacing_ms": 0.8, "fov_mm": 250000}, "fov_mm: Input should be less than"),
-    ({"kind": "epi", "name": "a", "echo_spacing_ms": float("nan")}, "echo_spacing_ms: Input should be a finite number"),
-])
+@pytest.mark.parametrize(
+    "data,match",
+    [
+        # a typo'd key is named first (it used to say only "echo_spacing_ms: Field required (and 1 more)")
+        ({"kind": "epi", "name": "a", "echospacing_ms": 0.8}, "echospacing_ms: unknown key"),
+        # a typo of 100 000 repetitions used to build for minutes; 250 m FOV (um typed as mm) built silently
+        (
+            {"kind": "gre", "name": "a", "repetitions": 100000},
+            "repetitions: Input should be less than or equal to 4096",
+        ),
+        ({"kind": "epi", "name": "a", "echo_spacing_ms": 0.8, "fov_mm": 250000}, "fov_mm: Input should be less than"),
+        (
+            {"kind": "epi", "name": "a", "echo_spacing_ms": float("nan")},
+            "echo_spacing_ms: Input should be a finite number",
+        ),
+    ],
+)
 def test_spec_messages_and_plausible_ranges(data, match):
     from dtoc.errors import InputError
     from dtoc.seq.spec import parse_spec

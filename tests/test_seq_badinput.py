@@ -30,10 +30,16 @@ CASES = {
     "no_version": (b"[BLOCKS]\n1 1 0 0 0 0 0 0\n", r"no \[VERSION\] section"),
     "wrong_version": (RAW.replace(b"minor 5", b"minor 3", 1), r"version 1\.3\.0 is not supported"),
     "truncated_mid_shapes": (RAW[: RAW.find(b"shape_id 9")], r"shape 9 is not defined \(file truncated\?\)"),
-    "truncated_mid_gradients": (RAW[: RAW.find(b"[GRADIENTS]") + 40], r"expected 7 fields, got \d+ \(file truncated\?\)"),
+    "truncated_mid_gradients": (
+        RAW[: RAW.find(b"[GRADIENTS]") + 40],
+        r"expected 7 fields, got \d+ \(file truncated\?\)",
+    ),
     "truncated_refs": (RAW[: RAW.find(b"[TRAP]")], r"uses gradient 1, which is not defined \(file truncated\?\)"),
     "corrupt_number": (sign_text(BODY.replace(b"1 16 10000 0", b"1 16 1OOOO 0", 1)), r"\[ADC\]: not a number: '1OOOO'"),
-    "corrupt_shape": (sign_text(BODY.replace(b"num_samples 3", b"num_samples 9", 1)), r"compressed data do not expand to 9 samples"),
+    "corrupt_shape": (
+        sign_text(BODY.replace(b"num_samples 3", b"num_samples 9", 1)),
+        r"compressed data do not expand to 9 samples",
+    ),
     "bad_signature": (RAW.replace(b"Created by PyPulseq", b"Created by PyPulsex"), r"signature mismatch"),
     "unsigned": (BODY + b"\n", r"unsigned: no \[SIGNATURE\]"),
 }
@@ -72,7 +78,7 @@ def test_pulseq_14_file_is_read(tmp_path):
     with quiet():
         ir.source.write(str(p), create_signature=True, v141_compat=True)
     ir14 = read_seq(p)
-    assert (ir14.grad_mT_per_m.shape == ir.grad_mT_per_m.shape)
+    assert ir14.grad_mT_per_m.shape == ir.grad_mT_per_m.shape
     assert abs(ir14.grad_mT_per_m - ir.grad_mT_per_m).max() < 1e-3 * abs(ir.grad_mT_per_m).max()
     assert len(ir14.adc) == len(ir.adc)
 

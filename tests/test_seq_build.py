@@ -91,7 +91,8 @@ def test_gre_paper_timing_and_amplitudes():
     assert np.abs(g[:, : rf_m + 1]).max() == 0
     # readout 1/(FOV*dwell) = 312.5 kHz/m = 7.34 mT/m; spoiler 17.6 mT/m; prewinder ~ -28 mT/m
     assert np.interp(ir.adc[0].sample_times_s, ir.t_fine_s, g[0]) == pytest.approx(
-        np.full(32, mT_per_m_from_hz_per_m(312500.0)), rel=1e-6)
+        np.full(32, mT_per_m_from_hz_per_m(312500.0)), rel=1e-6
+    )
     assert mT_per_m_from_hz_per_m(312500.0) == pytest.approx(7.34, abs=0.005)
     assert g[0].max() == pytest.approx(17.6, rel=1e-5)
     assert -32 < g[0].min() < -25

@@ -128,7 +128,11 @@ def test_gradient_ends_nonzero_inside_block(tmp_path):
 def test_sequence_ends_nonzero(tmp_path):
     def drop_last_block(t):
         lines = t.split("\n")
-        i = max(j for j, ln in enumerate(lines) if re.match(r"^\s*\d+\s+\d+\s+\d+\s+\d+", ln) and j < t[: t.find("[RF]")].count("\n"))
+        i = max(
+            j
+            for j, ln in enumerate(lines)
+            if re.match(r"^\s*\d+\s+\d+\s+\d+\s+\d+", ln) and j < t[: t.find("[RF]")].count("\n")
+        )
         del lines[i]
         return "\n".join(lines)
 
@@ -181,7 +185,9 @@ def test_rf_dead_time(tmp_path):
 
 
 def test_rf_ringdown():
-    r = check_file(SEQ / "gre_small.seq", SystemSpec(max_grad_mT_per_m=50, max_slew_T_per_m_per_s=500, rf_ringdown_time_s=150e-6))
+    r = check_file(
+        SEQ / "gre_small.seq", SystemSpec(max_grad_mT_per_m=50, max_slew_T_per_m_per_s=500, rf_ringdown_time_s=150e-6)
+    )
     assert r.rules() == {"rf_ringdown"}
 
 
@@ -209,7 +215,7 @@ def test_adc_sample_count(tmp_path):
 
 def test_signature_mismatch_and_missing(tmp_path):
     p = _broken(tmp_path, lambda t: t.replace("Created by PyPulseq", "Created by someone"), resign=False)
-    p.write_bytes(p.read_bytes() + SMALL.read_bytes()[SMALL.read_bytes().find(b"\n[SIGNATURE]"):])
+    p.write_bytes(p.read_bytes() + SMALL.read_bytes()[SMALL.read_bytes().find(b"\n[SIGNATURE]") :])
     r = check_file(p)
     assert r.rules() == {"signature"} and "!=" in r.violations[0].message
     q = _broken(tmp_path, lambda t: t, name="unsigned.seq", resign=False)

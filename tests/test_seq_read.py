@@ -85,7 +85,11 @@ def _synthetic_seq(arbitrary_blips=True):
     adc = pp.make_adc(32, duration=320e-6, delay=gx.rise_time, system=sys_)
     shape = np.sin(np.pi * (np.arange(40) + 0.5) / 40)
     wave = 100.0 / (10e-6 * shape.sum()) * shape  # Hz/m, sum*raster = 100/m
-    blip = pp.make_arbitrary_grad("y", wave, first=0.0, last=0.0, system=sys_) if arbitrary_blips else pp.make_trapezoid("y", area=100.0, system=sys_)
+    blip = (
+        pp.make_arbitrary_grad("y", wave, first=0.0, last=0.0, system=sys_)
+        if arbitrary_blips
+        else pp.make_trapezoid("y", area=100.0, system=sys_)
+    )
     for i in range(4):
         seq.add_block(pp.scale_grad(gx, (-1) ** i), adc)
         seq.add_block(blip)

@@ -67,7 +67,8 @@ def test_epi64_round_trip_bound_and_kspace(tmp_path, seed):
     assert err_dk.max() < 1e-3  # measured ~2e-5 dk
     # RF, ADC, definitions carried over
     assert back.rf == [r for r in ir.rf] or all(
-        a.flip_angle_rad == b.flip_angle_rad and a.t_center_s == b.t_center_s for a, b in zip(back.rf, ir.rf))
+        a.flip_angle_rad == b.flip_angle_rad and a.t_center_s == b.t_center_s for a, b in zip(back.rf, ir.rf)
+    )
     assert back.adc == ir.adc
     assert {k: v for k, v in back.definitions.items()} == ir.definitions
 

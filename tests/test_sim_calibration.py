@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_sim_physics import _rich_phantom, _small_gre
 
 from dtoc.sim import metrics, recon
 from dtoc.sim.pdg import PDGConfig, build_graph, simulate, steady_state_mz
 from dtoc.sim.pdg_main import emission_peaks
-from test_sim_physics import _rich_phantom, _small_gre
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -66,7 +66,11 @@ def test_calibrated_graph_is_a_subgraph_with_measured_emitters():
         kb = {tuple(np.round(k, 6)) + (z, round(t, 12)) for k, z, t in zip(b.k_nom_rad_per_m, b.is_z, b.tau_s)}
         assert kb <= ka  # never a new state
         if n in peaks:
-            want = {tuple(np.round(a.k_nom_rad_per_m[e], 6)) + (round(a.tau_s[e], 12),) for e, p in zip(a.emit, peaks[n]) if p / tot >= x}
+            want = {
+                tuple(np.round(a.k_nom_rad_per_m[e], 6)) + (round(a.tau_s[e], 12),)
+                for e, p in zip(a.emit, peaks[n])
+                if p / tot >= x
+            }
             got = {tuple(np.round(b.k_nom_rad_per_m[e], 6)) + (round(b.tau_s[e], 12),) for e in b.emit}
             assert got == want
 
@@ -88,7 +92,9 @@ def test_calibration_reaches_the_same_error_with_fewer_states():
     ref, _ = image(PDGConfig.strict(), torch.float64)
     t = lambda x, **kw: PDGConfig(min_emitted_signal=x, min_latent_signal=x, min_magnitude=x / 10, **kw)  # noqa: E731
     img0, g0 = image(t(3e-4))
-    img1, g1 = image(PDGConfig(min_emitted_signal=2e-4, min_latent_signal=1e-4, min_magnitude=1e-5, calibrate_emission=True))
+    img1, g1 = image(
+        PDGConfig(min_emitted_signal=2e-4, min_latent_signal=1e-4, min_magnitude=1e-5, calibrate_emission=True)
+    )
     e0, e1 = float(metrics.nrmse(img0, ref)), float(metrics.nrmse(img1, ref))
     assert e1 <= e0, (e0, e1)
     assert g1.n_emitting_total <= 0.9 * g0.n_emitting_total, (g0.n_emitting_total, g1.n_emitting_total)

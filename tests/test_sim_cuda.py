@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from test_sim_physics import _rich_phantom, _small_gre
 
 from dtoc.sim.pdg import PDGConfig, build_graph, simulate
-from test_sim_physics import _rich_phantom, _small_gre
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 

@@ -15,10 +15,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from test_sim_physics import _rich_phantom, _se_epi_like, _small_gre
 
 import dtoc.sim.pdg_main as M
 from dtoc.sim.pdg import PDGConfig, build_graph, simulate
-from test_sim_physics import _rich_phantom, _se_epi_like, _small_gre
 
 
 def _signal_and_grad(ir, ph, graph, cfg, dtype=torch.float64):
@@ -92,7 +92,10 @@ def test_separable_spatial_phase_and_vectorised_taylor_orders():
     # its hand-written adjoint equals autograd of the direct formula (loss mixing real and imaginary parts)
     W = torch.as_tensor(rng.normal(size=direct.shape) + 1j * rng.normal(size=direct.shape))
     grads = []
-    for f in (lambda a, b: vox.spatial_phase(a, b), lambda a, b: torch.exp(-1j * (a[..., None] * vox.x + b[..., None] * vox.y))):
+    for f in (
+        lambda a, b: vox.spatial_phase(a, b),
+        lambda a, b: torch.exp(-1j * (a[..., None] * vox.x + b[..., None] * vox.y)),
+    ):
         a, b = kx.clone().requires_grad_(True), ky.clone().requires_grad_(True)
         ((f(a, b) * W).real.sum() + (f(a, b) * W).imag.sum() ** 2 * 1e-3).backward()
         grads.append((a.grad, b.grad))
@@ -119,8 +122,14 @@ def test_tissue_compression_is_exact():
     res = []
     for comp in (True, False):
         cfg = PDGConfig(compress_tissues=comp)
-        mz0 = steady_state_mz(ir, ph, 5, config=PDGConfig(compress_tissues=comp, min_latent_signal=1e-6, min_emitted_signal=1e-6,
-                                                          min_magnitude=1e-7))
+        mz0 = steady_state_mz(
+            ir,
+            ph,
+            5,
+            config=PDGConfig(
+                compress_tissues=comp, min_latent_signal=1e-6, min_emitted_signal=1e-6, min_magnitude=1e-7
+            ),
+        )
         g = torch.as_tensor(ir.grad_mT_per_m).clone().requires_grad_(True)
         s = simulate(ir, ph, g, config=cfg, initial_mz=mz0)
         (s.real**2 + s.imag**2).sum().backward()
@@ -178,7 +187,9 @@ def test_unrolled_k_paths_equal_recursion(monkeypatch):
     assert np.abs(g_mat - g_rec).max() < 1e-10 * np.abs(g_rec).max()
 
 
-@pytest.mark.parametrize("seq,d_scale,coils", [("gre", 1.0, False), ("gre", 1e4, True), ("se", 1e2, True), ("se", 1.0, False)])
+@pytest.mark.parametrize(
+    "seq,d_scale,coils", [("gre", 1.0, False), ("gre", 1e4, True), ("se", 1e2, True), ("se", 1.0, False)]
+)
 def test_fused_signal_adjoint_equals_generic_chain(seq, d_scale, coils, monkeypatch):
     """The batched signal's hand-written adjoint (PDGConfig.fused_signal_adjoint, one autograd node)
     equals the generic autograd chain of the same batched evaluation: float64 signal 1e-10 and
@@ -209,7 +220,9 @@ def test_fused_signal_adjoint_equals_generic_chain(seq, d_scale, coils, monkeypa
     monkeypatch.setattr(B._BatchedGemm, "apply", spy)
     s_ref, g_ref = _signal_and_grad(ir, ph, graph, cfg)
     for extra in (dict(), dict(checkpoint_bytes=0)):
-        s_new, g_new = _signal_and_grad(ir, ph, graph, PDGConfig(signal_method="gemm", fused_signal_adjoint=True, **extra))
+        s_new, g_new = _signal_and_grad(
+            ir, ph, graph, PDGConfig(signal_method="gemm", fused_signal_adjoint=True, **extra)
+        )
         assert np.abs(g_ref).max() > 0
         assert np.abs(s_new - s_ref).max() < 1e-10 * np.abs(s_ref).max()
         assert np.abs(g_new - g_ref).max() < 1e-9 * np.abs(g_ref).max()

@@ -46,7 +46,9 @@ def make_ir(duration_s, traps=(), rfs=(), adcs=(), raster_s=10e-6, block_s=None,
     for ax, t0, ramp, flat, amp in traps:
         i0, i1 = max(0, int(t0 / dtf) - 1), min(tf.size, int((t0 + 2 * ramp + flat) / dtf) + 2)
         g[ax, i0:i1] += trap(tf[i0:i1], t0, ramp, flat, amp)
-    edges = np.array([0.0, n * raster_s]) if block_s is None else np.arange(int(round(duration_s / block_s)) + 1) * block_s
+    edges = (
+        np.array([0.0, n * raster_s]) if block_s is None else np.arange(int(round(duration_s / block_s)) + 1) * block_s
+    )
     blk = lambda t: int(np.clip(np.searchsorted(edges, t, side="right") - 1, 0, len(edges) - 2))  # noqa: E731
     rf = [RFEvent(blk(tc), tc, tc, 0.0, fa, ph, 0.0, use) for tc, fa, ph, use in rfs]
     adc = [ADCEvent(blk(t0), t0, ns, dw, ph) for t0, ns, dw, ph in adcs]
@@ -96,8 +98,11 @@ def test_fid_amplitude_and_offresonance_phase():
 def test_spin_echo_refocuses_t2dash_not_t2():
     """90-tau-180: |s(TE + d)| = exp(-(TE + d)/T2 - |d|/T2') (exact, 1e-10); T2' = 5 ms would kill an unrefocused echo."""
     tau, t2, t2d = 5e-3, 0.05, 0.005
-    ir = make_ir(20e-3, rfs=[(1e-3, np.pi / 2, 0.0, "excitation"), (1e-3 + tau, np.pi, np.pi / 2, "refocusing")],
-                 adcs=[(1e-3 + 2 * tau - 0.5e-3, 10, 0.1e-3, 0.0)])
+    ir = make_ir(
+        20e-3,
+        rfs=[(1e-3, np.pi / 2, 0.0, "excitation"), (1e-3 + tau, np.pi, np.pi / 2, "refocusing")],
+        adcs=[(1e-3 + 2 * tau - 0.5e-3, 10, 0.1e-3, 0.0)],
+    )
     s = sig(ir, phantom(t2=t2, t2d=t2d, b0=25.0))
     t = ir.adc_times_s - 1e-3
     np.testing.assert_allclose(np.abs(s), np.exp(-t / t2 - np.abs(t - 2 * tau) / t2d), rtol=1e-10)
@@ -112,7 +117,11 @@ def test_stimulated_echo_amplitude():
     m, sp = 4 * 2 * np.pi / dx, 7 * 2 * np.pi / dx
     p1 = 1e-3
     traps = [lobe(0, p1 + 1e-3, m), lobe(0, p1 + tau + 2e-3, sp), lobe(0, p1 + tau + tm + 1e-3, m)]
-    rfs = [(p1, np.pi / 2, 0.0, "excitation"), (p1 + tau, np.pi / 2, 0.0, "excitation"), (p1 + tau + tm, np.pi / 2, 0.0, "excitation")]
+    rfs = [
+        (p1, np.pi / 2, 0.0, "excitation"),
+        (p1 + tau, np.pi / 2, 0.0, "excitation"),
+        (p1 + tau + tm, np.pi / 2, 0.0, "excitation"),
+    ]
     te = p1 + 2 * tau + tm
     ir = make_ir(40e-3, traps=traps, rfs=rfs, adcs=[(te - 0.05e-3, 1, 0.1e-3, 0.0)])
     s = sig(ir, phantom(fov=dx, t1=t1, t2=t2, t2d=0.004, b0=40.0))
@@ -268,7 +277,13 @@ def test_voxel_position_sign_convention():
     y0 = (2 - n / 2) * fov / n
     dxv = fov / n
     t = ir.adc_times_s - 0.1e-3
-    expected = -1j * np.exp(-1j * (k[0] * x0 + k[1] * y0)) * np.sinc(k[0] * dxv / 2 / np.pi) * np.sinc(k[1] * dxv / 2 / np.pi) * np.exp(-t / 0.1)
+    expected = (
+        -1j
+        * np.exp(-1j * (k[0] * x0 + k[1] * y0))
+        * np.sinc(k[0] * dxv / 2 / np.pi)
+        * np.sinc(k[1] * dxv / 2 / np.pi)
+        * np.exp(-t / 0.1)
+    )
     np.testing.assert_allclose(s, expected, atol=1e-9)
 
 
@@ -367,8 +382,13 @@ def _se_epi_like(raster=10e-6):
     fov, n = 0.032, 4
     dk = 2 * np.pi / fov
     amp = n * dk / GAM / 1.6e-3
-    traps = [lobe(0, 1.0e-3, -n / 2 * dk - 0.5 * dk), lobe(1, 1.0e-3, -dk),
-             (0, 9.2e-3, 0.1e-3, 1.6e-3, amp), lobe(1, 11e-3, dk, dur=0.4e-3), (0, 11.4e-3, 0.1e-3, 1.6e-3, -amp)]
+    traps = [
+        lobe(0, 1.0e-3, -n / 2 * dk - 0.5 * dk),
+        lobe(1, 1.0e-3, -dk),
+        (0, 9.2e-3, 0.1e-3, 1.6e-3, amp),
+        lobe(1, 11e-3, dk, dur=0.4e-3),
+        (0, 11.4e-3, 0.1e-3, 1.6e-3, -amp),
+    ]
     rfs = [(0.5e-3, np.pi / 2, 0.0, "excitation"), (5.5e-3, np.deg2rad(150), np.pi / 2, "refocusing")]
     adcs = [(9.3e-3, 16, 0.1e-3, 0.0), (11.5e-3, 16, 0.1e-3, 0.0)]
     return make_ir(14e-3, traps=traps, rfs=rfs, adcs=adcs, raster_s=raster)
@@ -398,7 +418,9 @@ def test_separable_evaluation_equals_direct(seq):
     ph.coil_sens = np.stack([np.ones((4, 4)), np.exp(1j * np.arange(16).reshape(4, 4) / 3.0)])
     g = build_graph(ir, PDGConfig(), ph)
     sd = simulate(ir, ph, graph=g, config=PDGConfig(signal_method="direct")).numpy()
-    ss = simulate(ir, ph, graph=g, config=PDGConfig(signal_method="separable", taylor_tol=1e-10, window_samples=5)).numpy()
+    ss = simulate(
+        ir, ph, graph=g, config=PDGConfig(signal_method="separable", taylor_tol=1e-10, window_samples=5)
+    ).numpy()
     assert np.abs(ss - sd).max() < 1e-8 * np.abs(sd).max()
 
 
@@ -463,6 +485,7 @@ def test_rf_split_adjoint_equals_autograd():
 def test_raster_independence_and_checkpointed_chunks():
     """The same played waveform on a 10 us and a 100 us raster gives the same signal (1e-10): only
     exact moments at RF centres and ADC samples enter.  Checkpointed chunks give the same gradient."""
+
     def gre(raster):
         return _small_gre(raster=raster)
 
@@ -506,7 +529,12 @@ def test_graph_structure_and_dummy_modes():
     for identical TRs (1e-12); the RF-spoiling increment is detected from the phases (117 deg)."""
     from dtoc.sim.pdg_main import detect_rf_spoiling
 
-    ir = make_ir(10e-3, traps=[(0, 2e-3, 0.1e-3, 3e-3, 5.0)], rfs=[(1e-3, np.pi / 2, 0.0, "excitation")], adcs=[(2e-3, 32, 0.1e-3, 0.0)])
+    ir = make_ir(
+        10e-3,
+        traps=[(0, 2e-3, 0.1e-3, 3e-3, 5.0)],
+        rfs=[(1e-3, np.pi / 2, 0.0, "excitation")],
+        adcs=[(2e-3, 32, 0.1e-3, 0.0)],
+    )
     g = build_graph(ir, PDGConfig(), phantom(n=4, fov=0.02))
     assert [iv.emit.size for iv in g.intervals] == [0, 1]
     gre = _spoiled_gre(60, 10e-3, 3e-3, np.deg2rad(20), 0.01)

@@ -23,8 +23,17 @@ def _trap(edges: np.ndarray, start: int, area_mT_s_per_m: float, ramp: int, flat
     return start + 2 * ramp + flat
 
 
-def cartesian_gre_ir(nx: int = 8, ny: int = 8, fov_m=(0.032, 0.032), *, raster_s: float = 10e-6, dwell_steps: int = 4,
-                     tr_steps: int | None = None, flip_deg: float = 15.0, rf_spoil_deg: float = 0.0) -> SequenceIR:
+def cartesian_gre_ir(
+    nx: int = 8,
+    ny: int = 8,
+    fov_m=(0.032, 0.032),
+    *,
+    raster_s: float = 10e-6,
+    dwell_steps: int = 4,
+    tr_steps: int | None = None,
+    flip_deg: float = 15.0,
+    rf_spoil_deg: float = 0.0,
+) -> SequenceIR:
     """A 2D Cartesian gradient echo: readout x, phase y, one line per TR (see module docstring)."""
     fov = np.asarray(fov_m, dtype=np.float64)
     dkx, dky = 2 * np.pi / fov
@@ -48,22 +57,46 @@ def cartesian_gre_ir(nx: int = 8, ny: int = 8, fov_m=(0.032, 0.032), *, raster_s
         t0 = ln * tr
         block_edges += [t0, t0 + rf_steps, t0 + rf_steps + pre_len, t0 + rf_steps + pre_len + 2 * ramp + ro_flat]
         phase_rad = np.deg2rad(0.5 * rf_spoil_deg * ln * (ln + 1)) if rf_spoil_deg else 0.0
-        rf.append(RFEvent(block=4 * ln, t_start_s=t0 * raster_s, t_center_s=(t0 + rf_steps / 2) * raster_s, duration_s=rf_steps * raster_s,
-                          flip_angle_rad=np.deg2rad(flip_deg), phase_rad=phase_rad, freq_offset_hz=0.0, use="excitation"))
+        rf.append(
+            RFEvent(
+                block=4 * ln,
+                t_start_s=t0 * raster_s,
+                t_center_s=(t0 + rf_steps / 2) * raster_s,
+                duration_s=rf_steps * raster_s,
+                flip_angle_rad=np.deg2rad(flip_deg),
+                phase_rad=phase_rad,
+                freq_offset_hz=0.0,
+                use="excitation",
+            )
+        )
         s = t0 + rf_steps
         kx_pre = -(nx / 2 + 0.5) * dkx
         _trap(gx, s, kx_pre / g - area_ro_ramp, ramp, 6, raster_s)
         _trap(gy, s, (ln - ny / 2) * dky / g, ramp, 6, raster_s)
         s += pre_len
         _trap(gx, s, g_ro * (ro_flat + ramp) * raster_s, ramp, ro_flat, raster_s)
-        adc.append(ADCEvent(block=4 * ln + 2, t_start_s=(s + ramp) * raster_s, num_samples=nx, dwell_s=dwell, phase_rad=phase_rad))
+        adc.append(
+            ADCEvent(
+                block=4 * ln + 2, t_start_s=(s + ramp) * raster_s, num_samples=nx, dwell_s=dwell, phase_rad=phase_rad
+            )
+        )
         s += 2 * ramp + ro_flat
         _trap(gy, s, -(ln - ny / 2) * dky / g, ramp, 6, raster_s)  # rewinder
         _trap(gx, s, 2.0 * nx * dkx / g, ramp, 6, raster_s)  # spoiler
     block_edges.append(ny * tr)
     grad = edges_to_fine(np.stack([gx, gy, gz]))
-    return SequenceIR(raster_s=raster_s, grad_mT_per_m=grad, block_edges_s=np.asarray(block_edges) * raster_s, rf=rf, adc=adc,
-                      fov_m=(float(fov[0]), float(fov[1]), 0.005), matrix=(nx, ny), kind="gre", readout_axis=0, phase_axis=1)
+    return SequenceIR(
+        raster_s=raster_s,
+        grad_mT_per_m=grad,
+        block_edges_s=np.asarray(block_edges) * raster_s,
+        rf=rf,
+        adc=adc,
+        fov_m=(float(fov[0]), float(fov[1]), 0.005),
+        matrix=(nx, ny),
+        kind="gre",
+        readout_axis=0,
+        phase_axis=1,
+    )
 
 
 def test_builder_samples_on_grid():

@@ -24,7 +24,9 @@ def test_brain_tissue_values_3T_and_7T():
             pd, t1, t2, t2d, d = tab[name]
             hit = (np.abs(p.t1_s - t1) < 1e-9) & (np.abs(p.pd - pd) < 1e-9)
             assert hit.sum() > 20, (field, name)
-            assert np.allclose(p.t2_s[hit], t2) and np.allclose(p.t2dash_s[hit], t2d) and np.allclose(p.d_m2_per_s[hit], d)
+            assert (
+                np.allclose(p.t2_s[hit], t2) and np.allclose(p.t2dash_s[hit], t2d) and np.allclose(p.d_m2_per_s[hit], d)
+            )
     # physics sanity of the table: T2 < T2* ... T2 << T1, T1 grows and T2 shrinks with field
     for name in ("wm", "gm", "csf", "fat"):
         a, b = P.TISSUE_PARAMS[3.0][name], P.TISSUE_PARAMS[7.0][name]
@@ -79,7 +81,9 @@ def test_resolve_phantom_specs():
     a = P.resolve_phantom("brain-noscalp:16", fov_m=(0.032, 0.032))
     b = P.brain_phantom(16, fov_m=0.032, scalp=False)
     assert a.shape == (16, 16) and np.array_equal(a.pd, b.pd)
-    assert np.array_equal(P.resolve_phantom(None, matrix=(16, 16), fov_m=(0.032, 0.032)).pd, P.brain_phantom(16, fov_m=0.032).pd)
+    assert np.array_equal(
+        P.resolve_phantom(None, matrix=(16, 16), fov_m=(0.032, 0.032)).pd, P.brain_phantom(16, fov_m=0.032).pd
+    )
     with pytest.raises(InputError, match="brain-noscalp:N"):
         P.resolve_phantom("brain-noscalp:x", fov_m=(0.032, 0.032))
     with pytest.raises(InputError, match="matrix unknown"):
@@ -179,7 +183,9 @@ def test_bad_npz_one_line_errors(tmp_path, mutate, msg):
 
 
 def test_npz_defaults_and_unreadable(tmp_path):
-    f = _write(tmp_path / "p.npz", pd=np.ones((3, 2)), t1_s=np.ones((3, 2)), t2_s=np.ones((3, 2)), fov_m=np.array([0.2, 0.3]))
+    f = _write(
+        tmp_path / "p.npz", pd=np.ones((3, 2)), t1_s=np.ones((3, 2)), t2_s=np.ones((3, 2)), fov_m=np.array([0.2, 0.3])
+    )
     q = P.load_phantom(f)
     assert np.all(np.isinf(q.t2dash_s)) and np.all(q.d_m2_per_s == 0) and np.all(q.b1 == 1) and q.fov_m == (0.2, 0.3)
     bad = tmp_path / "x.npz"

@@ -5,12 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from test_sim_support_irs import cartesian_gre_ir
 
 from dtoc.errors import InputError
 from dtoc.sim import metrics, recon
 from dtoc.sim.phantom import Phantom, uniform_phantom
-
-from test_sim_support_irs import cartesian_gre_ir
 
 
 def analytic_signal(ir, phantom: Phantom, coil_sens=None) -> torch.Tensor:

@@ -56,7 +56,9 @@ def _load(case):
     return build_ir(parse_spec(data))
 
 
-def run_case(name: str, repeats: int = 2, preset: str = "default", threads: int = 2, dtype_name: str | None = None) -> dict:
+def run_case(
+    name: str, repeats: int = 2, preset: str = "default", threads: int = 2, dtype_name: str | None = None
+) -> dict:
     """Time one case: graph build, forward (no grad), forward+backward; wall and process CPU seconds (best of ``repeats``)."""
     import torch
 
@@ -87,8 +89,19 @@ def run_case(name: str, repeats: int = 2, preset: str = "default", threads: int 
         fb.append(time.perf_counter() - t)
         fb_cpu.append(time.process_time() - c)
     return {
-        "case": name, "preset": preset, "dtype": dname, "threads": threads, "n_fine": ir.n_fine, "n_adc": ir.n_adc_samples, "phantom": case["n"],
-        **graph.summary(), "graph_s": t_graph, "fwd_s": min(fwd), "fwd_bwd_s": min(fb), "fwd_cpu_s": min(fwd_cpu), "fwd_bwd_cpu_s": min(fb_cpu),
+        "case": name,
+        "preset": preset,
+        "dtype": dname,
+        "threads": threads,
+        "n_fine": ir.n_fine,
+        "n_adc": ir.n_adc_samples,
+        "phantom": case["n"],
+        **graph.summary(),
+        "graph_s": t_graph,
+        "fwd_s": min(fwd),
+        "fwd_bwd_s": min(fb),
+        "fwd_cpu_s": min(fwd_cpu),
+        "fwd_bwd_cpu_s": min(fb_cpu),
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
     }
 
@@ -99,7 +112,12 @@ def main(argv=None):
     ap.add_argument("--cases", nargs="*", default=list(CASES))
     ap.add_argument("--presets", nargs="*", default=["default"], help="PDGConfig presets: default, fast, strict")
     ap.add_argument("--dtypes", nargs="*", default=[None], help="override the case dtype (float32/float64)")
-    ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads (1 on a loaded machine: OpenMP spin-waits inflate CPU time)")
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=2,
+        help="torch intra-op threads (1 on a loaded machine: OpenMP spin-waits inflate CPU time)",
+    )
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--baseline", help="JSON-lines file of an earlier run (same cases) shown as 'before' columns")
     ap.add_argument("--no-write", action="store_true")
@@ -117,8 +135,19 @@ def main(argv=None):
     for c in a.cases:
         for preset in a.presets:
             for dt in a.dtypes:
-                cmd = [sys.executable, "-m", "bench.sim.bench_pdg_internal", "--case", c, "--presets", preset, "--threads", str(a.threads),
-                       "--repeats", str(a.repeats)] + (["--dtypes", dt] if dt else [])
+                cmd = [
+                    sys.executable,
+                    "-m",
+                    "bench.sim.bench_pdg_internal",
+                    "--case",
+                    c,
+                    "--presets",
+                    preset,
+                    "--threads",
+                    str(a.threads),
+                    "--repeats",
+                    str(a.repeats),
+                ] + (["--dtypes", dt] if dt else [])
                 p = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
                 if p.returncode != 0:
                     rows.append({"case": c, "preset": preset, "error": (p.stderr.strip().splitlines() or ["?"])[-1]})
@@ -150,7 +179,9 @@ def _write(rows, base=None, threads=2):
     ]
     for r in rows:
         if "error" in r:
-            body.append(f"| {r['case']} | {r.get('preset', '-')} | - | - | - | - | - | - | failed: {r['error'][:80]} | - | - | - | - |")
+            body.append(
+                f"| {r['case']} | {r.get('preset', '-')} | - | - | - | - | - | - | failed: {r['error'][:80]} | - | - | - | - |"
+            )
             continue
         b = base.get((r["case"], r.get("preset", "default"), r["dtype"]))
         bs = f"{b['fwd_cpu_s']:.3f} / {b['fwd_bwd_cpu_s']:.3f}" if b and "fwd_cpu_s" in b else "-"
@@ -163,7 +194,9 @@ def _write(rows, base=None, threads=2):
 
     torch.set_num_threads(threads)  # the section header reports this process's thread count
 
-    write_section("pdg_internal", "PDG internal (dtoc.sim.pdg)", "\n".join(body), "python -m bench.sim.bench_pdg_internal")
+    write_section(
+        "pdg_internal", "PDG internal (dtoc.sim.pdg)", "\n".join(body), "python -m bench.sim.bench_pdg_internal"
+    )
 
 
 if __name__ == "__main__":

@@ -43,12 +43,26 @@ def make(name: str, mrzero_python: str) -> None:
     save_phantom(brain_phantom(n, field_T=3.0, fov_m=fov), ph_path, force=True)
     with tempfile.TemporaryDirectory() as td:
         out = Path(td) / "ref.npz"
-        cmd = [mrzero_python, str(REPO / "bench" / "sim" / "mrzero_reference.py"), "reference",
-               "--seq", str(seq_path), "--phantom", str(ph_path), "--out", str(out)]
+        cmd = [
+            mrzero_python,
+            str(REPO / "bench" / "sim" / "mrzero_reference.py"),
+            "reference",
+            "--seq",
+            str(seq_path),
+            "--phantom",
+            str(ph_path),
+            "--out",
+            str(out),
+        ]
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
         with np.load(out) as z:
-            np.savez_compressed(ref_path, signal=z["signal"].astype(np.complex128), mrzero_version=z["mrzero_version"],
-                                thresholds=z["thresholds"], spec=np.asarray(spec))
+            np.savez_compressed(
+                ref_path,
+                signal=z["signal"].astype(np.complex128),
+                mrzero_version=z["mrzero_version"],
+                thresholds=z["thresholds"],
+                spec=np.asarray(spec),
+            )
     print(f"{name}: wrote {seq_path.name}, {ph_path.name}, {ref_path.name}")
 
 

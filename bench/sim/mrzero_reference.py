@@ -81,7 +81,8 @@ def load_mr0_phantom(path: str, mr0, torch):
         B1=grid(get("b1", 1.0))[None],
         coil_sens=torch.ones((1, nx, ny, 1), dtype=torch.complex64),
         affine=torch.tensor(
-            [[fov[0] / nx * 1e3, 0, 0, 0], [0, fov[1] / ny * 1e3, 0, 0], [0, 0, 1e-3, 0], [0, 0, 0, 1]], dtype=torch.float32
+            [[fov[0] / nx * 1e3, 0, 0, 0], [0, fov[1] / ny * 1e3, 0, 0], [0, 0, 1e-3, 0], [0, 0, 0, 1]],
+            dtype=torch.float32,
         ),
     )
     return ph.build(voxel_shape="box")
@@ -92,10 +93,26 @@ def load_mr0_phantom(path: str, mr0, torch):
 # tails); the intermediate levels and 'strict' use the same pre-pass with the cut-off disabled
 # (compute_graph_ext, nyquist = inf), i.e. MRzero converging to its own strict answer.
 LEVELS = {
-    "defaults": (dict(max_state_count=200, min_state_mag=1e-4), dict(min_emitted_signal=1e-2, min_latent_signal=1e-2), False),
-    "mid3": (dict(max_state_count=1000, min_state_mag=1e-5), dict(min_emitted_signal=1e-3, min_latent_signal=1e-3), True),
-    "mid4": (dict(max_state_count=5000, min_state_mag=1e-6), dict(min_emitted_signal=1e-4, min_latent_signal=1e-4), True),
-    "strict": (dict(max_state_count=100000, min_state_mag=1e-7), dict(min_emitted_signal=1e-7, min_latent_signal=1e-7), True),
+    "defaults": (
+        dict(max_state_count=200, min_state_mag=1e-4),
+        dict(min_emitted_signal=1e-2, min_latent_signal=1e-2),
+        False,
+    ),
+    "mid3": (
+        dict(max_state_count=1000, min_state_mag=1e-5),
+        dict(min_emitted_signal=1e-3, min_latent_signal=1e-3),
+        True,
+    ),
+    "mid4": (
+        dict(max_state_count=5000, min_state_mag=1e-6),
+        dict(min_emitted_signal=1e-4, min_latent_signal=1e-4),
+        True,
+    ),
+    "strict": (
+        dict(max_state_count=100000, min_state_mag=1e-7),
+        dict(min_emitted_signal=1e-7, min_latent_signal=1e-7),
+        True,
+    ),
 }
 
 
@@ -120,8 +137,14 @@ def run(seq_path, phantom_path, strict: bool = True, repeats: int = 0, n_dummies
             # (their sinc(k dx) tails are real signal; up to 30 % error on a single voxel).  Same pre-pass with
             # the Nyquist cut-off disabled:
             graph = mr0.compute_graph_ext(
-                seq, float(data.T1.mean()), float(data.T2.mean()), float(data.T2dash.mean()), float(data.D.mean()),
-                nyquist=(float("inf"),) * 3, size=tuple(float(v) for v in data.size), avg_b1_trig=data.avg_B1_trig,
+                seq,
+                float(data.T1.mean()),
+                float(data.T2.mean()),
+                float(data.T2dash.mean()),
+                float(data.D.mean()),
+                nyquist=(float("inf"),) * 3,
+                size=tuple(float(v) for v in data.size),
+                avg_b1_trig=data.avg_B1_trig,
                 **graph_kw,
             )
         else:  # exactly what MRzero users run
@@ -183,7 +206,9 @@ def main(argv=None):
     ap.add_argument("--out", required=True, help="reference: .npz with the signal; bench: .json")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--defaults", action="store_true", help="bench with MRzero's default thresholds (else strict)")
-    ap.add_argument("--level", choices=sorted(LEVELS), default=None, help="bench at this MRzero setting (overrides --defaults)")
+    ap.add_argument(
+        "--level", choices=sorted(LEVELS), default=None, help="bench at this MRzero setting (overrides --defaults)"
+    )
     ap.add_argument("--threads", type=int, default=0)
     a = ap.parse_args(argv)
     if a.threads:
@@ -193,7 +218,9 @@ def main(argv=None):
     if a.mode == "reference":
         r = run(a.seq, a.phantom, strict=True)
         np.savez_compressed(
-            a.out, signal=r["signal"], mrzero_version=np.asarray(r["mrzero_version"]),
+            a.out,
+            signal=r["signal"],
+            mrzero_version=np.asarray(r["mrzero_version"]),
             thresholds=np.asarray(json.dumps({**r["graph_kw"], **r["exec_kw"]}, sort_keys=True)),
         )
     else:
@@ -203,9 +230,17 @@ def main(argv=None):
             np.save(a.out + ".signal.npy", sig)
             r["ok"] = True
         except MemoryError as e:  # pragma: no cover - reported, not hidden
-            r = {"ok": False, "error": f"MemoryError: {e}", "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+            r = {
+                "ok": False,
+                "error": f"MemoryError: {e}",
+                "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+            }
         except RuntimeError as e:
-            r = {"ok": False, "error": f"RuntimeError: {str(e)[:200]}", "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+            r = {
+                "ok": False,
+                "error": f"RuntimeError: {str(e)[:200]}",
+                "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+            }
         with open(a.out, "w") as f:
             json.dump(r, f, indent=1, default=str)
 

@@ -35,9 +35,33 @@ REPO = Path(__file__).resolve().parents[2]
 #        accuracy reference), dtoc settings (see _config))
 MR_ALL = ("defaults", "mid3", "mid4", "strict")
 # calibrated settings 'cE_L' (PDGConfig.calibrate_emission): emitted threshold E, latent L
-DTOC_CAL = ("c5e-4_5e-5", "c4e-4_5e-5", "c3e-4_1e-4", "c3e-4_5e-5", "c2e-4_1e-4", "c2e-4_5e-5", "c1.5e-4_3e-5", "c1e-4_3e-5", "c7e-5_2e-5",
-            "c5e-5_1e-5")
-DTOC_LADDER = ("t1e-3", "t5e-4", "t3e-4", "t2e-4", "t1.5e-4", "fast", "t7e-5", "t5e-5", "t3e-5", "t2e-5", "default", "t3e-6", "strict") + DTOC_CAL
+DTOC_CAL = (
+    "c5e-4_5e-5",
+    "c4e-4_5e-5",
+    "c3e-4_1e-4",
+    "c3e-4_5e-5",
+    "c2e-4_1e-4",
+    "c2e-4_5e-5",
+    "c1.5e-4_3e-5",
+    "c1e-4_3e-5",
+    "c7e-5_2e-5",
+    "c5e-5_1e-5",
+)
+DTOC_LADDER = (
+    "t1e-3",
+    "t5e-4",
+    "t3e-4",
+    "t2e-4",
+    "t1.5e-4",
+    "fast",
+    "t7e-5",
+    "t5e-5",
+    "t3e-5",
+    "t2e-5",
+    "default",
+    "t3e-6",
+    "strict",
+) + DTOC_CAL
 DTOC_SCALING = ("t1e-3", "t5e-4", "t3e-4", "t2e-4", "fast", "t7e-5", "t5e-5", "default") + DTOC_CAL
 CASES = {
     "gre_100us_p32": ("gre_paper_r100us.yaml", 32, 0.032, MR_ALL, DTOC_LADDER),
@@ -46,9 +70,20 @@ CASES = {
     "epi64_10us_p64": ("epi_esp081.yaml", 64, 0.25, ("defaults", "strict"), ("fast", "default", "strict")),
     "gre_100us_p64": ("gre_paper_r100us.yaml", 64, 0.032, ("defaults", "mid3"), DTOC_SCALING),
     "gre_100us_p128": ("gre_paper_r100us.yaml", 128, 0.032, ("defaults", "mid3"), DTOC_SCALING),
-    "gre_100us_p256": ("gre_paper_r100us.yaml", 256, 0.032, ("defaults",), ("t3e-4", "t2e-4", "fast", "c3e-4_5e-5", "c2e-4_5e-5", "c1e-4_3e-5")),
-    "epi128_10us_p256": ({"kind": "epi", "name": "epi128", "matrix": 128, "fov_mm": 250, "dwell_us": 10, "echo_spacing_ms": 1.6}, 256, 0.25, (),
-                         ("default",)),
+    "gre_100us_p256": (
+        "gre_paper_r100us.yaml",
+        256,
+        0.032,
+        ("defaults",),
+        ("t3e-4", "t2e-4", "fast", "c3e-4_5e-5", "c2e-4_5e-5", "c1e-4_3e-5"),
+    ),
+    "epi128_10us_p256": (
+        {"kind": "epi", "name": "epi128", "matrix": 128, "fov_mm": 250, "dwell_us": 10, "echo_spacing_ms": 1.6},
+        256,
+        0.25,
+        (),
+        ("default",),
+    ),
 }
 LABELS = {
     "gre_100us_p32": "GRE 32x32, 32 TRs, 0.1 ms raster, 32x32 phantom",
@@ -81,7 +116,13 @@ def _config(setting: str):
 
     if setting.startswith("c") and "_" in setting:
         e, lat = (float(v) for v in setting[1:].split("_"))
-        return pdg.PDGConfig(min_emitted_signal=e, min_latent_signal=lat, min_magnitude=lat / 10, calibrate_emission=True, taylor_tol=e / 10)
+        return pdg.PDGConfig(
+            min_emitted_signal=e,
+            min_latent_signal=lat,
+            min_magnitude=lat / 10,
+            calibrate_emission=True,
+            taylor_tol=e / 10,
+        )
     if setting == "fast":
         return pdg.PDGConfig.fast()
     if setting == "strict":
@@ -138,10 +179,18 @@ def worker(seq_path: str, phantom_path: str, out_json: str, repeats: int, dtype:
     cpu_fb = min(cpu_fb)
     np.save(out_json + ".signal.npy", sig.numpy().astype(np.complex128))
     r = {
-        "ok": True, "t_graph_s": t_graph, "t_fwd_s": min(fw), "t_fwd_bwd_s": min(fb), "grad_norm": float(g.grad.norm()),
-        "base_rss_mb": base_rss, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-        "threads": torch.get_num_threads(), "n_adc": ir.n_adc_samples, "n_fine": ir.n_fine,
-        "n_states": graph.n_states_total, "n_emitting": graph.n_emitting_total,
+        "ok": True,
+        "t_graph_s": t_graph,
+        "t_fwd_s": min(fw),
+        "t_fwd_bwd_s": min(fb),
+        "grad_norm": float(g.grad.norm()),
+        "base_rss_mb": base_rss,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "threads": torch.get_num_threads(),
+        "n_adc": ir.n_adc_samples,
+        "n_fine": ir.n_fine,
+        "n_states": graph.n_states_total,
+        "n_emitting": graph.n_emitting_total,
         "cpu_fwd_bwd_s": cpu_fb,
     }
     with open(out_json, "w") as f:
@@ -217,16 +266,53 @@ def run_case(case: str, tmp: Path, a) -> dict:
         if a.dtoc_settings and st not in a.dtoc_settings:
             continue
         out = tmp / f"{case}.ours_{st}.json"
-        r = _run_limited([sys.executable, "-m", "bench.sim.run", "--threads", str(a.threads), "--worker", str(seq), str(ph), str(out),
-                          str(a.repeats), a.dtype, st], a.mem_limit_gb * 1024, a.timeout_s)
-        res["dtoc"][st] = {**r, **(json.loads(out.read_text()) if out.exists() else {"ok": False}), "signal": str(out) + ".signal.npy"}
+        r = _run_limited(
+            [
+                sys.executable,
+                "-m",
+                "bench.sim.run",
+                "--threads",
+                str(a.threads),
+                "--worker",
+                str(seq),
+                str(ph),
+                str(out),
+                str(a.repeats),
+                a.dtype,
+                st,
+            ],
+            a.mem_limit_gb * 1024,
+            a.timeout_s,
+        )
+        res["dtoc"][st] = {
+            **r,
+            **(json.loads(out.read_text()) if out.exists() else {"ok": False}),
+            "signal": str(out) + ".signal.npy",
+        }
     if a.mrzero_python:
         for lv in [m for m in mr_levels if m in a.mrzero_modes]:
             mout = tmp / f"{case}.mr0_{lv}.json"
-            cmd = [a.mrzero_python, str(REPO / "bench" / "sim" / "mrzero_reference.py"), "bench", "--seq", str(seq),
-                   "--phantom", str(ph), "--out", str(mout), "--repeats", str(a.repeats if lv != "strict" else 1), "--level", lv]
+            cmd = [
+                a.mrzero_python,
+                str(REPO / "bench" / "sim" / "mrzero_reference.py"),
+                "bench",
+                "--seq",
+                str(seq),
+                "--phantom",
+                str(ph),
+                "--out",
+                str(mout),
+                "--repeats",
+                str(a.repeats if lv != "strict" else 1),
+                "--level",
+                lv,
+            ]
             r = _run_limited(cmd, a.mem_limit_gb * 1024, a.timeout_s)
-            res["mrzero"][lv] = {**r, **(json.loads(mout.read_text()) if mout.exists() else {"ok": False}), "signal": str(mout) + ".signal.npy"}
+            res["mrzero"][lv] = {
+                **r,
+                **(json.loads(mout.read_text()) if mout.exists() else {"ok": False}),
+                "signal": str(mout) + ".signal.npy",
+            }
     ref = res["mrzero"].get("strict")
     if ref and ref.get("ok"):
         res["reference"] = "MRzero strict"
@@ -234,8 +320,24 @@ def run_case(case: str, tmp: Path, a) -> dict:
     else:
         rout = tmp / f"{case}.ref.json"
         if case in REF_DTOC:
-            r = _run_limited([sys.executable, "-m", "bench.sim.run", "--threads", str(a.threads), "--worker", str(seq), str(ph), str(rout),
-                              "1", "float64", "ref:" + REF_DTOC[case]], a.mem_limit_gb * 1024, a.timeout_s)
+            r = _run_limited(
+                [
+                    sys.executable,
+                    "-m",
+                    "bench.sim.run",
+                    "--threads",
+                    str(a.threads),
+                    "--worker",
+                    str(seq),
+                    str(ph),
+                    str(rout),
+                    "1",
+                    "float64",
+                    "ref:" + REF_DTOC[case],
+                ],
+                a.mem_limit_gb * 1024,
+                a.timeout_s,
+            )
         res["reference"] = f"dtoc {REF_DTOC.get(case, '-')}()" if rout.exists() else None
         ref_sig = Path(str(rout) + ".signal.npy")
     for side in ("dtoc", "mrzero"):
@@ -245,7 +347,12 @@ def run_case(case: str, tmp: Path, a) -> dict:
 
 
 # accuracy reference of the cases without an MRzero strict run (dtoc preset, float64 forward only)
-REF_DTOC = {"gre_10us_p64": "strict", "gre_100us_p64": "strict", "gre_100us_p128": "default", "gre_100us_p256": "default"}
+REF_DTOC = {
+    "gre_10us_p64": "strict",
+    "gre_100us_p64": "strict",
+    "gre_100us_p128": "default",
+    "gre_100us_p256": "default",
+}
 
 
 def _fmt_t(x):
@@ -283,12 +390,18 @@ def matched(res: dict) -> list[dict]:
     rows = []
     for lv, m in res["mrzero"].items():
         row = {"level": lv, "mr": m, "ours": None}
-        if m.get("ok") and m.get("nrmse") is not None and not (lv == "strict" and res.get("reference") == "MRzero strict"):
+        if (
+            m.get("ok")
+            and m.get("nrmse") is not None
+            and not (lv == "strict" and res.get("reference") == "MRzero strict")
+        ):
             ok = [(st, d) for st, d in res["dtoc"].items() if d.get("ok") and d.get("nrmse") is not None]
             cands = [(st, d) for st, d in ok if d["nrmse"] <= m["nrmse"]]
             if cands:
                 row["ours"] = min(cands, key=lambda x: x[1]["t_fwd_bwd_s"])
-            elif ok:  # MRzero below dtoc's floor against this reference (model difference): dtoc's most accurate setting
+            elif (
+                ok
+            ):  # MRzero below dtoc's floor against this reference (model difference): dtoc's most accurate setting
                 best = min(d["nrmse"] for _, d in ok)
                 row["ours"] = min([x for x in ok if x[1]["nrmse"] <= best * 1.001], key=lambda x: x[1]["t_fwd_bwd_s"])
                 row["floor"] = True
@@ -298,9 +411,11 @@ def matched(res: dict) -> list[dict]:
 
 def report(results: list[dict], cmd: str) -> str:
     """Matched-accuracy table (one row per case and MRzero setting) and the dtoc ladder per case."""
-    rows = ["| case (reference) | MRzero setting | MRzero NRMSE | MRzero fwd / fwd+bwd / RSS | cheapest dtoc setting with NRMSE <= MRzero's "
-            "| dtoc NRMSE | dtoc fwd / fwd+bwd / RSS (states) | speed-up fwd+bwd (fwd) | pre-pass MRzero / dtoc |",
-            "|---|---|---|---|---|---|---|---|---|"]
+    rows = [
+        "| case (reference) | MRzero setting | MRzero NRMSE | MRzero fwd / fwd+bwd / RSS | cheapest dtoc setting with NRMSE <= MRzero's "
+        "| dtoc NRMSE | dtoc fwd / fwd+bwd / RSS (states) | speed-up fwd+bwd (fwd) | pre-pass MRzero / dtoc |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
 
     def pre(m, d):
         return f"{_cell(m, 't_graph_s')} / {_cell(d, 't_graph_s')}"
@@ -313,18 +428,24 @@ def report(results: list[dict], cmd: str) -> str:
         mrows = matched(r)
         if not mrows:
             for st, d in r["dtoc"].items():
-                rows.append(f"| {head} | not run | - | - | {st} | {_pct(d.get('nrmse'))} | {trio(d)} ({d.get('n_states', '-')}) | - | - / {_cell(d, 't_graph_s')} |")
+                rows.append(
+                    f"| {head} | not run | - | - | {st} | {_pct(d.get('nrmse'))} | {trio(d)} ({d.get('n_states', '-')}) | - | - / {_cell(d, 't_graph_s')} |"
+                )
         for row in mrows:
             m, lv = row["mr"], row["level"]
             if lv == "strict" and r.get("reference") == "MRzero strict":
-                rows.append(f"| {head} | strict (= reference) | 0 | {trio(m)} | (dtoc strict: {_pct(r['dtoc'].get('strict', {}).get('nrmse'))}) | - | "
-                            f"{trio(r['dtoc'].get('strict'))} | {_ratio(m, r['dtoc'].get('strict'))} (converged vs converged) | {pre(m, r['dtoc'].get('strict'))} |")
+                rows.append(
+                    f"| {head} | strict (= reference) | 0 | {trio(m)} | (dtoc strict: {_pct(r['dtoc'].get('strict', {}).get('nrmse'))}) | - | "
+                    f"{trio(r['dtoc'].get('strict'))} | {_ratio(m, r['dtoc'].get('strict'))} (converged vs converged) | {pre(m, r['dtoc'].get('strict'))} |"
+                )
                 continue
             if row["ours"] is None:
                 if not m.get("ok"):  # MRzero failed/killed: show what dtoc does on the case
                     for st, d in r["dtoc"].items():
-                        rows.append(f"| {head} | {lv} | - | {trio(m)} | {st} | {_pct(d.get('nrmse'))} | {trio(d)} ({d.get('n_states', '-')}) | "
-                                    f"MRzero {(m.get('killed') or m.get('error') or 'failed')[:40]} | {pre(m, d)} |")
+                        rows.append(
+                            f"| {head} | {lv} | - | {trio(m)} | {st} | {_pct(d.get('nrmse'))} | {trio(d)} ({d.get('n_states', '-')}) | "
+                            f"MRzero {(m.get('killed') or m.get('error') or 'failed')[:40]} | {pre(m, d)} |"
+                        )
                 else:
                     rows.append(f"| {head} | {lv} | {_pct(m.get('nrmse'))} | {trio(m)} | none | - | - | - | - |")
                 continue
@@ -333,11 +454,16 @@ def report(results: list[dict], cmd: str) -> str:
                 st = f"{st} (dtoc's floor vs this reference: both converged, not a match)"
             fwd = f"{m['t_fwd_s'] / d['t_fwd_s']:.1f}x" if m.get("t_fwd_s") and d.get("t_fwd_s") else "-"
             ratio = f"{_ratio(m, d)} ({fwd})" if row.get("floor") else f"**{_ratio(m, d)}** ({fwd})"
-            rows.append(f"| {head} | {lv} | {_pct(m.get('nrmse'))} | {trio(m)} | {st} | {_pct(d.get('nrmse'))} | "
-                        f"{trio(d)} ({d.get('n_states', '-')}) | {ratio} | {pre(m, d)} |")
+            rows.append(
+                f"| {head} | {lv} | {_pct(m.get('nrmse'))} | {trio(m)} | {st} | {_pct(d.get('nrmse'))} | "
+                f"{trio(d)} ({d.get('n_states', '-')}) | {ratio} | {pre(m, d)} |"
+            )
     lad = ["", "dtoc settings per case (image NRMSE vs the case's reference; fwd+bwd time; states):", ""]
     for r in results:
-        parts = [f"{st} {_pct(d.get('nrmse'))} / {_cell(d, 't_fwd_bwd_s')} / {d.get('n_states', '-')}" for st, d in r["dtoc"].items()]
+        parts = [
+            f"{st} {_pct(d.get('nrmse'))} / {_cell(d, 't_fwd_bwd_s')} / {d.get('n_states', '-')}"
+            for st, d in r["dtoc"].items()
+        ]
         lad.append(f"* {r['label']}: " + "; ".join(parts))
     notes = (
         "\n\nMatched accuracy: both simulators run a ladder of settings; every image (magnitude, `dtoc.sim.metrics.nrmse`) is "
@@ -365,12 +491,20 @@ def report(results: list[dict], cmd: str) -> str:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--worker", nargs=6, metavar=("SEQ", "PHANTOM", "OUT", "REPEATS", "DTYPE", "PRESET"), help=argparse.SUPPRESS)
-    ap.add_argument("--threads", type=int, default=1,
-                    help="torch/OpenMP threads for every process, dtoc and MRzero alike (default 1: a fair, quiet comparison)")
+    ap.add_argument(
+        "--worker", nargs=6, metavar=("SEQ", "PHANTOM", "OUT", "REPEATS", "DTYPE", "PRESET"), help=argparse.SUPPRESS
+    )
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch/OpenMP threads for every process, dtoc and MRzero alike (default 1: a fair, quiet comparison)",
+    )
     ap.add_argument("--mrzero-python", default="/tmp/mrzero_env/bin/python")
     ap.add_argument("--mrzero-modes", default=",".join(MR_ALL))
-    ap.add_argument("--dtoc-settings", default="", help="comma list restricting the dtoc settings (default: each case's ladder)")
+    ap.add_argument(
+        "--dtoc-settings", default="", help="comma list restricting the dtoc settings (default: each case's ladder)"
+    )
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
@@ -399,8 +533,11 @@ def main(argv=None):
             r = run_case(case, Path(td), a)
             results.append(r)
             print(json.dumps(r, default=str), flush=True)
-    cmd = ("python -m bench.sim.run" + ("" if a.cases == ",".join(CASES) else f" --cases {a.cases}")
-           + ("" if a.threads == 1 else f" --threads {a.threads}"))
+    cmd = (
+        "python -m bench.sim.run"
+        + ("" if a.cases == ",".join(CASES) else f" --cases {a.cases}")
+        + ("" if a.threads == 1 else f" --threads {a.threads}")
+    )
     body = report(results, cmd)
     if not a.no_write:
         from bench._report import write_section

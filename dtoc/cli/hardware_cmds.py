@@ -9,12 +9,12 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Optional
 
 import typer
 
-girf_app = typer.Typer(help="GIRF files: import published ones, fit from measurements, show figures.",
-                       no_args_is_help=True)
+girf_app = typer.Typer(
+    help="GIRF files: import published ones, fit from measurements, show figures.", no_args_is_help=True
+)
 
 
 def _console():
@@ -80,8 +80,14 @@ def _summary_table(rows, title):
     for c in ("term", "DC gain", "-3 dB BW (kHz)", "group delay (us)", "peak |H|", "at (kHz)"):
         t.add_column(c, justify="right")
     for r in rows:
-        t.add_row(r["term"], _fmt(r["dc_gain"]), _fmt(r["bandwidth_3db_hz"], 1e-3), _fmt(r["group_delay_s"], 1e6, 3),
-                  _fmt(r["peak_gain"]), _fmt(r["peak_hz"], 1e-3))
+        t.add_row(
+            r["term"],
+            _fmt(r["dc_gain"]),
+            _fmt(r["bandwidth_3db_hz"], 1e-3),
+            _fmt(r["group_delay_s"], 1e6, 3),
+            _fmt(r["peak_gain"]),
+            _fmt(r["peak_hz"], 1e-3),
+        )
     return t
 
 
@@ -104,10 +110,13 @@ def _emit_girf(gd, out: Path, force: bool, as_json: bool):
 def import_cmd(
     files: list[Path] = typer.Argument(..., help="published GIRF file(s): one .mat, or the per-axis X/Y/Z .mat files"),
     out: Path = typer.Option(..., "-o", "--out", help="output GIRF .npz (contract format)"),
-    b0: bool = typer.Option(False, "--b0", help="also import the B0 (zeroth-order) term (unit undocumented in the published files)"),
+    b0: bool = typer.Option(
+        False, "--b0", help="also import the B0 (zeroth-order) term (unit undocumented in the published files)"
+    ),
     shift_us: float = typer.Option(0.0, "--shift-us", help="add a pure delay to every term, us (positive = later)"),
-    as_published: bool = typer.Option(False, "--as-published",
-                                      help="keep a GMTF's declared ADC/gradient convention shift (default: undo it)"),
+    as_published: bool = typer.Option(
+        False, "--as-published", help="keep a GMTF's declared ADC/gradient convention shift (default: undo it)"
+    ),
     force: bool = typer.Option(False, "--force", help="overwrite an existing output"),
     as_json: bool = typer.Option(False, "--json", help="print figures as JSON on stdout"),
 ):
@@ -129,10 +138,20 @@ def import_cmd(
 def fit_cmd(
     measured: Path = typer.Argument(..., help="measurement .npz (g and G or k, optional b0)"),
     out: Path = typer.Option(..., "-o", "--out", help="output GIRF .npz"),
-    reg: float = typer.Option(1e-6, "--reg", help="Tikhonov weight relative to the peak input power (dimensionless, > 0)"),
-    fmax_khz: Optional[float] = typer.Option(None, "--fmax-khz", help="frequency window: taper to zero at this frequency, kHz"),
-    tmin_ms: Optional[float] = typer.Option(None, "--tmin-ms", help="time window start: taps kept from this time after the impulse, ms (give with --tmax-ms)"),
-    tmax_ms: Optional[float] = typer.Option(None, "--tmax-ms", help="time window end: taps kept up to this time after the impulse, ms"),
+    reg: float = typer.Option(
+        1e-6, "--reg", help="Tikhonov weight relative to the peak input power (dimensionless, > 0)"
+    ),
+    fmax_khz: float | None = typer.Option(
+        None, "--fmax-khz", help="frequency window: taper to zero at this frequency, kHz"
+    ),
+    tmin_ms: float | None = typer.Option(
+        None,
+        "--tmin-ms",
+        help="time window start: taps kept from this time after the impulse, ms (give with --tmax-ms)",
+    ),
+    tmax_ms: float | None = typer.Option(
+        None, "--tmax-ms", help="time window end: taps kept up to this time after the impulse, ms"
+    ),
     no_b0: bool = typer.Option(False, "--no-b0", help="do not fit the B0 row even when b0 was measured"),
     force: bool = typer.Option(False, "--force", help="overwrite an existing output"),
     as_json: bool = typer.Option(False, "--json", help="print figures as JSON on stdout"),
@@ -146,7 +165,6 @@ def fit_cmd(
     from dtoc.errors import InputError
     from dtoc.hardware.measurement import load_measurement
     from dtoc.identify.girf_fit import fit_girf
-
     from dtoc.util.atomic import check_output_path
 
     _finite("--reg", reg, positive=True)
@@ -169,7 +187,9 @@ def fit_cmd(
 @girf_app.command("show")
 def show_cmd(
     girf: Path = typer.Argument(..., help="GIRF .npz"),
-    png: Optional[Path] = typer.Option(None, "--png", help="write a PNG: self-term magnitude and phase, cross/B0 terms, impulse responses"),
+    png: Path | None = typer.Option(
+        None, "--png", help="write a PNG: self-term magnitude and phase, cross/B0 terms, impulse responses"
+    ),
     force: bool = typer.Option(False, "--force", help="overwrite an existing PNG"),
     as_json: bool = typer.Option(False, "--json", help="print figures as JSON on stdout"),
 ):
@@ -200,10 +220,14 @@ def show_cmd(
 
 def predict_cmd(
     seq: Path = typer.Argument(..., help="base sequence: .seq file or spec .yaml"),
-    girf: Optional[Path] = typer.Option(None, "--girf", help="GIRF .npz (shortcut for a one-effect model)"),
-    model: Optional[Path] = typer.Option(None, "--model", help="hardware model JSON (effects chain, docs/hardware.md)"),
+    girf: Path | None = typer.Option(None, "--girf", help="GIRF .npz (shortcut for a one-effect model)"),
+    model: Path | None = typer.Option(None, "--model", help="hardware model JSON (effects chain, docs/hardware.md)"),
     as_json: bool = typer.Option(False, "--json", help="print the figures as JSON on stdout"),
-    png: Optional[Path] = typer.Option(None, "--png", help="write a PNG: demanded vs realized gradients (whole and zoomed), gradient error, k error in dk"),
+    png: Path | None = typer.Option(
+        None,
+        "--png",
+        help="write a PNG: demanded vs realized gradients (whole and zoomed), gradient error, k error in dk",
+    ),
     force: bool = typer.Option(False, "--force", help="overwrite an existing PNG"),
     device: str = typer.Option("cpu", "--device", help="torch device (cpu, cuda)"),
 ):
@@ -247,8 +271,15 @@ def _print_prediction(res):
     for a in ("x", "y", "z"):
         ge = res["grad_error"][a]
         ke = res["k_error"].get(a, {})
-        t.add_row(a, _fmt(ge["max_mT_per_m"]), _fmt(ge["rms_mT_per_m"]), _fmt(ke.get("max_rad_per_m")),
-                  _fmt(ke.get("rms_rad_per_m")), _fmt(ke.get("max_dk")), _fmt(ke.get("rms_dk")))
+        t.add_row(
+            a,
+            _fmt(ge["max_mT_per_m"]),
+            _fmt(ge["rms_mT_per_m"]),
+            _fmt(ke.get("max_rad_per_m")),
+            _fmt(ke.get("rms_rad_per_m")),
+            _fmt(ke.get("max_dk")),
+            _fmt(ke.get("rms_dk")),
+        )
     con.print(t)
     con.print(f"max B0: {_fmt(res['b0_max_uT'])} uT; accrued B0 phase at ADC: max {_fmt(res['b0_phase_max_rad'])} rad")
     epi = res.get("epi")
@@ -256,9 +287,11 @@ def _print_prediction(res):
         for key in ("readout", "phase"):
             e = epi.get(key)
             if e:
-                con.print(f"EPI {key} ({epi[key + '_axis']}) line k offsets: even {_fmt(e['even_mean_rad_per_m'])}, "
-                          f"odd {_fmt(e['odd_mean_rad_per_m'])} rad/m; odd-even {_fmt(e['odd_minus_even_rad_per_m'])} rad/m "
-                          f"= {_fmt(e['odd_minus_even_dk'])} dk")
+                con.print(
+                    f"EPI {key} ({epi[key + '_axis']}) line k offsets: even {_fmt(e['even_mean_rad_per_m'])}, "
+                    f"odd {_fmt(e['odd_mean_rad_per_m'])} rad/m; odd-even {_fmt(e['odd_minus_even_rad_per_m'])} rad/m "
+                    f"= {_fmt(e['odd_minus_even_dk'])} dk"
+                )
 
 
 def register(app: typer.Typer) -> None:

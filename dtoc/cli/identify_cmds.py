@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -18,15 +17,19 @@ KINDS = ("delay", "gain", "offset", "exp_eddy", "cross_eddy", "b0_eddy", "lti", 
 
 def identify_cmd(
     measured: Path = typer.Argument(..., help="measurement .npz (BRIEF §2.1: dt, g, G and/or k, optional b0)"),
-    girf: Optional[Path] = typer.Option(None, "--girf", help="declared model: a GIRF .npz"),
-    model: Optional[Path] = typer.Option(None, "--model", help="declared model: a model JSON file"),
+    girf: Path | None = typer.Option(None, "--girf", help="declared model: a GIRF .npz"),
+    model: Path | None = typer.Option(None, "--model", help="declared model: a model JSON file"),
     out: Path = typer.Option(..., "-o", "--out", help="updated model JSON (declared model + effects found)"),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="write the report JSON (BRIEF §2.3) here"),
-    png: Optional[Path] = typer.Option(None, "--png", help="write a PNG of residuals before/after (time and frequency)"),
+    json_out: Path | None = typer.Option(None, "--json", help="write the report JSON (BRIEF §2.3) here"),
+    png: Path | None = typer.Option(None, "--png", help="write a PNG of residuals before/after (time and frequency)"),
     force: bool = typer.Option(False, "--force", help="overwrite existing outputs"),
     max_effects: int = typer.Option(6, "--max-effects", min=0, help="cap on the number of effects added"),
-    threshold: float = typer.Option(10.0, "--threshold", min=0.0, help="minimum held-out score (chi-square units) to add an effect"),
-    kinds: Optional[str] = typer.Option(None, "--kinds", help="comma-separated candidate kinds (default: all: " + ",".join(KINDS) + ")"),
+    threshold: float = typer.Option(
+        10.0, "--threshold", min=0.0, help="minimum held-out score (chi-square units) to add an effect"
+    ),
+    kinds: str | None = typer.Option(
+        None, "--kinds", help="comma-separated candidate kinds (default: all: " + ",".join(KINDS) + ")"
+    ),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress lines on stderr"),
 ):
     """Compare a measurement with the declared model, trace the residual to missing effects, write the updated model."""
@@ -46,8 +49,19 @@ def identify_cmd(
             sys.stderr.write(f"identify: {msg}\n")
             sys.stderr.flush()
 
-    res = run_identify(measured, girf=girf, model=model, out_model=out, json_out=json_out, png_out=png, force=force,
-                       max_effects=max_effects, threshold=threshold, kinds=kind_list, progress=progress)
+    res = run_identify(
+        measured,
+        girf=girf,
+        model=model,
+        out_model=out,
+        json_out=json_out,
+        png_out=png,
+        force=force,
+        max_effects=max_effects,
+        threshold=threshold,
+        kinds=kind_list,
+        progress=progress,
+    )
     print_table(res)
     written = [str(p) for p in (out, json_out, png) if p is not None]
     progress("wrote " + ", ".join(written))

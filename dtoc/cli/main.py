@@ -32,7 +32,9 @@ def _version_cb(value: bool):
 
 @app.callback()
 def _main(
-    version: bool = typer.Option(False, "--version", callback=_version_cb, is_eager=True, help="Print the version and exit."),
+    version: bool = typer.Option(
+        False, "--version", callback=_version_cb, is_eager=True, help="Print the version and exit."
+    ),
 ):
     """dtoc: build, check, simulate and pre-compensate MRI sequences for real gradient hardware."""
 

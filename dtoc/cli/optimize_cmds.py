@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -13,28 +12,30 @@ import typer
 def optimize_cmd(
     base: Path = typer.Argument(..., help="base sequence: .seq file or spec .yaml"),
     out: Path = typer.Option(..., "-o", "--out", help="pre-compensated .seq to write"),
-    girf: Optional[Path] = typer.Option(None, "--girf", help="GIRF .npz (hardware model = this GIRF)"),
-    model: Optional[Path] = typer.Option(None, "--model", help="hardware model JSON"),
-    config: Optional[Path] = typer.Option(None, "--config", help="optimizer config YAML (OptimizeConfig fields)"),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="write the run manifest JSON here"),
-    png: Optional[Path] = typer.Option(None, "--png", help="write the PNG report here"),
+    girf: Path | None = typer.Option(None, "--girf", help="GIRF .npz (hardware model = this GIRF)"),
+    model: Path | None = typer.Option(None, "--model", help="hardware model JSON"),
+    config: Path | None = typer.Option(None, "--config", help="optimizer config YAML (OptimizeConfig fields)"),
+    json_out: Path | None = typer.Option(None, "--json", help="write the run manifest JSON here"),
+    png: Path | None = typer.Option(None, "--png", help="write the PNG report here"),
     force: bool = typer.Option(False, "--force", help="overwrite existing outputs"),
-    resume: Optional[Path] = typer.Option(None, "--resume", help="continue from a checkpoint .npz"),
-    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="save checkpoints here while running"),
-    method: Optional[str] = typer.Option(None, "--method", help="dto | adam-paper | warmstart | preemphasis"),
-    gmax: Optional[float] = typer.Option(None, "--gmax", help="gradient limit per axis, mT/m (default: the sequence's)"),
-    smax: Optional[float] = typer.Option(None, "--smax", help="slew limit per axis, T/m/s (default: the sequence's)"),
-    iters: Optional[int] = typer.Option(None, "--iters", help="full-loss iterations"),
-    warm_iters: Optional[int] = typer.Option(None, "--warm-iters", help="warm-start iterations"),
-    lr: Optional[float] = typer.Option(None, "--lr", help="Adam learning rate"),
-    w_image: Optional[float] = typer.Option(None, "--w-image", help="weight of the image (NRMSE) term"),
-    w_k: Optional[float] = typer.Option(None, "--w-k", help="weight of the k-space term (dk^2 per sample)"),
-    w_rf: Optional[float] = typer.Option(None, "--w-rf", help="weight of the realized-gradient-during-RF term"),
-    augment: Optional[int] = typer.Option(None, "--augment", help="number of rotated phantoms (0 = none)"),
+    resume: Path | None = typer.Option(None, "--resume", help="continue from a checkpoint .npz"),
+    checkpoint: Path | None = typer.Option(None, "--checkpoint", help="save checkpoints here while running"),
+    method: str | None = typer.Option(None, "--method", help="dto | adam-paper | warmstart | preemphasis"),
+    gmax: float | None = typer.Option(None, "--gmax", help="gradient limit per axis, mT/m (default: the sequence's)"),
+    smax: float | None = typer.Option(None, "--smax", help="slew limit per axis, T/m/s (default: the sequence's)"),
+    iters: int | None = typer.Option(None, "--iters", help="full-loss iterations"),
+    warm_iters: int | None = typer.Option(None, "--warm-iters", help="warm-start iterations"),
+    lr: float | None = typer.Option(None, "--lr", help="Adam learning rate"),
+    w_image: float | None = typer.Option(None, "--w-image", help="weight of the image (NRMSE) term"),
+    w_k: float | None = typer.Option(None, "--w-k", help="weight of the k-space term (dk^2 per sample)"),
+    w_rf: float | None = typer.Option(None, "--w-rf", help="weight of the realized-gradient-during-RF term"),
+    augment: int | None = typer.Option(None, "--augment", help="number of rotated phantoms (0 = none)"),
     no_discard: bool = typer.Option(False, "--no-discard", help="keep every sample (no post-hoc skipping)"),
-    phantom: Optional[str] = typer.Option(None, "--phantom", help="phantom: brain, brain:N, brain-noscalp[:N] (no fat/skull) or a .npz"),
-    seed: Optional[int] = typer.Option(None, "--seed", help="random seed"),
-    threads: Optional[int] = typer.Option(None, "--threads", help="torch threads (fixed for reproducibility)"),
+    phantom: str | None = typer.Option(
+        None, "--phantom", help="phantom: brain, brain:N, brain-noscalp[:N] (no fat/skull) or a .npz"
+    ),
+    seed: int | None = typer.Option(None, "--seed", help="random seed"),
+    threads: int | None = typer.Option(None, "--threads", help="torch threads (fixed for reproducibility)"),
     device: str = typer.Option("cpu", "--device", help="torch device (cpu, cuda, ...)"),
     as_json: bool = typer.Option(False, "--print-json", help="print the manifest summary as JSON on stdout"),
 ):
@@ -54,15 +55,40 @@ def optimize_cmd(
         raise InputError(f"{base}: base sequence not found")
     ir = load_sequence(base)
     weights = {k: v for k, v in (("image", w_image), ("kspace", w_k), ("rf", w_rf)) if v is not None}
-    overrides = {"method": method, "gmax_mT_per_m": gmax, "smax_T_per_m_per_s": smax, "iters": iters,
-                 "warm_iters": warm_iters, "lr": lr, "augment_rotations": augment, "seed": seed, "threads": threads,
-                 "discard": False if no_discard else None, "weights": weights or None}
+    overrides = {
+        "method": method,
+        "gmax_mT_per_m": gmax,
+        "smax_T_per_m_per_s": smax,
+        "iters": iters,
+        "warm_iters": warm_iters,
+        "lr": lr,
+        "augment_rotations": augment,
+        "seed": seed,
+        "threads": threads,
+        "discard": False if no_discard else None,
+        "weights": weights or None,
+    }
     cfg = load_config(ir.kind, config, overrides)
     ir.meta.setdefault("spec_path", str(base) if base.suffix.lower() in (".yaml", ".yml") else None)
-    res = _run_with_progress(lambda progress: optimize_sequence(
-        ir, out=out, girf=girf, model=model, config=cfg, config_path=config, manifest_path=json_out, png_path=png,
-        force=force, resume=resume, checkpoint_path=checkpoint, device=device, phantom=phantom, progress=progress,
-        base_path=base))
+    res = _run_with_progress(
+        lambda progress: optimize_sequence(
+            ir,
+            out=out,
+            girf=girf,
+            model=model,
+            config=cfg,
+            config_path=config,
+            manifest_path=json_out,
+            png_path=png,
+            force=force,
+            resume=resume,
+            checkpoint_path=checkpoint,
+            device=device,
+            phantom=phantom,
+            progress=progress,
+            base_path=base,
+        )
+    )
     m = res.manifest
     if as_json:
         keys = ("before", "after", "samples_discarded", "run_time_s", "interrupted", "output")
@@ -78,9 +104,15 @@ def _run_with_progress(fn):
     (so that an early error prints nothing but its one line)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    prog = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                    TextColumn("loss {task.fields[loss]:.4g}"), TimeElapsedColumn(),
-                    console=_console(), transient=True)
+    prog = Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TextColumn("loss {task.fields[loss]:.4g}"),
+        TimeElapsedColumn(),
+        console=_console(),
+        transient=True,
+    )
     tasks: dict = {}
 
     def progress(stage, it, total, loss):
@@ -116,8 +148,13 @@ def _print_summary(m: dict) -> None:
             return "-"
         return f"{100 * v:.3f} %" if pct else f"{v:.4g}"
 
-    for key, pct in (("nrmse", True), ("ghost_ratio", True), ("ghost_ratio_excess", True),
-                     ("kspace_rmse_rad_per_m", False), ("kspace_max_dk", False)):
+    for key, pct in (
+        ("nrmse", True),
+        ("ghost_ratio", True),
+        ("ghost_ratio_excess", True),
+        ("kspace_rmse_rad_per_m", False),
+        ("kspace_max_dk", False),
+    ):
         if key == "ghost_ratio_excess" and m["after"].get(key) is None:
             continue  # EPI only: ghost ratio above the ideal image's own (docs/optimize.md)
         t.add_row(key, f(m["before"].get(key), pct), f(m["after"].get(key), pct))

@@ -6,7 +6,6 @@ import json
 import sys
 import warnings
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -42,7 +41,9 @@ def build_cmd(
             p = build_to_file(s, out, force=force)
         except InputError as e:
             msg = str(e)
-            raise InputError(msg if msg.startswith(str(spec)) or msg.startswith(str(out)) else f"{spec}: {msg}") from None
+            raise InputError(
+                msg if msg.startswith(str(spec)) or msg.startswith(str(out)) else f"{spec}: {msg}"
+            ) from None
     for w in caught:
         if issubclass(w.category, SpecLimitWarning):
             sys.stderr.write(f"dtoc: warning: {w.message}\n")
@@ -51,9 +52,9 @@ def build_cmd(
 
 def check_cmd(
     seq: Path = typer.Argument(..., help=".seq file to validate"),
-    system: Optional[Path] = typer.Option(None, "--system", help="SystemSpec YAML (limits, rasters, dead times)"),
-    gmax: Optional[float] = typer.Option(None, "--gmax", help="per-axis gradient limit, mT/m (overrides)"),
-    smax: Optional[float] = typer.Option(None, "--smax", help="per-axis slew limit, T/m/s (overrides)"),
+    system: Path | None = typer.Option(None, "--system", help="SystemSpec YAML (limits, rasters, dead times)"),
+    gmax: float | None = typer.Option(None, "--gmax", help="per-axis gradient limit, mT/m (overrides)"),
+    smax: float | None = typer.Option(None, "--smax", help="per-axis slew limit, T/m/s (overrides)"),
     as_json: bool = typer.Option(False, "--json", help="print the result as JSON on stdout"),
     max_rows: int = typer.Option(20, "--max-rows", help="violations shown in the table (all are in --json)"),
 ):
@@ -62,13 +63,12 @@ def check_cmd(
     Limits: --gmax/--smax override --system, which overrides the limits a dtoc-built file records;
     otherwise SystemSpec defaults (Siemens rasters, 72 mT/m, 180 T/m/s).
     """
-    from dtoc.seq.check import check_file, system_from_definitions
-    from dtoc.seq.seqtext import parse_seq_text
-    from dtoc.seq.system import SystemSpec, load_system
-
     import math
 
     from dtoc.errors import InputError
+    from dtoc.seq.check import check_file, system_from_definitions
+    from dtoc.seq.seqtext import parse_seq_text
+    from dtoc.seq.system import SystemSpec, load_system
 
     for name, v in (("--gmax", gmax), ("--smax", smax)):
         if v is not None and not (math.isfinite(v) and v > 0):
@@ -106,7 +106,9 @@ def check_cmd(
     if base is not None:
         res.limits_source = base
     if gmax is not None or smax is not None:
-        res.limits_source += " + " + " ".join(f"{n} {v:g}" for n, v in (("--gmax", gmax), ("--smax", smax)) if v is not None)
+        res.limits_source += " + " + " ".join(
+            f"{n} {v:g}" for n, v in (("--gmax", gmax), ("--smax", smax)) if v is not None
+        )
     if as_json:
         sys.stdout.write(json.dumps(res.to_dict(), indent=2, allow_nan=False) + "\n")
     else:
@@ -130,20 +132,34 @@ def _print_check(res, max_rows: int) -> None:
     for c in ("rule", "block", "axis", "value", "limit", "detail"):
         t.add_column(c)
     for v in res.violations[:max_rows]:
-        t.add_row(v.rule, "" if v.block is None else str(v.block), v.axis or "",
-                  "" if v.value is None else f"{v.value:.5g} {v.unit}", "" if v.limit is None else f"{v.limit:.5g} {v.unit}",
-                  v.message)
+        t.add_row(
+            v.rule,
+            "" if v.block is None else str(v.block),
+            v.axis or "",
+            "" if v.value is None else f"{v.value:.5g} {v.unit}",
+            "" if v.limit is None else f"{v.limit:.5g} {v.unit}",
+            v.message,
+        )
     con.print(t)
     if len(res.violations) > max_rows:
         con.print(f"... {len(res.violations) - max_rows} more (use --json for all)")
     worst = {}
     for v in res.violations:
         worst.setdefault(v.rule, v)
-        if v.value is not None and v.limit and worst[v.rule].value is not None and v.value / v.limit > worst[v.rule].value / worst[v.rule].limit:
+        if (
+            v.value is not None
+            and v.limit
+            and worst[v.rule].value is not None
+            and v.value / v.limit > worst[v.rule].value / worst[v.rule].limit
+        ):
             worst[v.rule] = v
-    con.print("[red]FAILED[/red]: " + "; ".join(
-        f"{r} (worst {w.value:.4g} {w.unit} vs {w.limit:.4g})" if w.value is not None and w.limit is not None else r
-        for r, w in sorted(worst.items())))
+    con.print(
+        "[red]FAILED[/red]: "
+        + "; ".join(
+            f"{r} (worst {w.value:.4g} {w.unit} vs {w.limit:.4g})" if w.value is not None and w.limit is not None else r
+            for r, w in sorted(worst.items())
+        )
+    )
 
 
 def diff_cmd(

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -22,15 +21,25 @@ def _round(x):
 
 def simulate_cmd(
     seq: Path = typer.Argument(..., help="Base sequence: .seq file or spec .yaml."),
-    girf: Optional[Path] = typer.Option(None, "--girf", help="GIRF .npz (hardware model = this GIRF)."),
-    model: Optional[Path] = typer.Option(None, "--model", help="Hardware model file (.json)."),
-    phantom: Optional[str] = typer.Option(None, "--phantom", help="Phantom .npz, or 'brain' / 'brain:N' / 'brain-noscalp[:N]' (built-in head; noscalp: without fat and skull; default: brain at the image matrix)."),
-    field_T: float = typer.Option(3.0, "--field", help="Field strength of the built-in phantom's tissue values, T (3 or 7)."),
+    girf: Path | None = typer.Option(None, "--girf", help="GIRF .npz (hardware model = this GIRF)."),
+    model: Path | None = typer.Option(None, "--model", help="Hardware model file (.json)."),
+    phantom: str | None = typer.Option(
+        None,
+        "--phantom",
+        help="Phantom .npz, or 'brain' / 'brain:N' / 'brain-noscalp[:N]' (built-in head; noscalp: without fat and skull; default: brain at the image matrix).",
+    ),
+    field_T: float = typer.Option(
+        3.0, "--field", help="Field strength of the built-in phantom's tissue values, T (3 or 7)."
+    ),
     b0_map: bool = typer.Option(False, "--b0-map", help="Built-in phantom: add its smooth B0 map."),
     b1_map: bool = typer.Option(False, "--b1-map", help="Built-in phantom: add its smooth B1 map."),
-    dummies: int = typer.Option(0, "--dummies", min=0, help="Dummy repetitions before the sequence (steady state; the paper's GRE uses 300)."),
-    json_out: Optional[str] = typer.Option(None, "--json", help="Write metrics JSON here ('-' = stdout)."),
-    png_out: Optional[Path] = typer.Option(None, "--png", help="Write the figure (ideal, realized, difference, k-space) here."),
+    dummies: int = typer.Option(
+        0, "--dummies", min=0, help="Dummy repetitions before the sequence (steady state; the paper's GRE uses 300)."
+    ),
+    json_out: str | None = typer.Option(None, "--json", help="Write metrics JSON here ('-' = stdout)."),
+    png_out: Path | None = typer.Option(
+        None, "--png", help="Write the figure (ideal, realized, difference, k-space) here."
+    ),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda."),
     dtype: str = typer.Option("float64", "--dtype", help="float32 or float64."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing outputs."),
@@ -62,15 +71,34 @@ def simulate_cmd(
     ro = ir.readout_axis if ir.readout_axis is not None else 0
     n = [0, 0]
     n[ro], n[1 - ro] = int(ir.matrix[0]), int(ir.matrix[1])
-    ph = resolve_phantom(phantom, matrix=(n[1], n[0]), fov_m=(ir.fov_m[0], ir.fov_m[1]), field_T=field_T, b0=b0_map, b1=b1_map)
+    ph = resolve_phantom(
+        phantom, matrix=(n[1], n[0]), fov_m=(ir.fov_m[0], ir.fov_m[1]), field_T=field_T, b0=b0_map, b1=b1_map
+    )
     with err.status("simulating") as status:
-        res = compare_ideal_realized(ir, ph, hw, n_dummies=dummies, dtype=tdtype, device=dev, step=lambda s: status.update(f"simulating: {s}"))
+        res = compare_ideal_realized(
+            ir, ph, hw, n_dummies=dummies, dtype=tdtype, device=dev, step=lambda s: status.update(f"simulating: {s}")
+        )
     m = res.metrics
     report = {
         "dtoc_version": __version__,
-        "sequence": {"path": str(seq), "sha256": sha256_file(seq), "kind": ir.kind, "n_adc_samples": m["n_adc_samples"], "matrix": m["matrix"]},
-        "hardware": {"girf": str(girf) if girf else None, "model": str(model) if model else None, "identity": res.identity_hardware},
-        "phantom": {"source": phantom or "brain", "shape": list(ph.shape), "fov_m": list(ph.fov_m), "field_T": field_T if not (phantom and phantom.endswith(".npz")) else None},
+        "sequence": {
+            "path": str(seq),
+            "sha256": sha256_file(seq),
+            "kind": ir.kind,
+            "n_adc_samples": m["n_adc_samples"],
+            "matrix": m["matrix"],
+        },
+        "hardware": {
+            "girf": str(girf) if girf else None,
+            "model": str(model) if model else None,
+            "identity": res.identity_hardware,
+        },
+        "phantom": {
+            "source": phantom or "brain",
+            "shape": list(ph.shape),
+            "fov_m": list(ph.fov_m),
+            "field_T": field_T if not (phantom and phantom.endswith(".npz")) else None,
+        },
         "simulation": {"dtype": dtype, "dummies": dummies},
         "nrmse": m["nrmse"],
         "ghost_ratio": m["ghost_ratio"],

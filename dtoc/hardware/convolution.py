@@ -92,7 +92,7 @@ def _shift_slice(c: torch.Tensor, start: int, T: int) -> torch.Tensor:
     if front or back:
         c = torch.nn.functional.pad(c, (front, back))
     s = start + front
-    return c[..., s:s + T]
+    return c[..., s : s + T]
 
 
 def conv_length(T: int, L: int) -> tuple[int, int]:

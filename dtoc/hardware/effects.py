@@ -46,7 +46,9 @@ def _to_param(name: str, value: Any, kind: str, positive: bool = False, vector: 
     except (TypeError, ValueError):
         raise InputError(f"effect {kind!r}: parameter {name!r} must be a number, got {value!r}") from None
     if arr.ndim > (1 if vector else 0) or arr.size == 0:
-        raise InputError(f"effect {kind!r}: parameter {name!r} must be a {'number or list' if vector else 'number'}, got {value!r}")
+        raise InputError(
+            f"effect {kind!r}: parameter {name!r} must be a {'number or list' if vector else 'number'}, got {value!r}"
+        )
     if not np.all(np.isfinite(arr)):
         raise InputError(f"effect {kind!r}: parameter {name!r} must be finite, got {value!r}")
     if positive and np.any(arr <= 0):
@@ -87,11 +89,11 @@ class Effect(nn.Module):
         """Put ``new_sel`` (B, A, T) back into the selected axes of ``g`` (A = 3 when axis is None)."""
         if self._ax is None:
             return new_sel
-        parts = [g[:, i:i + 1] if i != self._ax else new_sel for i in range(3)]
+        parts = [g[:, i : i + 1] if i != self._ax else new_sel for i in range(3)]
         return torch.cat(parts, dim=1)
 
     def _sel(self, g: torch.Tensor) -> torch.Tensor:
-        return g if self._ax is None else g[:, self._ax:self._ax + 1]
+        return g if self._ax is None else g[:, self._ax : self._ax + 1]
 
     def extra_repr(self) -> str:
         return f"axis={self.axis}, input_axis={self.input_axis}, params={self.params_dict()}"
@@ -151,7 +153,7 @@ class Delay(Effect):
         if abs(m) >= T:
             return torch.zeros_like(x)
         if m > 0:
-            return torch.nn.functional.pad(x[..., :T - m], (m, 0))
+            return torch.nn.functional.pad(x[..., : T - m], (m, 0))
         return torch.nn.functional.pad(x[..., -m:], (0, -m))
 
     def forward(self, g, b0, dt_s):
@@ -220,8 +222,8 @@ class CrossEddy(_ExpBase):
         super().__init__(alpha, tau_s, axis, input_axis)
 
     def forward(self, g, b0, dt_s):
-        src = g[:, self._in:self._in + 1]
-        tgt = g[:, self._ax:self._ax + 1]
+        src = g[:, self._in : self._in + 1]
+        tgt = g[:, self._ax : self._ax + 1]
         return self._replace_axes(g, tgt - self._eddy(src, dt_s)), b0
 
 
@@ -242,7 +244,7 @@ class B0Eddy(_ExpBase):
         super().__init__(alpha_uT_per_mT_per_m, tau_s, None, input_axis)
 
     def forward(self, g, b0, dt_s):
-        src = g[:, self._in:self._in + 1]
+        src = g[:, self._in : self._in + 1]
         return g, b0 - self._eddy(src, dt_s)[:, 0]
 
 
@@ -264,7 +266,9 @@ class SlewLimit(Effect):
 
     def __init__(self, max_slew_T_per_m_per_s: float, axis: str | None = None):
         super().__init__(axis)
-        self.max_slew_T_per_m_per_s = _to_param("max_slew_T_per_m_per_s", max_slew_T_per_m_per_s, self.kind, positive=True)
+        self.max_slew_T_per_m_per_s = _to_param(
+            "max_slew_T_per_m_per_s", max_slew_T_per_m_per_s, self.kind, positive=True
+        )
 
     @staticmethod
     def _pattern(g: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -363,8 +367,12 @@ class Girf(Effect):
             delta = np.zeros(h.shape[2])
             delta[i0] = 1.0
             others = [b for b in range(3) if b != a]
-            if (np.array_equal(h[a, a], delta) and not np.any(h[a, others]) and not np.any(h[others, a])
-                    and (h0n is None or not np.any(h0n[a]))):
+            if (
+                np.array_equal(h[a, a], delta)
+                and not np.any(h[a, others])
+                and not np.any(h[others, a])
+                and (h0n is None or not np.any(h0n[a]))
+            ):
                 out.append(a)
         return tuple(out)
 
@@ -378,9 +386,17 @@ class Girf(Effect):
     def _full_kernel(self, dt_s: float, g: torch.Tensor):
         """Resampled (3|4, 3, L2) kernel, shift and its spectrum; cached while the kernel is frozen
         (no gradient w.r.t. h/h0 requested), e.g. inside an optimizer loop over the waveform."""
-        frozen = not (torch.is_grad_enabled() and (self.h.requires_grad or (self.h0 is not None and self.h0.requires_grad)))
-        key = (float(dt_s), g.shape[-1], g.dtype, str(g.device), self.h._version,
-               None if self.h0 is None else self.h0._version)
+        frozen = not (
+            torch.is_grad_enabled() and (self.h.requires_grad or (self.h0 is not None and self.h0.requires_grad))
+        )
+        key = (
+            float(dt_s),
+            g.shape[-1],
+            g.dtype,
+            str(g.device),
+            self.h._version,
+            None if self.h0 is None else self.h0._version,
+        )
         if frozen and getattr(self, "_cache_key", None) == key:
             return self._cache_val
         h, h0, shift = self.kernels(dt_s, g)
@@ -397,7 +413,7 @@ class Girf(Effect):
         h0 = full[3:] if full.shape[0] == 4 else None
         out = fft_convolve(g, full, shift, spectrum=spec)
         if self.passthrough:
-            keep = [g[:, a:a + 1] if a in self.passthrough else out[:, a:a + 1] for a in range(3)]
+            keep = [g[:, a : a + 1] if a in self.passthrough else out[:, a : a + 1] for a in range(3)]
             out = torch.cat(keep + ([out[:, 3:]] if h0 is not None else []), dim=1)
         if h0 is None:
             return out, b0
@@ -426,7 +442,9 @@ class Lti(Effect):
         t = np.asarray(taps, dtype=np.float64)
         want = 2 if axis is None else 1
         if t.ndim != want or (axis is None and t.shape[0] != 3) or t.shape[-1] < 1 or not np.all(np.isfinite(t)):
-            raise InputError(f"effect 'lti': taps must be finite with shape {'(3, L)' if axis is None else '(L,)'}, got {t.shape}")
+            raise InputError(
+                f"effect 'lti': taps must be finite with shape {'(3, L)' if axis is None else '(L,)'}, got {t.shape}"
+            )
         if not (np.isfinite(dt_s) and dt_s > 0):
             raise InputError(f"effect 'lti': dt_s must be > 0, got {dt_s}")
         self.taps = nn.Parameter(torch.as_tensor(t))

@@ -60,8 +60,14 @@ def term_figures(taps: np.ndarray, t_s: np.ndarray, f: np.ndarray, H: np.ndarray
     """Figures of one term from its taps (L,) at times t_s and its response H on f (>= 0)."""
     dc = float(np.sum(taps))
     mag = np.abs(H)
-    out = {"dc_gain": dc, "bandwidth_3db_hz": _bandwidth(f, mag), "group_delay_s": None, "centroid_s": None,
-           "peak_gain": float(mag.max()), "peak_hz": float(f[int(np.argmax(mag))])}
+    out = {
+        "dc_gain": dc,
+        "bandwidth_3db_hz": _bandwidth(f, mag),
+        "group_delay_s": None,
+        "centroid_s": None,
+        "peak_gain": float(mag.max()),
+        "peak_hz": float(f[int(np.argmax(mag))]),
+    }
     if abs(dc) > 0.1 * max(mag[f <= 1000.0].max() if np.any(f <= 1000.0) else mag[0], 1e-30):
         out["centroid_s"] = float(np.sum(t_s * taps) / dc)
         sel = f <= GROUP_DELAY_BAND_HZ

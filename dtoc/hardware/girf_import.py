@@ -86,8 +86,10 @@ def _import_time_terms(m: dict, path: Path) -> GirfData:
                     max_imag = max(max_imag, float(np.abs(v.imag).max()))
                 h[o, i] = v.real
                 have[o, i] = True
-    notes = [f"per-term time-domain kernels h<in><out> from {path.name}: h[o, i] = h{{i}}{{o}} (hxy = response on y to input on x)",
-             f"dt = {dt:.9g} s from t, t0 = t[0] = {t[0]:.9g} s (centred kernel); bulk delay as published (removed), not re-added"]
+    notes = [
+        f"per-term time-domain kernels h<in><out> from {path.name}: h[o, i] = h{{i}}{{o}} (hxy = response on y to input on x)",
+        f"dt = {dt:.9g} s from t, t0 = t[0] = {t[0]:.9g} s (centred kernel); bulk delay as published (removed), not re-added",
+    ]
     if max_imag:
         notes.append(f"complex kernels reduced to real part (largest |imag| {max_imag:.3g})")
     missing = [AXES[a] for a in range(3) if not have[a, a]]
@@ -98,7 +100,9 @@ def _import_time_terms(m: dict, path: Path) -> GirfData:
         if not have[a, a]:
             h[a, a, i0] = 1.0
     if missing:
-        notes.append(f"axis {','.join(missing)} not in the file: ideal response (unit tap at t=0), no cross terms to/from it")
+        notes.append(
+            f"axis {','.join(missing)} not in the file: ideal response (unit tap at t=0), no cross terms to/from it"
+        )
     return GirfData(dt_s=float(dt), t0_s=float(t[0]), h=h, source=path.name, notes=notes)
 
 
@@ -129,8 +133,10 @@ def _import_gmtf(s, path: Path, include_b0: bool, as_published: bool = False) ->
         notes.append(f"info: {info}")
     undo = -gmtf_convention_shift_s(info)
     if undo and not as_published:
-        notes.append(f"the declared ADC/gradient convention shift is undone: delayed by {undo * 1e6:g} us, so that "
-                     "the response is on the gradient's own clock (matches the group's time-domain 7T_GIRF.mat)")
+        notes.append(
+            f"the declared ADC/gradient convention shift is undone: delayed by {undo * 1e6:g} us, so that "
+            "the response is on the gradient's own clock (matches the group's time-domain 7T_GIRF.mat)"
+        )
     elif undo:
         notes.append("phase kept as published (includes the declared ADC/gradient convention shift)")
     if hasattr(s, "GRDdelays_us"):
@@ -174,7 +180,7 @@ def _import_prisma_axis(path: Path):
     Hs = H[1:]  # without the underflow sample 0 (the -Nyquist bin)
     if not np.all(np.isfinite(Hs)):
         raise InputError(f"{path}: 'GIRF_FT' contains NaN or inf")
-    herm = np.max(np.abs(Hs - np.conj(Hs[::-1]))) / max(np.max(np.abs(Hs[c - 50:c + 50])), 1e-30)
+    herm = np.max(np.abs(Hs - np.conj(Hs[::-1]))) / max(np.max(np.abs(Hs[c - 50 : c + 50])), 1e-30)
     if herm > 1e-6 or abs(H[c].imag) > 1e-9 * abs(H[c]):
         raise InputError(f"{path}: 'GIRF_FT' is not Hermitian about bin N/2; unknown layout")
     # keep the full N-point DFT grid (dt = 1 / (N df) exactly), with the underflow -Nyquist bin set to 0
@@ -199,8 +205,9 @@ def _import_prisma_axis(path: Path):
     return f, H, b0, band
 
 
-def import_girf(files: list[str | os.PathLike], include_b0: bool = False, shift_s: float = 0.0,
-                as_published: bool = False) -> GirfData:
+def import_girf(
+    files: list[str | os.PathLike], include_b0: bool = False, shift_s: float = 0.0, as_published: bool = False
+) -> GirfData:
     """Read one published GIRF (one file, or the per-axis X/Y/Z files) into :class:`GirfData`.
 
     Args:
@@ -219,7 +226,9 @@ def import_girf(files: list[str | os.PathLike], include_b0: bool = False, shift_
         if not p.is_file():
             raise InputError(f"{p}: file not found")
         if p.suffix.lower() == ".npz":
-            raise InputError(f"{p}: already a .npz: dtoc GIRF files need no import (use it with --girf; 'dtoc girf show' checks it)")
+            raise InputError(
+                f"{p}: already a .npz: dtoc GIRF files need no import (use it with --girf; 'dtoc girf show' checks it)"
+            )
         if p.stat().st_size == 0:
             raise InputError(f"{p}: empty file")
     if len(paths) == 1:
@@ -231,7 +240,9 @@ def import_girf(files: list[str | os.PathLike], include_b0: bool = False, shift_
         elif not m:
             gd = _import_prisma([paths[0]], include_b0)
         else:
-            raise InputError(f"{paths[0]}: unknown GIRF layout (expected h<in><out> + t, a GMTF struct, or GIRF_FT + freq)")
+            raise InputError(
+                f"{paths[0]}: unknown GIRF layout (expected h<in><out> + t, a GMTF struct, or GIRF_FT + freq)"
+            )
     else:
         gd = _import_prisma(paths, include_b0)
     if shift_s:
@@ -251,7 +262,9 @@ def _import_prisma(paths: list[Path], include_b0: bool) -> GirfData:
     got: dict[int, tuple] = {}
     for p in paths:
         if _loadmat(p):  # a MATLAB v5 file among per-axis HDF5 files
-            raise InputError(f"{p}: several files are only accepted as per-axis HDF5 GIRF_X/Y/Z.mat files; import it alone")
+            raise InputError(
+                f"{p}: several files are only accepted as per-axis HDF5 GIRF_X/Y/Z.mat files; import it alone"
+            )
         data = _import_prisma_axis(p)  # checks the layout before the name
         a = _prisma_axis_of(p)
         if a in got:
@@ -273,14 +286,18 @@ def _import_prisma(paths: list[Path], include_b0: bool) -> GirfData:
                 H0[a] = got[a][2]
         else:
             H[a, a] = 1.0  # ideal: unit response, zero delay
-    notes = [f"per-axis HDF5 files {', '.join(p.name for p in paths)}: self terms only (cross terms zero, not measured)",
-             f"frequency axis rebuilt as fftshift DFT bins, df = {f[1] - f[0]:.6g} Hz (tap spacing "
-             f"{1 / (f.size * (f[1] - f[0])):.6g} s); underflow sample 0 (-Nyquist bin) set to 0",
-             "system delays kept (not removed)"]
+    notes = [
+        f"per-axis HDF5 files {', '.join(p.name for p in paths)}: self terms only (cross terms zero, not measured)",
+        f"frequency axis rebuilt as fftshift DFT bins, df = {f[1] - f[0]:.6g} Hz (tap spacing "
+        f"{1 / (f.size * (f[1] - f[0])):.6g} s); underflow sample 0 (-Nyquist bin) set to 0",
+        "system delays kept (not removed)",
+    ]
     bands = sorted({g[3] for g in got.values() if g[3] is not None})
     if bands:
-        notes.append(f"band-limited to |f| <= {bands[0]:.6g} Hz, the band of the files' own GIRF_Temporal "
-                     "(beyond it GIRF_FT is measurement noise)")
+        notes.append(
+            f"band-limited to |f| <= {bands[0]:.6g} Hz, the band of the files' own GIRF_Temporal "
+            "(beyond it GIRF_FT is measurement noise)"
+        )
         if len(bands) > 1:
             for a in got:
                 got[a][1][np.abs(f) > bands[0]] = 0.0
@@ -290,7 +307,9 @@ def _import_prisma(paths: list[Path], include_b0: bool) -> GirfData:
     if missing:
         notes.append(f"axis {','.join(missing)} not given: ideal unit response")
     if include_b0:
-        notes.append("H0 from b0ec_FT: unit undocumented (GIRFReco.jl treats it as a k0 phase in rad), imported as given")
+        notes.append(
+            "H0 from b0ec_FT: unit undocumented (GIRFReco.jl treats it as a k0 phase in rad), imported as given"
+        )
     if not np.all(np.isfinite(H)):
         raise InputError("per-axis GIRF files contain NaN or inf")
     return GirfData(f_hz=f, H=H, H0=H0, source=", ".join(p.name for p in paths), notes=notes)
@@ -298,8 +317,19 @@ def _import_prisma(paths: list[Path], include_b0: bool) -> GirfData:
 
 def _shift(gd: GirfData, shift_s: float) -> GirfData:
     if gd.is_time_domain:
-        return GirfData(dt_s=gd.dt_s, t0_s=gd.t0_s + shift_s, h=gd.h, h0=gd.h0, source=gd.source,
-                        notes=gd.notes + [f"added delay {shift_s:.6g} s"])
+        return GirfData(
+            dt_s=gd.dt_s,
+            t0_s=gd.t0_s + shift_s,
+            h=gd.h,
+            h0=gd.h0,
+            source=gd.source,
+            notes=gd.notes + [f"added delay {shift_s:.6g} s"],
+        )
     ph = np.exp(-2j * np.pi * gd.f_hz * shift_s)
-    return GirfData(f_hz=gd.f_hz, H=gd.H * ph, H0=None if gd.H0 is None else gd.H0 * ph, source=gd.source,
-                    notes=gd.notes + [f"added delay {shift_s:.6g} s"])
+    return GirfData(
+        f_hz=gd.f_hz,
+        H=gd.H * ph,
+        H0=None if gd.H0 is None else gd.H0 * ph,
+        source=gd.source,
+        notes=gd.notes + [f"added delay {shift_s:.6g} s"],
+    )

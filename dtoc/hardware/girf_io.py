@@ -52,7 +52,7 @@ class GirfData:
     def is_time_domain(self) -> bool:
         return self.h is not None
 
-    def to_time_domain(self) -> "GirfData":
+    def to_time_domain(self) -> GirfData:
         """This GIRF with taps ``h`` (converted from ``H`` by inverse DFT when needed)."""
         if self.is_time_domain:
             return self
@@ -60,8 +60,14 @@ class GirfData:
         h0 = None
         if self.H0 is not None:
             _, _, h0 = freq_to_taps(self.f_hz, self.H0)
-        return GirfData(dt_s=dt, t0_s=t0, h=h, h0=h0, source=self.source,
-                        notes=self.notes + [f"converted from frequency domain: N={h.shape[-1]}, dt={dt:.6g} s, centred"])
+        return GirfData(
+            dt_s=dt,
+            t0_s=t0,
+            h=h,
+            h0=h0,
+            source=self.source,
+            notes=self.notes + [f"converted from frequency domain: N={h.shape[-1]}, dt={dt:.6g} s, centred"],
+        )
 
     def response(self, f_hz: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """``H(f)`` (3, 3, F) and ``H0(f)`` (3, F) or None at arbitrary frequencies (DTFT of the taps)."""
@@ -71,10 +77,10 @@ class GirfData:
         H = np.empty((3, 3, f.size), dtype=np.complex128)
         H0 = None if td.h0 is None else np.empty((3, f.size), dtype=np.complex128)
         for a in range(0, f.size, 512):  # chunks keep the (F, L) phase matrix small
-            E = np.exp(-2j * np.pi * np.outer(f[a:a + 512], t))  # (Fc, L)
-            H[..., a:a + 512] = td.h @ E.T
+            E = np.exp(-2j * np.pi * np.outer(f[a : a + 512], t))  # (Fc, L)
+            H[..., a : a + 512] = td.h @ E.T
             if H0 is not None:
-                H0[:, a:a + 512] = td.h0 @ E.T
+                H0[:, a : a + 512] = td.h0 @ E.T
         return H, H0
 
     @property
@@ -161,7 +167,7 @@ CROSS_DC_MAX = 0.5
 B0_DC_MAX = 100.0
 
 
-def check_plausible(gd: "GirfData", path: str = "GIRF") -> None:
+def check_plausible(gd: GirfData, path: str = "GIRF") -> None:
     """Reject a GIRF whose magnitudes are physically implausible (unit mistakes), one line naming the key.
 
     Checks: ``dt`` within :data:`DT_RANGE_S`, kernel span at most :data:`MAX_SPAN_S`, self-term DC gain
@@ -175,33 +181,48 @@ def check_plausible(gd: "GirfData", path: str = "GIRF") -> None:
     key_dt = "dt" if gd.is_time_domain else "f"
     if not DT_RANGE_S[0] <= td.dt_s <= DT_RANGE_S[1]:
         what = f"'dt' = {td.dt_s:g} s" if gd.is_time_domain else f"'f' spacing gives a tap spacing of {td.dt_s:g} s"
-        raise InputError(f"{path}: key {what} is implausible for a GIRF (expected {DT_RANGE_S[0]:g} to "
-                         f"{DT_RANGE_S[1]:g} s; given in ms or us instead of s, or f in kHz instead of Hz?)")
+        raise InputError(
+            f"{path}: key {what} is implausible for a GIRF (expected {DT_RANGE_S[0]:g} to "
+            f"{DT_RANGE_S[1]:g} s; given in ms or us instead of s, or f in kHz instead of Hz?)"
+        )
     span = td.h.shape[-1] * td.dt_s
     if abs(td.t0_s) > MAX_SPAN_S:
-        raise InputError(f"{path}: key 't0' = {td.t0_s:g} s is implausible (more than {MAX_SPAN_S:g} s; given in us or ms?)")
+        raise InputError(
+            f"{path}: key 't0' = {td.t0_s:g} s is implausible (more than {MAX_SPAN_S:g} s; given in us or ms?)"
+        )
     if span > MAX_SPAN_S:
-        raise InputError(f"{path}: key {key_dt!r}: kernel spans {span:g} s (more than {MAX_SPAN_S:g} s): implausible for a GIRF")
+        raise InputError(
+            f"{path}: key {key_dt!r}: kernel spans {span:g} s (more than {MAX_SPAN_S:g} s): implausible for a GIRF"
+        )
     hk = "h" if gd.is_time_domain else "H"
     dc = td.h.sum(axis=-1)
     for a in range(3):
         v = float(dc[a, a])
         if not SELF_DC_RANGE[0] <= v <= SELF_DC_RANGE[1]:
-            hint = " (taps stored as a density in 1/s? multiply by dt)" if abs(v * td.dt_s - 1) < 0.5 else (
-                " (units off by 1e3?)" if 200 < abs(v) < 5000 or 2e-4 < abs(v) < 5e-3 else "")
-            raise InputError(f"{path}: key {hk!r}: DC gain of self term {AXES[a]}->{AXES[a]} is {v:.4g}, expected about 1 "
-                             f"({SELF_DC_RANGE[0]:g} to {SELF_DC_RANGE[1]:g}){hint}")
+            hint = (
+                " (taps stored as a density in 1/s? multiply by dt)"
+                if abs(v * td.dt_s - 1) < 0.5
+                else (" (units off by 1e3?)" if 200 < abs(v) < 5000 or 2e-4 < abs(v) < 5e-3 else "")
+            )
+            raise InputError(
+                f"{path}: key {hk!r}: DC gain of self term {AXES[a]}->{AXES[a]} is {v:.4g}, expected about 1 "
+                f"({SELF_DC_RANGE[0]:g} to {SELF_DC_RANGE[1]:g}){hint}"
+            )
     for o in range(3):
         for i in range(3):
             if o != i and abs(dc[o, i]) > CROSS_DC_MAX:
-                raise InputError(f"{path}: key {hk!r}: DC gain of cross term {AXES[i]}->{AXES[o]} is {dc[o, i]:.4g}; "
-                                 f"|gain| above {CROSS_DC_MAX:g} is implausible (axes swapped or units off?)")
+                raise InputError(
+                    f"{path}: key {hk!r}: DC gain of cross term {AXES[i]}->{AXES[o]} is {dc[o, i]:.4g}; "
+                    f"|gain| above {CROSS_DC_MAX:g} is implausible (axes swapped or units off?)"
+                )
     if td.h0 is not None:
         d0 = td.h0.sum(axis=-1)
         for i in range(3):
             if abs(d0[i]) > B0_DC_MAX:
-                raise InputError(f"{path}: key {'h0' if gd.is_time_domain else 'H0'!r}: DC gain of B0 term {AXES[i]}->b0 is "
-                                 f"{d0[i]:.4g} uT per mT/m; above {B0_DC_MAX:g} is implausible (units off?)")
+                raise InputError(
+                    f"{path}: key {'h0' if gd.is_time_domain else 'H0'!r}: DC gain of B0 term {AXES[i]}->b0 is "
+                    f"{d0[i]:.4g} uT per mT/m; above {B0_DC_MAX:g} is implausible (units off?)"
+                )
 
 
 def validate_girf_arrays(z, path: str = "GIRF", plausible: bool = True) -> GirfData:
@@ -244,7 +265,9 @@ def _validate_girf_arrays(z, path: str) -> GirfData:
             if np.iscomplexobj(h0):
                 raise InputError(f"{path}: key 'h0' must be real (time-domain taps)")
             h0 = h0.astype(np.float64)
-        return GirfData(dt_s=dt, t0_s=t0, h=h.astype(np.float64), h0=h0, source=text.get("source") or str(path), notes=notes)
+        return GirfData(
+            dt_s=dt, t0_s=t0, h=h.astype(np.float64), h0=h0, source=text.get("source") or str(path), notes=notes
+        )
     if "H" in keys:
         if "f" not in keys:
             raise InputError(f"{path}: key 'f' missing: a frequency-domain GIRF needs f (F,) in Hz")
@@ -265,8 +288,13 @@ def _validate_girf_arrays(z, path: str) -> GirfData:
                 raise InputError(f"{path}: key 'H0' must have shape (3, {f.size}), got {H0.shape}")
             _finite(H0, "H0", path, "(3, F)")
             H0 = H0.astype(np.complex128)
-        gd = GirfData(f_hz=f.astype(np.float64), H=H.astype(np.complex128), H0=H0,
-                      source=text.get("source") or str(path), notes=notes)
+        gd = GirfData(
+            f_hz=f.astype(np.float64),
+            H=H.astype(np.complex128),
+            H0=H0,
+            source=text.get("source") or str(path),
+            notes=notes,
+        )
         gd.to_time_domain()  # validates the grid now (one-line error naming 'f')
         return gd
     raise InputError(f"{path}: not a GIRF file: needs key 'h' (3, 3, L) with 'dt', or 'H' (3, 3, F) with 'f'")

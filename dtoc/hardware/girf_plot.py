@@ -131,8 +131,15 @@ def plot_girf(gd: GirfData, path, title: str = "", force: bool = False, fmax_hz:
     lo, hi = centre - 100.0, centre + 200.0
     win = (t_us >= lo) & (t_us <= hi)
     for a in range(3):
-        ax_t.plot(t_us[win], td.h[a, a, win] / (td.dt_s * 1e3), color=_COLORS[a], lw=0.9,
-                  marker="." if win.sum() < 120 else None, ms=3, label=f"{AXES[a]}->{AXES[a]}")
+        ax_t.plot(
+            t_us[win],
+            td.h[a, a, win] / (td.dt_s * 1e3),
+            color=_COLORS[a],
+            lw=0.9,
+            marker="." if win.sum() < 120 else None,
+            ms=3,
+            label=f"{AXES[a]}->{AXES[a]}",
+        )
     ax_t.axvline(0, color="0.5", lw=0.6)
     ax_t.set_xlim(lo, hi)
     ax_t.set_xlabel(f"t after the impulse (us); taps every {td.dt_s * 1e6:.4g} us")

@@ -73,13 +73,23 @@ class Measurement:
             return self.k
         return k_from_G(self.G, self.dt_s)
 
-    def subset(self, idx) -> "Measurement":
+    def subset(self, idx) -> Measurement:
         """The waveforms ``idx`` (indices or bool mask) as a new Measurement (for held-out splits)."""
         idx = np.arange(self.n_waveforms)[idx]
         pick = lambda a: None if a is None else a[idx]  # noqa: E731
-        return Measurement(self.dt_s, self.g[idx], pick(self.G), pick(self.k), pick(self.b0), self.sigma_G,
-                           self.sigma_k, self.sigma_b0, [self.labels[i] for i in idx], self.axes_measured[idx],
-                           self.source)
+        return Measurement(
+            self.dt_s,
+            self.g[idx],
+            pick(self.G),
+            pick(self.k),
+            pick(self.b0),
+            self.sigma_G,
+            self.sigma_k,
+            self.sigma_b0,
+            [self.labels[i] for i in idx],
+            self.axes_measured[idx],
+            self.source,
+        )
 
 
 def k_from_G(G: np.ndarray, dt_s: float) -> np.ndarray:
@@ -128,8 +138,10 @@ def _sigma(z, key, path, unit):
         raise InputError(f"{path}: key {key!r} must be a scalar noise std in {unit}, got shape {a.shape}")
     v = float(a.reshape(()))
     if not np.isfinite(v) or v <= 0:
-        raise InputError(f"{path}: key {key!r} must be a finite noise std > 0 in {unit}, got {v} "
-                         "(omit the key to have the noise estimated from the data)")
+        raise InputError(
+            f"{path}: key {key!r} must be a finite noise std > 0 in {unit}, got {v} "
+            "(omit the key to have the noise estimated from the data)"
+        )
     return v
 
 
@@ -165,8 +177,10 @@ def measurement_from_arrays(z, path: str = "measurement") -> Measurement:
     G = _series(z, "G", path, (M, 3, N), "mT/m", axes) if "G" in keys else None
     k = _series(z, "k", path, (M, 3, N), "rad/m", axes) if "k" in keys else None
     b0 = _series(z, "b0", path, (M, N), "uT") if "b0" in keys else None
-    sig = {key: (_sigma(z, key, path, unit) if key in keys else None)
-           for key, unit in (("sigma_G", "mT/m"), ("sigma_k", "rad/m"), ("sigma_b0", "uT"))}
+    sig = {
+        key: (_sigma(z, key, path, unit) if key in keys else None)
+        for key, unit in (("sigma_G", "mT/m"), ("sigma_k", "rad/m"), ("sigma_b0", "uT"))
+    }
     labels = [f"w{i}" for i in range(M)]
     if "labels" in keys:
         lab = _arr(z, "labels", path)
@@ -191,13 +205,17 @@ def check_plausible(m: Measurement) -> None:
     measured axes of the waveforms that drive them): e.g. G in T/m, k in 1/m or cycles/m."""
     path = m.source or "measurement"
     if not DT_RANGE_S[0] <= m.dt_s <= DT_RANGE_S[1]:
-        raise InputError(f"{path}: key 'dt' = {m.dt_s:g} s is implausible for gradient measurements (expected "
-                         f"{DT_RANGE_S[0]:g} to {DT_RANGE_S[1]:g} s; given in us or ms?)")
+        raise InputError(
+            f"{path}: key 'dt' = {m.dt_s:g} s is implausible for gradient measurements (expected "
+            f"{DT_RANGE_S[0]:g} to {DT_RANGE_S[1]:g} s; given in us or ms?)"
+        )
     gpk = float(np.max(np.abs(m.g)))
     if not G_RANGE_MT_PER_M[0] <= gpk <= G_RANGE_MT_PER_M[1]:
-        raise InputError(f"{path}: key 'g' peaks at {gpk:.4g} mT/m: implausible (expected {G_RANGE_MT_PER_M[0]:g} to "
-                         f"{G_RANGE_MT_PER_M[1]:g} mT/m; given in T/m or uT/m?)")
-    rms_g = np.sqrt(np.mean(m.g ** 2, axis=-1))  # (M, 3)
+        raise InputError(
+            f"{path}: key 'g' peaks at {gpk:.4g} mT/m: implausible (expected {G_RANGE_MT_PER_M[0]:g} to "
+            f"{G_RANGE_MT_PER_M[1]:g} mT/m; given in T/m or uT/m?)"
+        )
+    rms_g = np.sqrt(np.mean(m.g**2, axis=-1))  # (M, 3)
     driven = m.axes_measured & (rms_g > 0.05 * rms_g.max())
     if not driven.any():
         return
@@ -208,15 +226,17 @@ def check_plausible(m: Measurement) -> None:
         checks.append(("k", "rad/m", m.k, k_from_G(m.g, m.dt_s)))
     for key, unit, meas, ref in checks:
         r_meas = np.sqrt(np.mean(np.where(m.axes_measured[..., None], meas, 0.0) ** 2, axis=-1))
-        r_ref = np.sqrt(np.mean(ref ** 2, axis=-1))
+        r_ref = np.sqrt(np.mean(ref**2, axis=-1))
         ok = driven & (r_ref > 0)
         if not ok.any():
             continue
         ratio = float(np.median(r_meas[ok] / r_ref[ok]))
         if not RATIO_RANGE[0] <= ratio <= RATIO_RANGE[1]:
             want = "demanded 'g'" if key == "G" else "gamma x integral of the demanded 'g'"
-            raise InputError(f"{path}: key {key!r} is {ratio:.3g} times the {want} (median rms ratio over measured "
-                             f"axes): units off? ({key!r} must be in {unit})")
+            raise InputError(
+                f"{path}: key {key!r} is {ratio:.3g} times the {want} (median rms ratio over measured "
+                f"axes): units off? ({key!r} must be in {unit})"
+            )
 
 
 def load_measurement(path: str | os.PathLike) -> Measurement:

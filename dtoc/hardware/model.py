@@ -41,7 +41,7 @@ class EffectSpec(BaseModel):
     axis: Axis = None
     input_axis: Axis = None
     params: dict[str, Any] = {}
-    file: Optional[str] = None
+    file: str | None = None
 
 
 class ModelSpec(BaseModel):
@@ -49,12 +49,17 @@ class ModelSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     effects: list[EffectSpec] = []
-    description: Optional[str] = None
+    description: str | None = None
 
 
-def build_effect(kind: str, params: dict[str, Any] | None = None, axis: str | None = None,
-                 input_axis: str | None = None, file: str | os.PathLike | None = None,
-                 base_dir: str | os.PathLike | None = None) -> Effect:
+def build_effect(
+    kind: str,
+    params: dict[str, Any] | None = None,
+    axis: str | None = None,
+    input_axis: str | None = None,
+    file: str | os.PathLike | None = None,
+    base_dir: str | os.PathLike | None = None,
+) -> Effect:
     """Construct one effect from its kind, parameters and axes (InputError on anything wrong).
 
     For ``girf``, ``file`` is the GIRF ``.npz`` (relative paths are taken from ``base_dir``).
@@ -139,7 +144,7 @@ class HardwareModel(nn.Module):
             return G[0], b0[0]
         return G, b0
 
-    def frozen(self) -> "HardwareModel":
+    def frozen(self) -> HardwareModel:
         """Stop gradients w.r.t. the model's parameters (in place; returns self).
 
         Use when optimizing the waveform through a fixed model: no parameter gradients are computed and
@@ -164,8 +169,9 @@ class HardwareModel(nn.Module):
         return json.dumps(self.to_spec(), indent=2, sort_keys=True) + "\n"
 
 
-def model_from_spec(spec: dict[str, Any] | ModelSpec, base_dir: str | os.PathLike | None = None,
-                    where: str = "model") -> HardwareModel:
+def model_from_spec(
+    spec: dict[str, Any] | ModelSpec, base_dir: str | os.PathLike | None = None, where: str = "model"
+) -> HardwareModel:
     """Build a model from a parsed model-file dict."""
     try:
         ms = spec if isinstance(spec, ModelSpec) else ModelSpec.model_validate(spec)
@@ -197,7 +203,7 @@ PLAUSIBLE = {
 }
 
 
-def check_plausible_spec(ms: "ModelSpec", where: str = "model") -> None:
+def check_plausible_spec(ms: ModelSpec, where: str = "model") -> None:
     """Reject model-file parameters outside :data:`PLAUSIBLE` (one line naming ``effects[i]``)."""
     for i, es in enumerate(ms.effects):
         for name, value in es.params.items():
@@ -206,10 +212,16 @@ def check_plausible_spec(ms: "ModelSpec", where: str = "model") -> None:
                 continue
             vals = value if isinstance(value, (list, tuple)) else [value]
             for v in vals:
-                if (isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
-                        and not rng[0] <= v <= rng[1]):  # NaN/inf: the effect's own check names them
-                    raise InputError(f"{where}: effects[{i}] ({es.kind}): {name} = {v:g} is implausible (expected "
-                                     f"{rng[0]:g} to {rng[1]:g} {rng[2]}; units off?)")
+                if (
+                    isinstance(v, (int, float))
+                    and not isinstance(v, bool)
+                    and np.isfinite(v)
+                    and not rng[0] <= v <= rng[1]
+                ):  # NaN/inf: the effect's own check names them
+                    raise InputError(
+                        f"{where}: effects[{i}] ({es.kind}): {name} = {v:g} is implausible (expected "
+                        f"{rng[0]:g} to {rng[1]:g} {rng[2]}; units off?)"
+                    )
 
 
 def load_model(path: str | os.PathLike) -> HardwareModel:
@@ -251,8 +263,12 @@ def save_model(model: HardwareModel, path: str | os.PathLike, force: bool = Fals
         src = Path(eff.file) if eff.file else None
         if src is None or not src.is_file():
             target = p.parent / f"{p.stem}_girf{i}.npz"
-            gd = GirfData(dt_s=eff.dt_s, t0_s=eff.t0_s, h=eff.h.detach().cpu().double().numpy(),
-                          h0=None if eff.h0 is None else eff.h0.detach().cpu().double().numpy())
+            gd = GirfData(
+                dt_s=eff.dt_s,
+                t0_s=eff.t0_s,
+                h=eff.h.detach().cpu().double().numpy(),
+                h0=None if eff.h0 is None else eff.h0.detach().cpu().double().numpy(),
+            )
             save_girf(gd, target, force=force)
             es["file"] = target.name
         else:

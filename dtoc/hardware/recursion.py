@@ -64,6 +64,5 @@ def exp_response(g: torch.Tensor, dt_s: float, tau_s: torch.Tensor) -> torch.Ten
     log_a = -r
     b = -torch.expm1(-r) / r  # (tau/dt)(1 - a), accurate for small dt/tau
     dg = torch.diff(g, dim=-1)
-    u = torch.cat([g[..., :1].expand(torch.broadcast_shapes(g[..., :1].shape, b.shape)),
-                   b * dg], dim=-1)
+    u = torch.cat([g[..., :1].expand(torch.broadcast_shapes(g[..., :1].shape, b.shape)), b * dg], dim=-1)
     return linear_scan(u, log_a)

@@ -18,7 +18,6 @@ from dtoc.identify.data import from_measurement
 from dtoc.identify.search import IdentifyResult, identify
 from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_output_path
 
-
 #: Plausible peak slew rate of the demanded test waveforms, T/m/s.  Outside it ``dt`` is almost surely in the
 #: wrong unit (ms or us instead of s: a factor 1e3 either way), which the sample count alone cannot reveal.
 SLEW_RANGE_T_PER_M_PER_S = (2.0, 1e4)
@@ -42,14 +41,17 @@ def load_identify_measurement(path: str | os.PathLike):
 
     p = Path(path)
     if p.is_file() and not zipfile.is_zipfile(p):
-        raise InputError(f"{p}: not an .npz archive (expected the measurement keys dt, g, G and/or k saved with "
-                         f"numpy.savez)")
+        raise InputError(
+            f"{p}: not an .npz archive (expected the measurement keys dt, g, G and/or k saved with numpy.savez)"
+        )
     meas = load_measurement(p)
     slew = float(np.max(np.abs(np.diff(meas.g, axis=-1)))) / meas.dt_s * 1e-3  # T/m/s
     lo, hi = SLEW_RANGE_T_PER_M_PER_S
     if slew > 0 and not lo <= slew <= hi:
-        raise InputError(f"{p}: key 'dt' = {meas.dt_s:g} s gives a peak demanded slew of {slew:.3g} T/m/s "
-                         f"(plausible {lo:g} to {hi:g}): is 'dt' in s (not ms or us) and 'g' in mT/m?")
+        raise InputError(
+            f"{p}: key 'dt' = {meas.dt_s:g} s gives a peak demanded slew of {slew:.3g} T/m/s "
+            f"(plausible {lo:g} to {hi:g}): is 'dt' in s (not ms or us) and 'g' in mT/m?"
+        )
     return meas
 
 
@@ -77,11 +79,19 @@ def check_outputs(outputs: dict, inputs: dict, force: bool) -> None:
         check_output_path(p, force)
 
 
-def run_identify(measured: str | os.PathLike, girf: str | os.PathLike | None = None,
-                 model: str | os.PathLike | None = None, out_model: str | os.PathLike | None = None,
-                 json_out: str | os.PathLike | None = None, png_out: str | os.PathLike | None = None,
-                 force: bool = False, max_effects: int = 6, threshold: float = 10.0, kinds=None,
-                 progress=None) -> IdentifyResult:
+def run_identify(
+    measured: str | os.PathLike,
+    girf: str | os.PathLike | None = None,
+    model: str | os.PathLike | None = None,
+    out_model: str | os.PathLike | None = None,
+    json_out: str | os.PathLike | None = None,
+    png_out: str | os.PathLike | None = None,
+    force: bool = False,
+    max_effects: int = 6,
+    threshold: float = 10.0,
+    kinds=None,
+    progress=None,
+) -> IdentifyResult:
     """Identify missing effects in ``measured`` against the declared model and write the outputs.
 
     Returns:
@@ -90,8 +100,11 @@ def run_identify(measured: str | os.PathLike, girf: str | os.PathLike | None = N
     from dtoc.hardware.model import resolve_model, save_model
     from dtoc.identify.report import report_json, residual_png
 
-    check_outputs({"-o": out_model, "--json": json_out, "--png": png_out},
-                  {"measurement": measured, "--girf": girf, "--model": model}, force)
+    check_outputs(
+        {"-o": out_model, "--json": json_out, "--png": png_out},
+        {"measurement": measured, "--girf": girf, "--model": model},
+        force,
+    )
     meas = load_identify_measurement(measured)
     declared = resolve_model(girf=girf, model=model)
     data = from_measurement(meas)

@@ -130,7 +130,9 @@ def _penalty(n_params: int, n: int) -> float:
 def _finish(ws: Workspace, kind, axis, input_axis, params, n_params, res, position="post", notes=None) -> Proposal:
     c0 = float(ws.c_units.sum())
     score = (c0 - res.cv_chi2) - _penalty(n_params, ws.n_samples)
-    return Proposal(kind, axis, input_axis, params, n_params, res.cv_chi2, res.full_chi2, float(score), position, notes or {})
+    return Proposal(
+        kind, axis, input_axis, params, n_params, res.cv_chi2, res.full_chi2, float(score), position, notes or {}
+    )
 
 
 def _axis_index(axis):
@@ -287,8 +289,16 @@ def screen_lti(ws: Workspace, ctx: Context, axis: str, n_taps: int | None = None
     res = cross_validate(A, b, ws.c_units, ws.folds, [list(range(L))], free=True)
     taps = [float(v) for v in res.theta]
     dt = ws.data.dt_s
-    return _finish(ws, "lti", axis, None, {"taps": taps, "dt_s": dt, "t0_s": j0 * dt}, L, res,
-                   notes=lti_features(np.asarray(taps), j0, dt, excited_band_hz(ctx.P[:, a], dt)))
+    return _finish(
+        ws,
+        "lti",
+        axis,
+        None,
+        {"taps": taps, "dt_s": dt, "t0_s": j0 * dt},
+        L,
+        res,
+        notes=lti_features(np.asarray(taps), j0, dt, excited_band_hz(ctx.P[:, a], dt)),
+    )
 
 
 def _lti_stats_toeplitz(ws: Workspace, x: np.ndarray, a: int, lags: list) -> tuple[np.ndarray, np.ndarray]:
@@ -408,7 +418,9 @@ def screen_all(ws: Workspace, ctx: Context, kinds=None, exclude=()) -> list[Prop
 
     ``exclude``: names (:attr:`Proposal.name`) already in the model, not proposed again.
     """
-    kinds = set(kinds) if kinds else {"delay", "gain", "offset", "exp_eddy", "cross_eddy", "b0_eddy", "lti", "slew_limit"}
+    kinds = (
+        set(kinds) if kinds else {"delay", "gain", "offset", "exp_eddy", "cross_eddy", "b0_eddy", "lti", "slew_limit"}
+    )
     props: list[Proposal] = []
     measured_axes = [AXES[a] for a in range(3) if ws.data.axes_measured[:, a].any()]
     active_in = [AXES[a] for a in range(3) if np.any(ctx.P[:, a] != 0)]

@@ -84,7 +84,9 @@ class IdentData:
             self.axes_measured = np.ones((M, 3), dtype=bool)
         self.axes_measured = np.asarray(self.axes_measured, dtype=bool)
         if self.axes_measured.shape != (M, 3):
-            raise InputError(f"measurement key 'axes_measured': expected shape {(M, 3)}, got {self.axes_measured.shape}")
+            raise InputError(
+                f"measurement key 'axes_measured': expected shape {(M, 3)}, got {self.axes_measured.shape}"
+            )
         for name in ("G", "k"):  # unmeasured entries may hold anything (NaN): zero them once
             a = getattr(self, name)
             if a is not None:

@@ -105,8 +105,15 @@ def spectral_peaks(data: IdentData, c: str, z: np.ndarray, p_value: float = 1e-3
                 narrow = False
             else:  # a distinct peak above the region's low-frequency end, or a short isolated region
                 narrow = bool(ratio[k] >= 3.0 * ratio[i] or (j - i + 1) <= NARROW_MAX_BINS)
-            peaks.append({"f_hz": float(f[k]), "ratio": float(ratio[k]), "narrow": bool(narrow),
-                          "f_lo_hz": float(f[i]), "f_hi_hz": float(f[j])})
+            peaks.append(
+                {
+                    "f_hz": float(f[k]),
+                    "ratio": float(ratio[k]),
+                    "narrow": bool(narrow),
+                    "f_lo_hz": float(f[i]),
+                    "f_hi_hz": float(f[j]),
+                }
+            )
             i = j + 1
         else:
             i += 1
@@ -119,7 +126,7 @@ def dependence_note(data: IdentData, zG: np.ndarray, what: str = "slew") -> str 
     g = data.g
     x = np.abs(np.gradient(g, data.dt_s, axis=-1)) if what == "slew" else np.abs(g)
     m = np.broadcast_to(data.axes_measured[:, :, None], g.shape)
-    xv, pv = x[m], (zG ** 2)[m]
+    xv, pv = x[m], (zG**2)[m]
     if xv.size < 100 or np.all(xv == xv.flat[0]):
         return None
     hi_thr = np.quantile(xv, 0.9)
@@ -134,11 +141,15 @@ def dependence_note(data: IdentData, zG: np.ndarray, what: str = "slew") -> str 
     zstat = (hi.mean() - lo.mean()) / max(se, 1e-300)
     if ratio > 2.0 and hi.mean() > 1.2 and zstat > 5:
         if what == "slew":
-            return (f"residual grows with slew rate: mean power {ratio:.1f}x higher at the top 10 % of |dg/dt| "
-                    f"(>= {hi_thr * 1e-3:.0f} T/m/s) than at the lower half: non-linear (e.g. slew-rate limit) or "
-                    f"unmodelled fast dynamics")
-        return (f"residual grows with gradient amplitude: mean power {ratio:.1f}x higher at the top 10 % of |g| "
-                f"(>= {hi_thr:.1f} mT/m): amplitude-dependent (non-linear) gain or heating")
+            return (
+                f"residual grows with slew rate: mean power {ratio:.1f}x higher at the top 10 % of |dg/dt| "
+                f"(>= {hi_thr * 1e-3:.0f} T/m/s) than at the lower half: non-linear (e.g. slew-rate limit) or "
+                f"unmodelled fast dynamics"
+            )
+        return (
+            f"residual grows with gradient amplitude: mean power {ratio:.1f}x higher at the top 10 % of |g| "
+            f"(>= {hi_thr:.1f} mT/m): amplitude-dependent (non-linear) gain or heating"
+        )
     return None
 
 
@@ -186,8 +197,10 @@ def direction_note(data: IdentData, res_G: np.ndarray, sigma_G: float, quiet: np
     diff = m1 - m2
     z = abs(diff) / (sigma_G * np.sqrt(1.0 / n1 + 1.0 / n2))
     if abs(diff) > DIRECTION_MIN_SIGMA * sigma_G and z > 5:
-        return (f"residual at zero demand depends on the direction of the last ramp ({m1:+.3g} mT/m after "
-                f"up-ramps, {m2:+.3g} mT/m after down-ramps, z = {z:.0f}): a memory the model lacks, "
-                f"hysteresis-like (not in the library) or a slow linear transient (time constant > "
-                f"{REST_GUARD_S * 1e3:g} ms) that no added effect captured")
+        return (
+            f"residual at zero demand depends on the direction of the last ramp ({m1:+.3g} mT/m after "
+            f"up-ramps, {m2:+.3g} mT/m after down-ramps, z = {z:.0f}): a memory the model lacks, "
+            f"hysteresis-like (not in the library) or a slow linear transient (time constant > "
+            f"{REST_GUARD_S * 1e3:g} ms) that no added effect captured"
+        )
     return None

@@ -93,13 +93,36 @@ def main(argv=None) -> int:
     truth = HardwareModel([*declared.effects, extra], description="true scanner (example)")
     save_model(truth, out / "truth.json", force=True)
     t0 = time.perf_counter()
-    res = run_identify(meas, girf=girf, out_model=out / "updated_model.json", json_out=out / "report.json",
-                       png_out=out / "residuals.png", force=True)
+    res = run_identify(
+        meas,
+        girf=girf,
+        out_model=out / "updated_model.json",
+        json_out=out / "report.json",
+        png_out=out / "residuals.png",
+        force=True,
+    )
     wall = time.perf_counter() - t0
     rep = json.loads((out / "report.json").read_text())
     print(f"identify wall time: {wall:.1f} s")
-    print(json.dumps({k: rep[k] for k in ("before", "after", "heldout_before", "heldout_after", "noise", "explained",
-                                          "remaining", "noise_method", "heldout")}, indent=1))
+    print(
+        json.dumps(
+            {
+                k: rep[k]
+                for k in (
+                    "before",
+                    "after",
+                    "heldout_before",
+                    "heldout_after",
+                    "noise",
+                    "explained",
+                    "remaining",
+                    "noise_method",
+                    "heldout",
+                )
+            },
+            indent=1,
+        )
+    )
     for e in rep["effects"]:
         print(e["kind"], e["axis"], e["input_axis"], e["params"], e["stderr"], e["score"])
     print(json.dumps(rep["screening"][0][:4]))
@@ -107,18 +130,41 @@ def main(argv=None) -> int:
     if len(argv) > 2:
         base = Path(argv[2]).resolve()
         updated = load_model(out / "updated_model.json")
-        for tag, opt in (("declared", ["--girf", str(girf)]), ("updated", ["--model", str(out / "updated_model.json")])):
-            subprocess.run([sys.executable, "-m", "dtoc", "optimize", str(base), *opt, "-o", str(out / f"opt_{tag}.seq"),
-                            "--json", str(out / f"opt_{tag}.json"), "--force"], check=True, capture_output=True)
-        rows = [("base", None, "declared GIRF", declared), ("base", None, "true scanner", truth),
-                ("optimized for the declared GIRF", out / "opt_declared.seq", "true scanner", truth),
-                ("optimized for the updated model", out / "opt_updated.seq", "true scanner", truth),
-                ("optimized for the updated model", out / "opt_updated.seq", "updated model", updated)]
+        for tag, opt in (
+            ("declared", ["--girf", str(girf)]),
+            ("updated", ["--model", str(out / "updated_model.json")]),
+        ):
+            subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "dtoc",
+                    "optimize",
+                    str(base),
+                    *opt,
+                    "-o",
+                    str(out / f"opt_{tag}.seq"),
+                    "--json",
+                    str(out / f"opt_{tag}.json"),
+                    "--force",
+                ],
+                check=True,
+                capture_output=True,
+            )
+        rows = [
+            ("base", None, "declared GIRF", declared),
+            ("base", None, "true scanner", truth),
+            ("optimized for the declared GIRF", out / "opt_declared.seq", "true scanner", truth),
+            ("optimized for the updated model", out / "opt_updated.seq", "true scanner", truth),
+            ("optimized for the updated model", out / "opt_updated.seq", "updated model", updated),
+        ]
         print("| sequence | played on | NRMSE | ghost ratio | max k error (dk) |")
         print("|---|---|---|---|---|")
         for name, seq, on, scanner in rows:
             m = image_on_scanner(base, seq, scanner)
-            print(f"| {name} | {on} | {100 * m['nrmse']:.3f} % | {100 * m['ghost_ratio']:.3f} % | {m['kspace_max_err_dk']:.4f} |")
+            print(
+                f"| {name} | {on} | {100 * m['nrmse']:.3f} % | {100 * m['ghost_ratio']:.3f} % | {m['kspace_max_err_dk']:.4f} |"
+            )
     return 0 if res is not None else 1
 
 

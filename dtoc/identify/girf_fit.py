@@ -67,8 +67,13 @@ def _solve_rows(I: np.ndarray, O: np.ndarray, use: np.ndarray, lam: float) -> np
     return row.T
 
 
-def fit_girf(meas: Measurement, reg: float = 1e-6, fmax_hz: float | None = None,
-             time_window_s: tuple[float, float] | None = None, fit_b0: bool = True) -> GirfData:
+def fit_girf(
+    meas: Measurement,
+    reg: float = 1e-6,
+    fmax_hz: float | None = None,
+    time_window_s: tuple[float, float] | None = None,
+    fit_b0: bool = True,
+) -> GirfData:
     """Regularised least-squares GIRF from a :class:`Measurement` (see module docstring).
 
     Args:
@@ -100,10 +105,12 @@ def fit_girf(meas: Measurement, reg: float = 1e-6, fmax_hz: float | None = None,
     undriven = [("x", "y", "z")[a] for a in range(3) if a not in driven]
     H = np.zeros((3, 3, nfft), dtype=np.complex128)
     src = _describe_source(meas.source)
-    notes = [f"fitted from {src}: {M} waveforms, dt {dt:.6g} s, reg {reg:g} (lambda {lam:.3g}), "
-             f"fmax {'Nyquist' if fmax_hz is None else f'{fmax_hz:g} Hz'}",
-             f"data support the fit up to {f_sup:.6g} Hz (input power of every driven axis >= 10 lambda); "
-             "above it H is pulled towards 0 by the regularisation: use broadband inputs (triangles, chirps)"]
+    notes = [
+        f"fitted from {src}: {M} waveforms, dt {dt:.6g} s, reg {reg:g} (lambda {lam:.3g}), "
+        f"fmax {'Nyquist' if fmax_hz is None else f'{fmax_hz:g} Hz'}",
+        f"data support the fit up to {f_sup:.6g} Hz (input power of every driven axis >= 10 lambda); "
+        "above it H is pulled towards 0 by the regularisation: use broadband inputs (triangles, chirps)",
+    ]
     if undriven:
         notes.append(f"input axis {','.join(undriven)} never driven: its column of H is 0 (not identifiable)")
     for o in range(3):
@@ -126,5 +133,11 @@ def fit_girf(meas: Measurement, reg: float = 1e-6, fmax_hz: float | None = None,
     if not keep.any():
         raise InputError(f"time window ({tmin}, {tmax}) s keeps no taps")
     k0 = int(np.flatnonzero(keep)[0])
-    return GirfData(dt_s=dt, t0_s=float(t[k0]), h=taps[..., keep], h0=None if taps0 is None else taps0[..., keep],
-                    source=f"dtoc girf fit {src}", notes=notes)
+    return GirfData(
+        dt_s=dt,
+        t0_s=float(t[k0]),
+        h=taps[..., keep],
+        h0=None if taps0 is None else taps0[..., keep],
+        source=f"dtoc girf fit {src}",
+        notes=notes,
+    )

@@ -47,8 +47,9 @@ def _ghost(img, ref, ir) -> float | None:
     return float(metrics.ghost_ratio(img, ref, phase_dim=pdim))
 
 
-def fit_delays_to_raw(ir, phantom, declared: HardwareModel | None, signal_measured, axes=("x",),
-                      max_iter: int = 30) -> RawFit:
+def fit_delays_to_raw(
+    ir, phantom, declared: HardwareModel | None, signal_measured, axes=("x",), max_iter: int = 30
+) -> RawFit:
     """Fit per-axis delays (appended to ``declared``) to a measured raw signal of ``ir`` on ``phantom``.
 
     Args:
@@ -84,8 +85,9 @@ def fit_delays_to_raw(ir, phantom, declared: HardwareModel | None, signal_measur
 
     with torch.no_grad():
         l0, s0 = loss_of(u.detach())
-    opt = torch.optim.LBFGS([u], lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-12,
-                            tolerance_change=1e-14)
+    opt = torch.optim.LBFGS(
+        [u], lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-14
+    )
     n_eval = [0]
 
     def closure():
@@ -103,6 +105,8 @@ def fit_delays_to_raw(ir, phantom, declared: HardwareModel | None, signal_measur
         g0 = _ghost(imager.image(s0), ref, ir)
         g1 = _ghost(imager.image(s1), ref, ir)
     fitted = {a: float(v) * 1e-6 for a, v in zip(axes, u.detach())}
-    model = HardwareModel([*declared.effects, *[build_effect("delay", {"seconds": fitted[a]}, axis=a) for a in axes]],
-                          description=(declared.description or "declared model") + " + delays fitted to EPI raw data")
+    model = HardwareModel(
+        [*declared.effects, *[build_effect("delay", {"seconds": fitted[a]}, axis=a) for a in axes]],
+        description=(declared.description or "declared model") + " + delays fitted to EPI raw data",
+    )
     return RawFit(fitted, float(l0), float(l1), gm, g0, g1, n_eval[0], model)

@@ -72,7 +72,9 @@ def quiet_samples(g: np.ndarray, guard: int = CORNER_GUARD) -> np.ndarray:
     return ~near
 
 
-def difference_sigma(residual: np.ndarray, mask: np.ndarray, orders=(2, 3, 4), quiet: np.ndarray | None = None) -> NoiseEstimate | None:
+def difference_sigma(
+    residual: np.ndarray, mask: np.ndarray, orders=(2, 3, 4), quiet: np.ndarray | None = None
+) -> NoiseEstimate | None:
     """Robust high-order-difference estimate of white noise in ``residual`` (..., N).
 
     Args:
@@ -106,7 +108,9 @@ def difference_sigma(residual: np.ndarray, mask: np.ndarray, orders=(2, 3, 4), q
         best = s if best is None else min(best, s)
     if best is None:
         return None
-    return NoiseEstimate(float(best), "difference" + (" (away from corners)" if use_quiet else ""), int(nq if use_quiet else n))
+    return NoiseEstimate(
+        float(best), "difference" + (" (away from corners)" if use_quiet else ""), int(nq if use_quiet else n)
+    )
 
 
 def repeated_sigma(g: np.ndarray, y: np.ndarray, mask: np.ndarray, min_samples: int = 1000) -> NoiseEstimate | None:
@@ -138,7 +142,9 @@ def repeated_sigma(g: np.ndarray, y: np.ndarray, mask: np.ndarray, min_samples: 
     return NoiseEstimate(float(np.sqrt(ss / dof)), "repeated", int(dof))
 
 
-def estimate_sigma(given: float | None, g: np.ndarray, y: np.ndarray, residual: np.ndarray, mask: np.ndarray) -> NoiseEstimate:
+def estimate_sigma(
+    given: float | None, g: np.ndarray, y: np.ndarray, residual: np.ndarray, mask: np.ndarray
+) -> NoiseEstimate:
     """The noise floor of one channel: the given value, else repeated waveforms, else differences.
 
     Args:

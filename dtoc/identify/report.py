@@ -61,13 +61,18 @@ def report_dict(r: IdentifyResult) -> dict:
     """The JSON report as a dict (deterministic for deterministic inputs)."""
     noise = {c: (_num(r.noise[c].sigma) if c in r.noise else None) for c in CH}
     rel = {}
-    for name, d in (("before", r.before), ("after", r.after), ("heldout_before", r.heldout_before),
-                    ("heldout_after", r.heldout_after)):
+    for name, d in (
+        ("before", r.before),
+        ("after", r.after),
+        ("heldout_before", r.heldout_before),
+        ("heldout_after", r.heldout_after),
+    ):
         rel[name] = {c: (_num(d[c] / noise[c]) if d.get(c) is not None and noise[c] else None) for c in CH}
     per_axis = {}
     for name, d in (("before", r.before), ("after", r.after), ("heldout_after", r.heldout_after)):
-        per_axis[name] = {f"{c}_{ax}": _num(d.get(f"{c}_{ax}")) for c in ("G", "k") for ax in AXES
-                          if d.get(f"{c}_{ax}") is not None}
+        per_axis[name] = {
+            f"{c}_{ax}": _num(d.get(f"{c}_{ax}")) for c in ("G", "k") for ax in AXES if d.get(f"{c}_{ax}") is not None
+        }
     return {
         "before": _rm(r.before),
         "after": _rm(r.after),
@@ -81,7 +86,8 @@ def report_dict(r: IdentifyResult) -> dict:
         "per_axis": per_axis,
         "noise_method": {c: r.noise[c].method for c in r.noise},
         "heldout": r.folds.describe(),
-        "declared": r.twin.declared.description or ("ideal hardware" if not r.twin.declared.effects else "declared model"),
+        "declared": r.twin.declared.description
+        or ("ideal hardware" if not r.twin.declared.effects else "declared model"),
         "screening": [[{"candidate": n, "score": s} for n, s in rnd] for rnd in r.history],
         "n_samples": int(sum(np.sum(r.data.mask(c) > 0) for c in r.data.channels())),
         "dtoc_version": __version__,
@@ -104,7 +110,9 @@ def _fmt_params(entry: dict) -> str:
     if entry["kind"] == "lti":
         ft = entry["features"]
         n = len(np.asarray(entry["params"]["taps"]).reshape(-1))
-        parts.append(f"{n} taps; peak |dH|={ft['peak_abs']:.3g} at {ft['peak_hz'] / 1e3:.2f} kHz; DC {ft['dc_change']:+.3g}")
+        parts.append(
+            f"{n} taps; peak |dH|={ft['peak_abs']:.3g} at {ft['peak_hz'] / 1e3:.2f} kHz; DC {ft['dc_change']:+.3g}"
+        )
     return ", ".join(parts)
 
 
@@ -126,19 +134,34 @@ def print_table(r: IdentifyResult, console=None) -> None:
             v = d[key][f"{c}_rmse"]
             return "—" if v is None else f"{v:.4g} ({v / n:.2f}x)"
 
-        t.add_row(f"{c} ({UNITS[c]})", f"{n:.3g}", cell("before"), cell("after"),
-                  cell("heldout_before"), cell("heldout_after"))
+        t.add_row(
+            f"{c} ({UNITS[c]})",
+            f"{n:.3g}",
+            cell("before"),
+            cell("after"),
+            cell("heldout_before"),
+            cell("heldout_after"),
+        )
     con.print(t)
     for c in r.data.channels():
-        con.print(f"noise floor {c}: {d['noise_method'][c]}; values in brackets are multiples of it", markup=False,
-                  soft_wrap=True)
+        con.print(
+            f"noise floor {c}: {d['noise_method'][c]}; values in brackets are multiples of it",
+            markup=False,
+            soft_wrap=True,
+        )
     e = Table(title="effects added (in order)")
     for col in ("#", "kind", "axis", "input", "parameters ± stderr", "score"):
         e.add_column(col)
     for i, entry in enumerate(d["effects"]):
         axis = "b0" if entry["kind"] == "b0_eddy" else (entry["axis"] or "all")
-        e.add_row(str(i + 1), entry["kind"], axis, str(entry["input_axis"] or "—"), escape(_fmt_params(entry)),
-                  f"{entry['score']:.4g}")
+        e.add_row(
+            str(i + 1),
+            entry["kind"],
+            axis,
+            str(entry["input_axis"] or "—"),
+            escape(_fmt_params(entry)),
+            f"{entry['score']:.4g}",
+        )
     if not d["effects"]:
         e.add_row("—", "none", "", "", "no candidate is significant", "")
     con.print(e)
@@ -206,8 +229,10 @@ def residual_png(r: IdentifyResult) -> bytes:
         ax.set_xlabel("t [ms]")
         ax.set_ylabel(f"{lab} residual [{u}]")
         same = bool(np.array_equal(rb[ok], ra[ok]))
-        ax.set_title(f"{lab}: measured - predicted, waveform {r.data.labels[m]}" +
-                     (" (after = before)" if same else ""), fontsize=9)
+        ax.set_title(
+            f"{lab}: measured - predicted, waveform {r.data.labels[m]}" + (" (after = before)" if same else ""),
+            fontsize=9,
+        )
         ax.legend(fontsize=7, loc="upper right")
         ax = axs[i, 1]
         ax.plot(t_ms, ra[m], lw=0.6, color="tab:blue", label="after")
@@ -226,9 +251,19 @@ def residual_png(r: IdentifyResult) -> bytes:
         ax.set_ylabel(f"PSD [({u})²/Hz]")
         ax.set_title(f"{lab}: residual spectrum (all waveforms)", fontsize=9)
         ax.legend(fontsize=7, loc="upper right")
-    verdict = "explained (held-out residual consistent with noise)" if r.explained else \
-        "NOT explained: " + "; ".join(n[:90] for n in r.remaining[:2])
-    found = ", ".join(f.effect.kind + (f"[{f.effect.axis}]" if f.effect.axis else "") +
-                      (f"<-{f.effect.input_axis}" if f.effect.input_axis else "") for f in r.twin.found) or "none"
+    verdict = (
+        "explained (held-out residual consistent with noise)"
+        if r.explained
+        else "NOT explained: " + "; ".join(n[:90] for n in r.remaining[:2])
+    )
+    found = (
+        ", ".join(
+            f.effect.kind
+            + (f"[{f.effect.axis}]" if f.effect.axis else "")
+            + (f"<-{f.effect.input_axis}" if f.effect.input_axis else "")
+            for f in r.twin.found
+        )
+        or "none"
+    )
     fig.suptitle(f"dtoc identify residuals: effects added: {found}\n{verdict}", fontsize=10)
     return png_bytes(fig, dpi=80)

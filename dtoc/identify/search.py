@@ -100,8 +100,17 @@ def _chi2(ws: Workspace) -> float:
     return float(ws.c_units.sum())
 
 
-def identify(data: IdentData, declared: HardwareModel | None = None, *, max_effects: int = 6, threshold: float = 10.0,
-             kinds=None, explained_ratio: float = 1.2, progress=None, threads: int | None = 1) -> IdentifyResult:
+def identify(
+    data: IdentData,
+    declared: HardwareModel | None = None,
+    *,
+    max_effects: int = 6,
+    threshold: float = 10.0,
+    kinds=None,
+    explained_ratio: float = 1.2,
+    progress=None,
+    threads: int | None = 1,
+) -> IdentifyResult:
     """Trace the residual of ``declared`` on ``data`` to missing effects (see module docstring).
 
     Args:
@@ -120,14 +129,29 @@ def identify(data: IdentData, declared: HardwareModel | None = None, *, max_effe
     if threads is not None:
         torch.set_num_threads(int(threads))
     try:
-        return _identify(data, declared, max_effects=max_effects, threshold=threshold, kinds=kinds,
-                         explained_ratio=explained_ratio, progress=progress)
+        return _identify(
+            data,
+            declared,
+            max_effects=max_effects,
+            threshold=threshold,
+            kinds=kinds,
+            explained_ratio=explained_ratio,
+            progress=progress,
+        )
     finally:
         torch.set_num_threads(old)
 
 
-def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_effects: int = 6, threshold: float = 10.0,
-              kinds=None, explained_ratio: float = 1.2, progress=None) -> IdentifyResult:
+def _identify(
+    data: IdentData,
+    declared: HardwareModel | None = None,
+    *,
+    max_effects: int = 6,
+    threshold: float = 10.0,
+    kinds=None,
+    explained_ratio: float = 1.2,
+    progress=None,
+) -> IdentifyResult:
     """Body of :func:`identify` (same arguments), run under its thread setting."""
     say = progress or (lambda s: None)
     twin = Twin(declared, data, {c: 1.0 for c in data.channels()})
@@ -139,15 +163,23 @@ def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_eff
     for c in data.channels():
         noise[c] = estimate_sigma(data.sigma.get(c), data.g, data.measured(c), ws0.res[c], data.mask(c))
         if noise[c].method == "none":
-            raise InputError(f"measurement: too few measured samples to estimate the {c} noise floor; "
-                             f"give 'sigma_{c}' in the file")
+            raise InputError(
+                f"measurement: too few measured samples to estimate the {c} noise floor; give 'sigma_{c}' in the file"
+            )
     sigma = {c: noise[c].sigma for c in noise}
     twin.sigma = sigma
     ws = Workspace(data, sigma, folds, pred0)
     res_before = ws.res
     history = []
     for rnd in range(max_effects):
-        ctx = Context(dt_s=data.dt_s, g=data.g, P=ws.pred.G, P_b0=ws.pred.b0, chain=twin.predict_fn(), slew_limit=_slew_limit_fn(data.dt_s))
+        ctx = Context(
+            dt_s=data.dt_s,
+            g=data.g,
+            P=ws.pred.G,
+            P_b0=ws.pred.b0,
+            chain=twin.predict_fn(),
+            slew_limit=_slew_limit_fn(data.dt_s),
+        )
         props = screen_all(ws, ctx, kinds=kinds, exclude=_excluded(twin))
         if any(f.effect.kind == "slew_limit" for f in twin.found):
             props = [p for p in props if p.kind != "slew_limit"]
@@ -155,7 +187,10 @@ def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_eff
         if not props:
             break
         best = props[0]
-        say(f"round {rnd + 1}: best {best.name} score {best.score:.1f}" + (f", next {props[1].name} {props[1].score:.1f}" if len(props) > 1 else ""))
+        say(
+            f"round {rnd + 1}: best {best.name} score {best.score:.1f}"
+            + (f", next {props[1].name} {props[1].score:.1f}" if len(props) > 1 else "")
+        )
         if best.score < threshold:
             break
         chi_old = _chi2(ws)
@@ -187,12 +222,14 @@ def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_eff
             # the lower of two noisy estimates would bias the floor low (measured: -10 % for b0 with 2,200
             # corner-free samples).
             first = noise[c]
-            note = first.method[first.method.index(" (the file"):] if " (the file" in first.method else ""
+            note = first.method[first.method.index(" (the file") :] if " (the file" in first.method else ""
             re_all = difference_sigma(res_after[c], data.mask(c))
             rel_se = DIFF_REL_SE / np.sqrt(max(first.n_samples, 1))
             mk = data.mask(c)
             rms_after = float(np.sqrt(np.sum((res_after[c] * mk) ** 2) / max(mk.sum(), 1)))
-            white = re_all is not None and rms_after <= re_all.sigma * (1.0 + 3.0 * DIFF_REL_SE / np.sqrt(re_all.n_samples))
+            white = re_all is not None and rms_after <= re_all.sigma * (
+                1.0 + 3.0 * DIFF_REL_SE / np.sqrt(re_all.n_samples)
+            )
             if re_all is not None and (white or re_all.sigma <= first.sigma * (1.0 + 3.0 * rel_se)):
                 noise[c] = NoiseEstimate(re_all.sigma, re_all.method + ", final residual" + note, re_all.n_samples)
             else:
@@ -242,12 +279,15 @@ def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_eff
         for pk in diagnostics.spectral_peaks(data, c, z):
             explained = False
             if pk["narrow"]:
-                remaining.append(f"narrow-band {c} residual near {pk['f_hz'] / 1e3:.2f} kHz ({pk['ratio']:.1f}x the "
-                                 f"broadband level)")
+                remaining.append(
+                    f"narrow-band {c} residual near {pk['f_hz'] / 1e3:.2f} kHz ({pk['ratio']:.1f}x the broadband level)"
+                )
             else:
-                remaining.append(f"broadband {c} residual from {pk['f_lo_hz'] / 1e3:.2f} to {pk['f_hi_hz'] / 1e3:.2f} kHz "
-                                 f"(up to {pk['ratio']:.1f}x the high-frequency level, peak near {pk['f_hz'] / 1e3:.2f} "
-                                 f"kHz): structure that follows the waveforms, not a resonance")
+                remaining.append(
+                    f"broadband {c} residual from {pk['f_lo_hz'] / 1e3:.2f} to {pk['f_hi_hz'] / 1e3:.2f} kHz "
+                    f"(up to {pk['ratio']:.1f}x the high-frequency level, peak near {pk['f_hz'] / 1e3:.2f} "
+                    f"kHz): structure that follows the waveforms, not a resonance"
+                )
     if data.G is not None:
         zG = res_after["G"] / sigma["G"]
         for what in ("slew", "amplitude"):
@@ -267,15 +307,32 @@ def _identify(data: IdentData, declared: HardwareModel | None = None, *, max_eff
             band = excited_band_hz(data.g[:, e._ax][data.axes_measured[:, e._ax]], data.dt_s)
             n = lti_features(e.taps.detach().numpy().reshape(-1), int(round(e.t0_s / e.dt_s)), e.dt_s, band)
             fo.notes = {**fo.notes, "features": n}
-            remaining.append(f"lti correction on {fo.effect.axis}: largest |dH| {n['peak_abs']:.3f} near "
-                             f"{n['peak_hz'] / 1e3:.2f} kHz within the excited band 0-{band / 1e3:.1f} kHz, DC change "
-                             f"{n['dc_change']:+.4f} (a linear response no parametric effect explained)")
+            remaining.append(
+                f"lti correction on {fo.effect.axis}: largest |dH| {n['peak_abs']:.3f} near "
+                f"{n['peak_hz'] / 1e3:.2f} kHz within the excited band 0-{band / 1e3:.1f} kHz, DC change "
+                f"{n['dc_change']:+.4f} (a linear response no parametric effect explained)"
+            )
     for i, n in fit.get("at_bound", []):
         e = twin.found[i].effect
-        remaining.append(f"{e.kind} ({e.axis or ''}{'<-' + e.input_axis if e.input_axis else ''}) parameter {n} ended at "
-                         f"its bound: the data call for a term outside the modelled range")
+        remaining.append(
+            f"{e.kind} ({e.axis or ''}{'<-' + e.input_axis if e.input_axis else ''}) parameter {n} ended at "
+            f"its bound: the data call for a term outside the modelled range"
+        )
     if len(twin.found) >= max_effects:
         remaining.append(f"stopped at the cap of {max_effects} added effects")
     say("done")
-    return IdentifyResult(data, twin, noise, folds, before, after, heldout_before, heldout_after, explained,
-                          remaining, res_before, res_after, history)
+    return IdentifyResult(
+        data,
+        twin,
+        noise,
+        folds,
+        before,
+        after,
+        heldout_before,
+        heldout_after,
+        explained,
+        remaining,
+        res_before,
+        res_after,
+        history,
+    )

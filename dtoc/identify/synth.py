@@ -20,8 +20,15 @@ from dtoc.identify.data import IdentData, integrate_k
 from dtoc.util.atomic import atomic_write_bytes
 
 
-def probe_waveforms(M: int, N: int, dt_s: float = 10e-6, gmax_mT_per_m: float = 30.0,
-                   smax_T_per_m_per_s: float = 150.0, seed: int = 0, axes=(0, 1, 2)) -> np.ndarray:
+def probe_waveforms(
+    M: int,
+    N: int,
+    dt_s: float = 10e-6,
+    gmax_mT_per_m: float = 30.0,
+    smax_T_per_m_per_s: float = 150.0,
+    seed: int = 0,
+    axes=(0, 1, 2),
+) -> np.ndarray:
     """(M, 3, N) demanded test gradients in mT/m (see module docstring); unused axes are zero."""
     rng = np.random.default_rng(seed)
     g = np.zeros((M, 3, N))
@@ -44,9 +51,17 @@ def probe_waveforms(M: int, N: int, dt_s: float = 10e-6, gmax_mT_per_m: float = 
     return g
 
 
-def simulate_measurement(true_model: HardwareModel, g: np.ndarray, dt_s: float, *, sigma_G: float | None = 0.01,
-                         sigma_k: float | None = None, sigma_b0: float | None = None, seed: int = 1,
-                         give_sigma: bool = False) -> IdentData:
+def simulate_measurement(
+    true_model: HardwareModel,
+    g: np.ndarray,
+    dt_s: float,
+    *,
+    sigma_G: float | None = 0.01,
+    sigma_k: float | None = None,
+    sigma_b0: float | None = None,
+    seed: int = 1,
+    give_sigma: bool = False,
+) -> IdentData:
     """Play ``g`` through ``true_model`` and add white noise.
 
     Args:
@@ -93,8 +108,14 @@ def save_measurement(d: IdentData, path, force: bool = False):
     return atomic_write_bytes(path, measurement_npz_bytes(d), force=force)
 
 
-def lowpass_girf(dt_s: float = 10e-6, bandwidth_hz: float = 12e3, cross: float = 0.01, cross_tau_s: float = 50e-6,
-                 b0_uT_per_mT_per_m: float | None = None, n_taps: int = 64):
+def lowpass_girf(
+    dt_s: float = 10e-6,
+    bandwidth_hz: float = 12e3,
+    cross: float = 0.01,
+    cross_tau_s: float = 50e-6,
+    b0_uT_per_mT_per_m: float | None = None,
+    n_taps: int = 64,
+):
     """A self-made, smooth GIRF for tests and examples (time domain, causal, 10 us taps by default).
 
     Self terms: a normalised gamma-shaped impulse response (second-order low-pass, -3 dB near

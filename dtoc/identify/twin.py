@@ -298,7 +298,9 @@ class Twin:
             fn = self._resid_of_u(free, targets)
             r, J = self._jacobian(fn, u)
             chi2 = _dot(r, r)
-        dof = max(int(np.count_nonzero(np.concatenate([t[1].numpy().reshape(-1) for t in targets.values()]))) - len(u), 1)
+        dof = max(
+            int(np.count_nonzero(np.concatenate([t[1].numpy().reshape(-1) for t in targets.values()]))) - len(u), 1
+        )
         JTJ = _gram(J)
         try:
             cov = np.linalg.pinv(JTJ, rcond=1e-12, hermitian=True) * max(1.0, chi2 / dof)

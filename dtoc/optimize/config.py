@@ -7,7 +7,7 @@ line.  Every field has a unit in its name where it has one.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -76,8 +76,8 @@ class OptimizeConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     method: Literal["dto", "adam-paper", "warmstart", "preemphasis"] = "dto"
-    gmax_mT_per_m: Optional[float] = Field(None, gt=0)
-    smax_T_per_m_per_s: Optional[float] = Field(None, gt=0)
+    gmax_mT_per_m: float | None = Field(None, gt=0)
+    smax_T_per_m_per_s: float | None = Field(None, gt=0)
     amp_margin: float = Field(0.005, ge=0, lt=0.5)
     slew_margin: float = Field(0.01, ge=0, lt=0.5)
     weights: LossWeights = Field(default_factory=LossWeights)
@@ -89,13 +89,13 @@ class OptimizeConfig(BaseModel):
     full_kspace_scale: float = Field(1.0, ge=0)
     sim_preset: Literal["fast", "default", "strict"] = "fast"
     sim_dtype: Literal["float32", "float64"] = "float32"
-    lr: Optional[float] = Field(None, gt=0)
+    lr: float | None = Field(None, gt=0)
     restarts: list[int] = Field(default_factory=list)
     augment_rotations: int = Field(0, ge=0)
     augment_max_deg: float = Field(90.0, ge=0, le=180)
     augment_every: int = Field(5, ge=1)
     discard: bool = True
-    phantom_size: Optional[int] = Field(None, ge=4)
+    phantom_size: int | None = Field(None, ge=4)
     n_dummies: int = Field(0, ge=0)
     seed: int = 0
     threads: int = Field(1, ge=1)
@@ -104,8 +104,14 @@ class OptimizeConfig(BaseModel):
 
 #: Defaults per sequence kind, applied below the config file.
 KIND_DEFAULTS: dict[str, dict] = {
-    "gre": {"weights": {"image": 1.0, "kspace": 1.0, "rf": 1.0, "moment": 0.1}, "lr": 0.05, "iters": 0, "n_dummies": 300,
-            "warm_iters": 300, "robust_rounds": 3},
+    "gre": {
+        "weights": {"image": 1.0, "kspace": 1.0, "rf": 1.0, "moment": 0.1},
+        "lr": 0.05,
+        "iters": 0,
+        "n_dummies": 300,
+        "warm_iters": 300,
+        "robust_rounds": 3,
+    },
     "epi": {"weights": {"image": 1.0, "kspace": 4.0, "rf": 1.0}, "lr": 0.01, "iters": 2, "n_dummies": 0},
 }
 

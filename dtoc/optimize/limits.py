@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from dtoc.errors import LimitError
 from dtoc.constants import AXES, GAMMA_RAD_PER_S_PER_MT
+from dtoc.errors import LimitError
 
 
 @dataclass(frozen=True)
@@ -129,8 +129,14 @@ class EdgeProjector:
             the fixed samples leave no waveform that meets them (empty reachability envelope).
     """
 
-    def __init__(self, base_edges_mT_per_m: np.ndarray, free_edges: np.ndarray, raster_s: float, limits: Limits,
-                 fixed_tol: float = 1e-6):
+    def __init__(
+        self,
+        base_edges_mT_per_m: np.ndarray,
+        free_edges: np.ndarray,
+        raster_s: float,
+        limits: Limits,
+        fixed_tol: float = 1e-6,
+    ):
         e0 = np.asarray(base_edges_mT_per_m, dtype=np.float64)
         free = np.asarray(free_edges, dtype=bool)
         if e0.ndim != 2 or e0.shape[0] != 3 or free.shape != e0.shape:
@@ -150,7 +156,8 @@ class EdgeProjector:
             a, n = np.argwhere(bad)[0]
             raise LimitError(
                 f"fixed (non-optimizable) gradient on {AXES[a]} at t={n * raster_s * 1e3:.3f} ms is "
-                f"{e0[a, n]:.4g} mT/m, beyond gmax {limits.gmax_mT_per_m:.4g} mT/m")
+                f"{e0[a, n]:.4g} mT/m, beyond gmax {limits.gmax_mT_per_m:.4g} mT/m"
+            )
         ff = fixed[:, 1:] & fixed[:, :-1]
         badslew = ff & (np.abs(np.diff(e0, axis=1)) > S_true * (1 + fixed_tol) + 1e-12)
         if badslew.any():
@@ -158,7 +165,8 @@ class EdgeProjector:
             raise LimitError(
                 f"fixed (non-optimizable) gradient on {AXES[a]} at t={n * raster_s * 1e3:.3f} ms slews "
                 f"{abs(e0[a, n + 1] - e0[a, n]) / raster_s * 1e-3:.4g} T/m/s, beyond smax "
-                f"{limits.smax_T_per_m_per_s:.4g} T/m/s")
+                f"{limits.smax_T_per_m_per_s:.4g} T/m/s"
+            )
         # reachability envelopes (exact distance transform, two sweeps per direction)
         n_e = e0.shape[1]
         lo = np.full(e0.shape, -G)
@@ -175,7 +183,8 @@ class EdgeProjector:
             a, n = np.argwhere(empty)[0]
             raise LimitError(
                 f"no waveform on {AXES[a]} meets gmax {limits.gmax_mT_per_m:.4g} mT/m and smax "
-                f"{limits.smax_T_per_m_per_s:.4g} T/m/s between the fixed samples near t={n * raster_s * 1e3:.3f} ms")
+                f"{limits.smax_T_per_m_per_s:.4g} T/m/s between the fixed samples near t={n * raster_s * 1e3:.3f} ms"
+            )
         # free-free neighbour pairs (fixed neighbours are folded into the envelopes)
         self.pair_free = free[:, 1:] & free[:, :-1]
         self.n_edges = n_e
@@ -206,14 +215,14 @@ class EdgeProjector:
         S = self.step
         y = x.copy()
         a = y[:, start:-1:2]
-        b = y[:, start + 1::2]
+        b = y[:, start + 1 :: 2]
         m = min(a.shape[1], b.shape[1])
         a, b = a[:, :m], b[:, :m]
         mask = self.pair_free[:, start::2][:, :m]
         d = b - a
         excess = np.where(mask, np.clip(np.abs(d) - S, 0.0, None), 0.0) * np.sign(d)
-        y[:, start:start + 2 * m:2] = a + 0.5 * excess
-        y[:, start + 1:start + 1 + 2 * m:2] = b - 0.5 * excess
+        y[:, start : start + 2 * m : 2] = a + 0.5 * excess
+        y[:, start + 1 : start + 1 + 2 * m : 2] = b - 0.5 * excess
         return y
 
     def _box(self, x: np.ndarray) -> np.ndarray:
@@ -314,7 +323,7 @@ def check_area_reachable(ir, limits: Limits, rel_tol: float = 1e-3) -> None:
     start = 0
     need = np.zeros(3)
     for adc in ir.adc:
-        seg = k0[:, start:start + adc.num_samples]
+        seg = k0[:, start : start + adc.num_samples]
         start += adc.num_samples
         if seg.shape[1] > 1:
             need = np.maximum(need, np.abs(np.diff(seg, axis=1)).max(axis=1) / (GAMMA_RAD_PER_S_PER_MT * adc.dwell_s))
@@ -322,4 +331,5 @@ def check_area_reachable(ir, limits: Limits, rel_tol: float = 1e-3) -> None:
     if need[a] > limits.gmax_mT_per_m * (1 + rel_tol):
         raise LimitError(
             f"gmax {limits.gmax_mT_per_m:.4g} mT/m is below the {need[a]:.4g} mT/m the readout on {AXES[a]} "
-            "needs to move between ADC samples: no waveform can sample the target k-space")
+            "needs to move between ADC samples: no waveform can sample the target k-space"
+        )

@@ -80,13 +80,22 @@ def build_context(ir, limits, dtype=torch.float64, device="cpu") -> LossContext:
     gref = float(np.abs(ir.grad_mT_per_m).max()) or 1.0
     # gradient moment accumulated up to each RF pulse (just before its centre): the dephasing per
     # repetition that spoiling and the higher-order echo pathways depend on
-    t_mom = np.array([r.t_center_s - 1e-9 for r in ir.rf[1:]], dtype=np.float64)  # before the first: no transverse state
+    t_mom = np.array(
+        [r.t_center_s - 1e-9 for r in ir.rf[1:]], dtype=np.float64
+    )  # before the first: no transverse state
     k0_mom = ir.kspace_rad_per_m(times_s=t_mom).to(dtype=dtype, device=device) if t_mom.size else None
     return LossContext(
-        k0_rad_per_m=k0, dk_rad_per_m=dk_t, rf_mask=torch.as_tensor(rf_mask_fine(ir), device=device),
-        g0_fine_mT_per_m=g0, g_ref_mT_per_m=gref, gmax_mT_per_m=limits.gmax_mT_per_m,
-        smax_T_per_m_per_s=limits.smax_T_per_m_per_s, dt_fine_s=ir.dt_fine_s,
-        t_moment_s=t_mom if t_mom.size else None, k0_moment_rad_per_m=k0_mom)
+        k0_rad_per_m=k0,
+        dk_rad_per_m=dk_t,
+        rf_mask=torch.as_tensor(rf_mask_fine(ir), device=device),
+        g0_fine_mT_per_m=g0,
+        g_ref_mT_per_m=gref,
+        gmax_mT_per_m=limits.gmax_mT_per_m,
+        smax_T_per_m_per_s=limits.smax_T_per_m_per_s,
+        dt_fine_s=ir.dt_fine_s,
+        t_moment_s=t_mom if t_mom.size else None,
+        k0_moment_rad_per_m=k0_mom,
+    )
 
 
 def kspace_term(k: torch.Tensor, ctx: LossContext) -> torch.Tensor:
@@ -127,16 +136,25 @@ def rf_term(G: torch.Tensor, ctx: LossContext) -> torch.Tensor:
     if not bool(ctx.rf_mask.any()):
         return G.new_zeros(())
     d = (G - ctx.g0_fine_mT_per_m)[:, ctx.rf_mask]
-    return (d ** 2).sum(0).mean() / ctx.g_ref_mT_per_m ** 2
+    return (d**2).sum(0).mean() / ctx.g_ref_mT_per_m**2
 
 
 def reg_term(g: torch.Tensor, ctx: LossContext) -> torch.Tensor:
-    return ((g - ctx.g0_fine_mT_per_m) ** 2).mean() / ctx.g_ref_mT_per_m ** 2
+    return ((g - ctx.g0_fine_mT_per_m) ** 2).mean() / ctx.g_ref_mT_per_m**2
 
 
-def total_loss(weights: LossWeights, ctx: LossContext, *, g: torch.Tensor, G: torch.Tensor, k: torch.Tensor,
-               images: list[torch.Tensor] | None = None, targets: list[torch.Tensor] | None = None,
-               include_reg: bool = False, k_moment: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+def total_loss(
+    weights: LossWeights,
+    ctx: LossContext,
+    *,
+    g: torch.Tensor,
+    G: torch.Tensor,
+    k: torch.Tensor,
+    images: list[torch.Tensor] | None = None,
+    targets: list[torch.Tensor] | None = None,
+    include_reg: bool = False,
+    k_moment: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, dict[str, float]]:
     """Weighted sum of the terms and their weighted values (floats, for the history).
 
     Args:

@@ -21,8 +21,8 @@ Everything is seeded and deterministic for fixed ``threads``.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import torch
@@ -40,7 +40,7 @@ class _Stop(Exception):
 def set_deterministic(seed: int, threads: int) -> None:
     """Seed torch/numpy, fix the thread count and ask torch for deterministic kernels."""
     torch.manual_seed(seed)
-    np.random.seed(seed % (2 ** 32))
+    np.random.seed(seed % (2**32))
     torch.set_num_threads(threads)
     torch.use_deterministic_algorithms(True, warn_only=True)
 
@@ -76,9 +76,18 @@ def _grad(f, x: torch.Tensor, free: torch.Tensor) -> tuple[torch.Tensor, float, 
     return torch.where(free, gx, torch.zeros_like(gx)), float(val.detach()), terms
 
 
-def warm_start(twin, ctx, weights, iters: int, state: StageState | None = None,
-               progress: ProgressFn | None = None, cg_fraction: float = 0.5, cg_tol: float = 1e-12,
-               rel_tol: float = 1e-7, x_init: torch.Tensor | None = None) -> torch.Tensor:
+def warm_start(
+    twin,
+    ctx,
+    weights,
+    iters: int,
+    state: StageState | None = None,
+    progress: ProgressFn | None = None,
+    cg_fraction: float = 0.5,
+    cg_tol: float = 1e-12,
+    rel_tol: float = 1e-7,
+    x_init: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Constrained least-squares pre-compensation of k-space (and RF-period gradient).
 
     Args:
@@ -179,8 +188,16 @@ def warm_start(twin, ctx, weights, iters: int, state: StageState | None = None,
     return x
 
 
-def robust_warm_start(twin, ctx, weights, iters: int, rounds: int = 2, scale_dk: float = 0.5,
-                      state: StageState | None = None, progress: ProgressFn | None = None) -> torch.Tensor:
+def robust_warm_start(
+    twin,
+    ctx,
+    weights,
+    iters: int,
+    rounds: int = 2,
+    scale_dk: float = 0.5,
+    state: StageState | None = None,
+    progress: ProgressFn | None = None,
+) -> torch.Tensor:
     """Warm start, then ``rounds`` of iteratively reweighted least squares on the k-space term.
 
     Samples whose k-space error stays large (unreachable within the limits) are down-weighted with
@@ -208,8 +225,7 @@ def robust_warm_start(twin, ctx, weights, iters: int, rounds: int = 2, scale_dk:
 # ---------------------------------------------------------------------------------------------------
 # full loss
 # ---------------------------------------------------------------------------------------------------
-def evaluate(twin, imager, ctx, weights, edges: torch.Tensor, idx: int = 0, keep_mask=None,
-             with_image: bool = True):
+def evaluate(twin, imager, ctx, weights, edges: torch.Tensor, idx: int = 0, keep_mask=None, with_image: bool = True):
     """Forward pass: returns (total loss tensor, term dict, dict of intermediate tensors)."""
     g = twin.played(edges)
     G, b0 = twin.realize(g)
@@ -219,8 +235,7 @@ def evaluate(twin, imager, ctx, weights, edges: torch.Tensor, idx: int = 0, keep
         sig = imager.signal(G, b0, idx)
         images = [imager.image(sig, keep_mask=keep_mask)]
         targets = [imager.targets[idx]]
-    total, terms = L.total_loss(weights, ctx, g=g, G=G, k=k, images=images, targets=targets,
-                                k_moment=twin.moments(G))
+    total, terms = L.total_loss(weights, ctx, g=g, G=G, k=k, images=images, targets=targets, k_moment=twin.moments(G))
     return total, terms, {"g": g, "G": G, "b0": b0, "k": k, "images": images}
 
 
@@ -234,9 +249,18 @@ def full_weights(cfg: OptimizeConfig):
     return w.model_copy(update={"kspace": w.kspace * cfg.full_kspace_scale})
 
 
-def full_loss(twin, imager, ctx, cfg: OptimizeConfig, edges0: torch.Tensor, state: StageState,
-              progress: ProgressFn | None = None, start_it: int = 0, paper: bool = False,
-              checkpoint: Callable[[torch.Tensor, int], None] | None = None) -> torch.Tensor:
+def full_loss(
+    twin,
+    imager,
+    ctx,
+    cfg: OptimizeConfig,
+    edges0: torch.Tensor,
+    state: StageState,
+    progress: ProgressFn | None = None,
+    start_it: int = 0,
+    paper: bool = False,
+    checkpoint: Callable[[torch.Tensor, int], None] | None = None,
+) -> torch.Tensor:
     """Projected Adam (or L-BFGS) on the full loss; returns the best edges (projected)."""
     P = twin.projector
     free = twin.free_t

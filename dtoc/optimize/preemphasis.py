@@ -43,8 +43,15 @@ def apply_preemphasis(g: torch.Tensor, dt_s: float, alphas, taus_s) -> torch.Ten
     return out
 
 
-def fit_preemphasis(hardware, g: np.ndarray, dt_s: float, n_terms: int = 2, init_taus_s=(1e-3, 0.1),
-                    init_alpha: float = 0.05, iters: int = 60) -> dict:
+def fit_preemphasis(
+    hardware,
+    g: np.ndarray,
+    dt_s: float,
+    n_terms: int = 2,
+    init_taus_s=(1e-3, 0.1),
+    init_alpha: float = 0.05,
+    iters: int = 60,
+) -> dict:
     """Fit (a_n, T_n) so that ``hardware(apply_preemphasis(g)) ~ g`` in the least-squares sense.
 
     Args:
@@ -58,7 +65,7 @@ def fit_preemphasis(hardware, g: np.ndarray, dt_s: float, n_terms: int = 2, init
     taus0 = list(init_taus_s)[:n_terms] + [1e-2] * max(0, n_terms - len(init_taus_s))
     la = torch.tensor([math.log(init_alpha)] * n_terms, dtype=torch.float64, requires_grad=True)
     lt = torch.tensor([math.log(t) for t in taus0], dtype=torch.float64, requires_grad=True)
-    scale = float((gt ** 2).mean()) or 1.0
+    scale = float((gt**2).mean()) or 1.0
 
     def resid(la_, lt_):
         gp = apply_preemphasis(gt, dt_s, torch.exp(la_), torch.exp(lt_))
@@ -81,8 +88,12 @@ def fit_preemphasis(hardware, g: np.ndarray, dt_s: float, n_terms: int = 2, init
         after = float((resid(la, lt) * scale).sqrt())
     order = np.argsort(torch.exp(lt).detach().numpy())
     la_d, lt_d = torch.exp(la.detach()), torch.exp(lt.detach())
-    return {"alpha": [float(la_d[i]) for i in order], "tau_s": [float(lt_d[i]) for i in order],
-            "rms_before_mT_per_m": before, "rms_after_mT_per_m": after}
+    return {
+        "alpha": [float(la_d[i]) for i in order],
+        "tau_s": [float(lt_d[i]) for i in order],
+        "rms_before_mT_per_m": before,
+        "rms_after_mT_per_m": after,
+    }
 
 
 def run_preemphasis(ir, twin, ctx, imager, limits) -> dict:
@@ -108,8 +119,12 @@ def run_preemphasis(ir, twin, ctx, imager, limits) -> dict:
         return {"edges": edges, "keep_mask": np.ones(ir.n_adc_samples, bool), "report": {**report, "fallback": None}}
     proj = P.project(edges, n_iter=60)
     keep, thr, nr = choose_discard(twin, imager, ctx, torch.as_tensor(proj))
-    projection = {"fallback": "constant-TE (projection + sample skipping)", "skip_threshold_dk": None if not math.isfinite(thr) else thr,
-                  "nrmse": nr, "skipped_fraction": float(np.mean(~keep))}
+    projection = {
+        "fallback": "constant-TE (projection + sample skipping)",
+        "skip_threshold_dk": None if not math.isfinite(thr) else thr,
+        "nrmse": nr,
+        "skipped_fraction": float(np.mean(~keep)),
+    }
     vte = variable_te(ir, twin, limits, fit)
     if vte is not None:
         report["variable_te"] = vte
@@ -117,8 +132,13 @@ def run_preemphasis(ir, twin, ctx, imager, limits) -> dict:
     if cte is None:
         report.update(projection)
         return {"edges": proj, "keep_mask": keep, "report": report}
-    report.update({"fallback": "constant-TE (k-space extent shrink, paper)", "shrink_dk": cte["n"],
-                   "projection_variant": projection})
+    report.update(
+        {
+            "fallback": "constant-TE (k-space extent shrink, paper)",
+            "shrink_dk": cte["n"],
+            "projection_variant": projection,
+        }
+    )
     return {"edges": P.project(cte["edges"], n_iter=60), "keep_mask": cte["keep_mask"], "report": report}
 
 
@@ -215,20 +235,20 @@ def constant_te(ir, twin, limits, fit, max_shrink: int | None = None, min_shrink
         lo_ky, hi_ky = levels[n], levels[len(levels) - 1 - n]
         for ln, kyl in zip(lines, ky):
             i_n, i_last = ln["idx"][n], ln["idx"][-1]
-            keep[ln["s"].start:ln["s"].start + n] = False
+            keep[ln["s"].start : ln["s"].start + n] = False
             kyc = float(np.clip(kyl, lo_ky, hi_ky))
             if abs(kyc - kyl) > 1e-6:
                 keep[ln["s"]] = False
             for ax in (ro, pe):
-                base_pre = _edge_area(e0[ax, ln["lo"]:i_n + 1])
-                base_post = _edge_area(e0[ax, i_last:ln["hi"] + 1])
+                base_pre = _edge_area(e0[ax, ln["lo"] : i_n + 1])
+                base_post = _edge_area(e0[ax, i_last : ln["hi"] + 1])
                 d = (kyc - kyl) * dk[pe] * to_area if ax == pe else 0.0
                 seg1 = _trapezoid(e0[ax, ln["lo"]], e0[ax, i_n], i_n - ln["lo"], base_pre + d, step)
                 seg2 = _trapezoid(e0[ax, i_last], e0[ax, ln["hi"]], ln["hi"] - i_last, base_post - d, step)
                 if seg1 is None or seg2 is None:
                     return None, None
-                e[ax, ln["lo"]:i_n + 1] = seg1
-                e[ax, i_last:ln["hi"] + 1] = seg2
+                e[ax, ln["lo"] : i_n + 1] = seg1
+                e[ax, i_last : ln["hi"] + 1] = seg2
         return e, keep
 
     for n in range(min_shrink, top + 1):
@@ -242,7 +262,6 @@ def constant_te(ir, twin, limits, fit, max_shrink: int | None = None, min_shrink
         if np.abs(fine).max() <= gmax:
             return {"n": n, "edges": pre, "keep_mask": keep}
     return None
-
 
 
 def variable_te(ir, twin, limits, fit, max_steps: int = 2000) -> dict | None:
@@ -269,12 +288,22 @@ def variable_te(ir, twin, limits, fit, max_steps: int = 2000) -> dict | None:
         sp_amp = sp_amp * spec.spoiler_duration_ms / sp_dur
     extra_tr_ms = sp_dur - spec.spoiler_duration_ms
     # ramps: the rebuilt base ramps at what pre-emphasis may still overdrive within smax
-    sys2 = spec.system.model_copy(update={"max_slew_T_per_m_per_s": min(spec.system.max_slew_T_per_m_per_s,
-                                                                        _emphasis_slew_T_per_m_per_s(limits, fit))})
+    sys2 = spec.system.model_copy(
+        update={
+            "max_slew_T_per_m_per_s": min(spec.system.max_slew_T_per_m_per_s, _emphasis_slew_T_per_m_per_s(limits, fit))
+        }
+    )
 
     def ok(i: int) -> bool:
-        s2 = spec.model_copy(update={"te_ms": spec.te_ms + i * step_ms, "tr_ms": spec.tr_ms + i * step_ms + extra_tr_ms,
-                                     "spoiler_mT_per_m": sp_amp, "spoiler_duration_ms": sp_dur, "system": sys2})
+        s2 = spec.model_copy(
+            update={
+                "te_ms": spec.te_ms + i * step_ms,
+                "tr_ms": spec.tr_ms + i * step_ms + extra_tr_ms,
+                "spoiler_mT_per_m": sp_amp,
+                "spoiler_duration_ms": sp_dur,
+                "system": sys2,
+            }
+        )
         try:
             ir2 = build_ir(s2)
         except DtocError:
@@ -291,8 +320,12 @@ def variable_te(ir, twin, limits, fit, max_steps: int = 2000) -> dict | None:
         lo, hi = hi, hi * 2
     if hi > max_steps:
         if not ok(max_steps):
-            return {"te_ms": None, "tr_ms": None, "note": f"no TE within +{max_steps * step_ms:.2f} ms meets the limits"
-                    + (f" (spoiler lowered to {sp_amp:.2f} mT/m over {sp_dur:.2f} ms)" if extra_tr_ms > 0 else "")}
+            return {
+                "te_ms": None,
+                "tr_ms": None,
+                "note": f"no TE within +{max_steps * step_ms:.2f} ms meets the limits"
+                + (f" (spoiler lowered to {sp_amp:.2f} mT/m over {sp_dur:.2f} ms)" if extra_tr_ms > 0 else ""),
+            }
         hi = max_steps
     while hi - lo > 1:
         mid = (lo + hi) // 2
@@ -302,6 +335,9 @@ def variable_te(ir, twin, limits, fit, max_steps: int = 2000) -> dict | None:
             lo = mid
     out = {"te_ms": round(spec.te_ms + hi * step_ms, 6), "tr_ms": round(spec.tr_ms + hi * step_ms + extra_tr_ms, 6)}
     if extra_tr_ms > 0:
-        out["spoiler"] = {"mT_per_m": round(sp_amp, 4), "duration_ms": round(sp_dur, 6),
-                          "note": "spoiler lowered to fit pre-emphasis within gmax, moment kept; TR includes its longer lobe"}
+        out["spoiler"] = {
+            "mT_per_m": round(sp_amp, 4),
+            "duration_ms": round(sp_dur, 6),
+            "note": "spoiler lowered to fit pre-emphasis within gmax, moment kept; TR includes its longer lobe",
+        }
     return out

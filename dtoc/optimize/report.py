@@ -70,8 +70,12 @@ def write_report_png(path, figures: dict, manifest: dict, force: bool = False):
         target = imgr.targets[0].abs().cpu().numpy()
         vmax = target.max()
         for j, (img, title) in enumerate(
-            ((target, "target I0"), (before.get("_image"), f"base: NRMSE {_pct(before.get('nrmse'))}"),
-             (after.get("_image"), f"optimized: NRMSE {_pct(after.get('nrmse'))}"))):
+            (
+                (target, "target I0"),
+                (before.get("_image"), f"base: NRMSE {_pct(before.get('nrmse'))}"),
+                (after.get("_image"), f"optimized: NRMSE {_pct(after.get('nrmse'))}"),
+            )
+        ):
             a = ax[1, j]
             if img is not None:
                 a.imshow(img, cmap="gray", vmin=0, vmax=vmax, origin="lower")
@@ -81,8 +85,10 @@ def write_report_png(path, figures: dict, manifest: dict, force: bool = False):
         for j in range(3):
             ax[1, j].axis("off")
     m = manifest
-    fig.suptitle(f"dtoc optimize ({m['options']['method']}): gmax {m['limits']['gmax_mT_per_m']:g} mT/m, "
-                 f"smax {m['limits']['smax_T_per_m_per_s']:g} T/m/s, skipped {m['samples_discarded']} samples")
+    fig.suptitle(
+        f"dtoc optimize ({m['options']['method']}): gmax {m['limits']['gmax_mT_per_m']:g} mT/m, "
+        f"smax {m['limits']['smax_T_per_m_per_s']:g} T/m/s, skipped {m['samples_discarded']} samples"
+    )
     return atomic_write_bytes(path, png_bytes(fig, dpi=90), force=force)
 
 

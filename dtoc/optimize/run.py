@@ -14,9 +14,9 @@ import os
 import platform
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -130,7 +130,9 @@ def quality(twin: Twin, imager: Imager | None, ctx, edges, keep_mask=None, playe
                 out["ghost_ratio"] = float(metrics.ghost_ratio(im, imager.targets[0], phase_dim=pdim))
                 # the ideal image's own energy in the ghost region (Gibbs ringing, T2* blurring along the
                 # echo train): the floor no gradient correction can go below; the excess is the hardware's
-                out["ghost_ratio_ideal"] = float(metrics.ghost_ratio(imager.targets[0], imager.targets[0], phase_dim=pdim))
+                out["ghost_ratio_ideal"] = float(
+                    metrics.ghost_ratio(imager.targets[0], imager.targets[0], phase_dim=pdim)
+                )
                 out["ghost_ratio_excess"] = out["ghost_ratio"] - out["ghost_ratio_ideal"]
             out["_image"] = im.abs().cpu().numpy()
         out["_k"] = k.cpu().numpy()
@@ -152,8 +154,14 @@ def save_checkpoint(path, edges, it: int, stage: str, history: list, config: Opt
 
     buf = io.BytesIO()
     e = edges.detach().cpu().numpy() if isinstance(edges, torch.Tensor) else np.asarray(edges)
-    np.savez(buf, edges_mT_per_m=e, it=np.int64(it), stage=np.array(stage),
-             history=np.array(json.dumps(history)), config=np.array(config.model_dump_json()))
+    np.savez(
+        buf,
+        edges_mT_per_m=e,
+        it=np.int64(it),
+        stage=np.array(stage),
+        history=np.array(json.dumps(history)),
+        config=np.array(config.model_dump_json()),
+    )
     return atomic_write_bytes(path, buf.getvalue(), force=force)
 
 
@@ -163,8 +171,7 @@ def load_checkpoint(path, n_edges: int) -> dict:
     try:
         with np.load(p, allow_pickle=False) as z:
             e = np.asarray(z["edges_mT_per_m"], dtype=np.float64)
-            out = {"edges": e, "it": int(z["it"]), "stage": str(z["stage"]),
-                   "history": json.loads(str(z["history"]))}
+            out = {"edges": e, "it": int(z["it"]), "stage": str(z["stage"]), "history": json.loads(str(z["history"]))}
     except FileNotFoundError:
         raise InputError(f"{p}: checkpoint not found") from None
     except Exception as e:  # noqa: BLE001
@@ -196,11 +203,26 @@ def _versions() -> dict:
     return out
 
 
-def optimize_sequence(base, *, out=None, girf=None, model=None, config: OptimizeConfig | None = None,
-                      config_path=None, manifest_path=None, png_path=None, force: bool = False,
-                      resume=None, checkpoint_path=None, device: str = "cpu", phantom=None,
-                      progress: Callable | None = None, hardware=None, with_image: bool | None = None,
-                      base_path=None) -> RunOutputs:
+def optimize_sequence(
+    base,
+    *,
+    out=None,
+    girf=None,
+    model=None,
+    config: OptimizeConfig | None = None,
+    config_path=None,
+    manifest_path=None,
+    png_path=None,
+    force: bool = False,
+    resume=None,
+    checkpoint_path=None,
+    device: str = "cpu",
+    phantom=None,
+    progress: Callable | None = None,
+    hardware=None,
+    with_image: bool | None = None,
+    base_path=None,
+) -> RunOutputs:
     """Run `dtoc optimize` (see the module doc).
 
     Args:
@@ -232,7 +254,9 @@ def optimize_sequence(base, *, out=None, girf=None, model=None, config: Optimize
     else:
         ir = base
     if not ir.adc:
-        raise InputError(f"{base if isinstance(base, (str, os.PathLike)) else 'sequence'}: has no ADC event: nothing to optimize for")
+        raise InputError(
+            f"{base if isinstance(base, (str, os.PathLike)) else 'sequence'}: has no ADC event: nothing to optimize for"
+        )
     cfg = config if config is not None else load_config(ir.kind, config_path)
     O.set_deterministic(cfg.seed, cfg.threads)
     if hardware is None:
@@ -289,8 +313,16 @@ def optimize_sequence(base, *, out=None, girf=None, model=None, config: Optimize
         if x is None:
             if cfg.method in ("dto", "warmstart"):
                 t0 = time.time()
-                x = O.robust_warm_start(twin, ctx, cfg.weights, cfg.warm_iters, rounds=cfg.robust_rounds,
-                                        scale_dk=cfg.robust_scale_dk, state=state, progress=progress)
+                x = O.robust_warm_start(
+                    twin,
+                    ctx,
+                    cfg.weights,
+                    cfg.warm_iters,
+                    rounds=cfg.robust_rounds,
+                    scale_dk=cfg.robust_scale_dk,
+                    state=state,
+                    progress=progress,
+                )
                 stage_times["warm_start_s"] = time.time() - t0
             else:
                 x = projector.project(twin.base_edges())
@@ -299,8 +331,18 @@ def optimize_sequence(base, *, out=None, girf=None, model=None, config: Optimize
             state.best_loss = math.inf
             opt_imager = _loop_imager(imager, cfg) if cfg.weights.image > 0 else None
             stage_times["loop_imager_s"] = time.time() - t0
-            x = O.full_loss(twin, opt_imager, ctx, cfg, x, state, progress,
-                            start_it=start_it, paper=cfg.method == "adam-paper", checkpoint=ckpt)
+            x = O.full_loss(
+                twin,
+                opt_imager,
+                ctx,
+                cfg,
+                x,
+                state,
+                progress,
+                start_it=start_it,
+                paper=cfg.method == "adam-paper",
+                checkpoint=ckpt,
+            )
             stage_times["full_loss_s"] = time.time() - t0
         if cfg.discard and imager is not None:
             t0 = time.time()
@@ -325,10 +367,19 @@ def optimize_sequence(base, *, out=None, girf=None, model=None, config: Optimize
         "dtoc_optimize": 1,
         "inputs": _inputs(base_path if base_path is not None else base, girf, model, config_path, resume),
         "options": json.loads(cfg.model_dump_json()),
-        "limits": {"gmax_mT_per_m": limits.gmax_mT_per_m, "smax_T_per_m_per_s": limits.smax_T_per_m_per_s,
-                   "amp_margin": limits.amp_margin, "slew_margin": limits.slew_margin},
-        "sequence": {"kind": ir.kind, "n_adc_samples": ir.n_adc_samples, "raster_s": ir.raster_s,
-                     "n_free_variables": int(free.sum()), "duration_s": ir.duration_s},
+        "limits": {
+            "gmax_mT_per_m": limits.gmax_mT_per_m,
+            "smax_T_per_m_per_s": limits.smax_T_per_m_per_s,
+            "amp_margin": limits.amp_margin,
+            "slew_margin": limits.slew_margin,
+        },
+        "sequence": {
+            "kind": ir.kind,
+            "n_adc_samples": ir.n_adc_samples,
+            "raster_s": ir.raster_s,
+            "n_free_variables": int(free.sum()),
+            "duration_s": ir.duration_s,
+        },
         "versions": _versions(),
         "device": str(device),
         "phantom": _phantom_record(phantom),
@@ -383,8 +434,11 @@ def _check_system_limits(ir_out, limits: Limits) -> None:
         from dtoc.seq.check import check_ir_limits
     except ImportError:  # validator not available: the per-axis check above stands
         return
-    sysspec = SystemSpec(max_grad_mT_per_m=limits.gmax_mT_per_m, max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
-                         grad_raster_s=ir_out.raster_s)
+    sysspec = SystemSpec(
+        max_grad_mT_per_m=limits.gmax_mT_per_m,
+        max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
+        grad_raster_s=ir_out.raster_s,
+    )
     v = check_ir_limits(ir_out, sysspec)
     if v:
         raise LimitError(f"exported waveform fails the validator: {v[0].message}; nothing written")
@@ -403,9 +457,12 @@ def _write_checked(ir_out, out, force: bool, limits: Limits) -> dict:
             from dtoc.seq.check import check_file
             from dtoc.seq.system import SystemSpec
 
-            sysspec = SystemSpec(max_grad_mT_per_m=limits.gmax_mT_per_m,
-                                 max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
-                                 grad_raster_s=ir_out.raster_s, block_raster_s=_block_raster(ir_out))
+            sysspec = SystemSpec(
+                max_grad_mT_per_m=limits.gmax_mT_per_m,
+                max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
+                grad_raster_s=ir_out.raster_s,
+                block_raster_s=_block_raster(ir_out),
+            )
             res = check_file(tmp, sysspec)
             lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector"}
             bad = [v for v in res.violations if v.rule in lim_rules]

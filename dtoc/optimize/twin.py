@@ -9,7 +9,7 @@ part (phantoms, their target images, the simulator).  Units: mT/m, uT, rad/m, s.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -91,8 +91,16 @@ class Imager:
         n_dummies: dummy repetitions for the steady-state initial magnetisation (0: none).
     """
 
-    def __init__(self, ir, phantoms: list, n_dummies: int = 0, dtype=torch.float64, device="cpu",
-                 config=None, mz0: list | None = None):
+    def __init__(
+        self,
+        ir,
+        phantoms: list,
+        n_dummies: int = 0,
+        dtype=torch.float64,
+        device="cpu",
+        config=None,
+        mz0: list | None = None,
+    ):
         from dtoc.sim import pdg, recon
 
         self.ir = ir
@@ -118,17 +126,27 @@ class Imager:
                 sig = self.signal(None, None, len(self.mz0) - 1)
                 self.targets.append(self.image(sig).detach())
 
-    def with_config(self, config, dtype) -> "Imager":
+    def with_config(self, config, dtype) -> Imager:
         """The same phantoms and steady state through a different simulator preset / precision
         (e.g. ``PDGConfig.fast()`` and float32 inside the optimizer loop); targets re-simulated with it,
         so image and target share the preset's pruning."""
-        return Imager(self.ir, self.phantoms, self.n_dummies, dtype=dtype, device=self.device, config=config,
-                      mz0=self.mz0)
+        return Imager(
+            self.ir, self.phantoms, self.n_dummies, dtype=dtype, device=self.device, config=config, mz0=self.mz0
+        )
 
     def signal(self, G_fine, b0_uT, idx: int) -> torch.Tensor:
         """(n_coils, N_adc) complex signal of phantom ``idx`` for a realized waveform (None = base)."""
-        return self._pdg.simulate(self.ir, self.phantoms[idx], grad_mT_per_m=G_fine, b0_uT=b0_uT, graph=self.graph,
-                                  config=self.config, initial_mz=self.mz0[idx], dtype=self.dtype, device=self.device)
+        return self._pdg.simulate(
+            self.ir,
+            self.phantoms[idx],
+            grad_mT_per_m=G_fine,
+            b0_uT=b0_uT,
+            graph=self.graph,
+            config=self.config,
+            initial_mz=self.mz0[idx],
+            dtype=self.dtype,
+            device=self.device,
+        )
 
     def image(self, signal, keep_mask=None) -> torch.Tensor:
         """Image by plain iFFT onto the target grid (keep_mask: (N_adc,) bool, False = discarded)."""

@@ -137,12 +137,18 @@ def _build_gre(spec: GreSpec):
     dwell = spec.dwell_us * 1e-6
     t_adc = n * dwell
     if abs(t_adc / r - round(t_adc / r)) > 1e-6:
-        raise InputError(f"{spec.name}: ADC duration matrix x dwell_us = {t_adc * 1e6:g} us is not a multiple of the gradient raster")
+        raise InputError(
+            f"{spec.name}: ADC duration matrix x dwell_us = {t_adc * 1e6:g} us is not a multiple of the gradient raster"
+        )
     t_rf_period = _round_r(spec.rf_period_ms * 1e-3, r)
     guard = max(sysd.rf_dead_time_s, sysd.rf_ringdown_time_s)
     rf_dur = spec.rf_duration_ms * 1e-3 if spec.rf_duration_ms else t_rf_period - 2 * guard
     rf_delay = _round_r((t_rf_period - rf_dur) / 2, sysd.rf_raster_s)
-    if rf_dur <= 0 or rf_delay < sysd.rf_dead_time_s - _EPS or t_rf_period - rf_delay - rf_dur < sysd.rf_ringdown_time_s - _EPS:
+    if (
+        rf_dur <= 0
+        or rf_delay < sysd.rf_dead_time_s - _EPS
+        or t_rf_period - rf_delay - rf_dur < sysd.rf_ringdown_time_s - _EPS
+    ):
         raise InputError(
             f"{spec.name}: rf_period_ms {spec.rf_period_ms:g} cannot hold the pulse with the system's RF dead time and ring-down"
         )
@@ -164,7 +170,9 @@ def _build_gre(spec: GreSpec):
     if te_min is None:
         raise InputError(f"{spec.name}: no prewinder fits the system limits for this FOV/matrix")
     if t_pre < -_EPS or te_actual < te_min - 1e-9:
-        raise InputError(f"{spec.name}: te_ms {spec.te_ms:g} is shorter than the minimum {te_min * 1e3:.3f} ms for this spec")
+        raise InputError(
+            f"{spec.name}: te_ms {spec.te_ms:g} is shorter than the minimum {te_min * 1e3:.3f} ms for this spec"
+        )
     pre = _prewinder(pre_area, g_ro, t_pre, gmax, smax, r)
     # spoiler lobe on x: g_ro -> gs (flat) -> 0 within spoiler_duration
     gs = _hz(spec.spoiler_mT_per_m)
@@ -177,7 +185,9 @@ def _build_gre(spec: GreSpec):
     t_ramp_down = _ceil_r(g_ro / smax, r)
     need = t_sp if gs > 0 else t_ramp_down
     if t_rest < need - _EPS:
-        raise InputError(f"{spec.name}: tr_ms {spec.tr_ms:g} is too short (needs at least {(spec.tr_ms * 1e-3 - t_rest + need) * 1e3:.3f} ms)")
+        raise InputError(
+            f"{spec.name}: tr_ms {spec.tr_ms:g} is too short (needs at least {(spec.tr_ms * 1e-3 - t_rest + need) * 1e3:.3f} ms)"
+        )
     if gs > 0:
         sp_t = [0.0, r3, t_sp - r4, t_sp] if r3 > 0 else [0.0, t_sp - r4, t_sp]
         sp_a = [g_ro, gs, gs, 0.0] if r3 > 0 else [g_ro, gs, 0.0]
@@ -235,10 +245,14 @@ def _build_epi(spec: EpiSpec):
     dwell = spec.dwell_us * 1e-6
     t_adc = n * dwell
     if abs(t_adc / r - round(t_adc / r)) > 1e-6:
-        raise InputError(f"{spec.name}: ADC duration matrix x dwell_us = {t_adc * 1e6:g} us is not a multiple of the gradient raster")
+        raise InputError(
+            f"{spec.name}: ADC duration matrix x dwell_us = {t_adc * 1e6:g} us is not a multiple of the gradient raster"
+        )
     esp = spec.echo_spacing_ms * 1e-3
     if abs(esp / r - round(esp / r)) > 1e-6:
-        raise InputError(f"{spec.name}: echo_spacing_ms {spec.echo_spacing_ms:g} is not a multiple of the gradient raster")
+        raise InputError(
+            f"{spec.name}: echo_spacing_ms {spec.echo_spacing_ms:g} is not a multiple of the gradient raster"
+        )
     esp = _round_r(esp, r)
     t_tr = esp - t_adc
     if t_tr < 2 * r - _EPS:
@@ -247,7 +261,9 @@ def _build_epi(spec: EpiSpec):
         )
     g_ro = dk / dwell
     if g_ro > gmax * (1 + 1e-9):
-        raise InputError(f"{spec.name}: readout gradient {g_ro / GAMMA_HZ_PER_T * 1e3:.2f} mT/m exceeds the system's max_grad_mT_per_m")
+        raise InputError(
+            f"{spec.name}: readout gradient {g_ro / GAMMA_HZ_PER_T * 1e3:.2f} mT/m exceeds the system's max_grad_mT_per_m"
+        )
     # excitation
     try:
         rf, gz, gzr = pp.make_sinc_pulse(
@@ -286,7 +302,9 @@ def _build_epi(spec: EpiSpec):
     t_fill = 0.0
     if spec.te_ms is not None:
         if spec.te_ms * 1e-3 < te_min - 1e-9:
-            raise InputError(f"{spec.name}: te_ms {spec.te_ms:g} is shorter than the minimum {te_min * 1e3:.3f} ms for this spec")
+            raise InputError(
+                f"{spec.name}: te_ms {spec.te_ms:g} is shorter than the minimum {te_min * 1e3:.3f} ms for this spec"
+            )
         t_fill = _round_r(spec.te_ms * 1e-3 - te_min, r)
     te_actual = te_min + t_fill
 

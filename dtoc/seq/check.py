@@ -115,15 +115,30 @@ def check_ir_limits(ir: SequenceIR, system: SystemSpec, grad_mT_per_m=None) -> l
             i = sel[np.argmax(np.abs(vals[sel]))]
             v = float(abs(vals[i]))
             out.append(
-                Violation(rule, nums[int(b)], axis, v, limit, unit,
-                          f"{what} {v:.4g} {unit} > {limit:.4g} at t = {i * dtf * 1e3:.3f} ms")
+                Violation(
+                    rule,
+                    nums[int(b)],
+                    axis,
+                    v,
+                    limit,
+                    unit,
+                    f"{what} {v:.4g} {unit} > {limit:.4g} at t = {i * dtf * 1e3:.3f} ms",
+                )
             )
 
     for a in range(3):
         worst("grad_amplitude", g[a], smp_block, system.max_grad_mT_per_m, "mT/m", AXES[a], f"|g{AXES[a]}|")
         worst("slew_rate", slew[a], seg_block, system.max_slew_T_per_m_per_s, "T/m/s", AXES[a], f"|dg{AXES[a]}/dt|")
     worst("grad_vector", np.linalg.norm(g, axis=0), smp_block, system.vector_grad_limit_mT_per_m, "mT/m", None, "|g|")
-    worst("slew_vector", np.linalg.norm(slew, axis=0), seg_block, system.vector_slew_limit_T_per_m_per_s, "T/m/s", None, "|dg/dt|")
+    worst(
+        "slew_vector",
+        np.linalg.norm(slew, axis=0),
+        seg_block,
+        system.vector_slew_limit_T_per_m_per_s,
+        "T/m/s",
+        None,
+        "|dg/dt|",
+    )
     return out
 
 
@@ -136,8 +151,12 @@ def system_from_definitions(defs: dict) -> SystemSpec | None:
     except (KeyError, TypeError, ValueError):
         return None
     kw = {"name": "file definitions", "max_grad_mT_per_m": g, "max_slew_T_per_m_per_s": s}
-    for key, f in (("GradientRasterTime", "grad_raster_s"), ("RadiofrequencyRasterTime", "rf_raster_s"),
-                   ("AdcRasterTime", "adc_raster_s"), ("BlockDurationRaster", "block_raster_s")):
+    for key, f in (
+        ("GradientRasterTime", "grad_raster_s"),
+        ("RadiofrequencyRasterTime", "rf_raster_s"),
+        ("AdcRasterTime", "adc_raster_s"),
+        ("BlockDurationRaster", "block_raster_s"),
+    ):
         try:
             kw[f] = float(defs[key])
         except (KeyError, TypeError, ValueError):
@@ -147,8 +166,10 @@ def system_from_definitions(defs: dict) -> SystemSpec | None:
     except ValidationError as e:
         from dtoc.seq.system import format_validation_error
 
-        raise InputError(f"the limits recorded in the file's definitions are invalid ({format_validation_error(e)}); "
-                         "give them with --gmax/--smax or --system") from None
+        raise InputError(
+            f"the limits recorded in the file's definitions are invalid ({format_validation_error(e)}); "
+            "give them with --gmax/--smax or --system"
+        ) from None
 
 
 def _on_raster(t: float, r: float) -> bool:
@@ -172,17 +193,30 @@ def _text_rules(st, system: SystemSpec, out: list[Violation]) -> None:
             t = ln.tokens
             for c in idx:
                 if c < len(t) and not re.fullmatch(r"[+-]?\d+", t[c]):
-                    out.append(Violation("integer_format", message=f"line {ln.lineno} {sec} field {c + 1}: {t[c]!r} is not a plain integer"))
+                    out.append(
+                        Violation(
+                            "integer_format",
+                            message=f"line {ln.lineno} {sec} field {c + 1}: {t[c]!r} is not a plain integer",
+                        )
+                    )
     for ln in st.sections.get("[SHAPES]", []):
         t = ln.tokens
         if len(t) == 2 and t[0] in ("shape_id", "num_samples") and not re.fullmatch(r"\d+", t[1]):
-            out.append(Violation("integer_format", message=f"line {ln.lineno} [SHAPES] {t[0]}: {t[1]!r} is not a plain integer"))
+            out.append(
+                Violation(
+                    "integer_format", message=f"line {ln.lineno} [SHAPES] {t[0]}: {t[1]!r} is not a plain integer"
+                )
+            )
     defs = st.definitions()
     for key in system.required_definitions:
         if key not in defs:
             out.append(Violation("definitions", message=f"required definition {key} is missing"))
-    for key, want in (("GradientRasterTime", system.grad_raster_s), ("RadiofrequencyRasterTime", system.rf_raster_s),
-                      ("AdcRasterTime", system.adc_raster_s), ("BlockDurationRaster", system.block_raster_s)):
+    for key, want in (
+        ("GradientRasterTime", system.grad_raster_s),
+        ("RadiofrequencyRasterTime", system.rf_raster_s),
+        ("AdcRasterTime", system.adc_raster_s),
+        ("BlockDurationRaster", system.block_raster_s),
+    ):
         if key in defs:
             try:
                 v = float(defs[key])
@@ -190,7 +224,15 @@ def _text_rules(st, system: SystemSpec, out: list[Violation]) -> None:
                 out.append(Violation("definitions", message=f"definition {key} {defs[key]!r} is not a number"))
                 continue
             if abs(v - want) > 1e-12:
-                out.append(Violation("raster", value=v, limit=want, unit="s", message=f"{key} {v:g} s differs from the system's {want:g} s"))
+                out.append(
+                    Violation(
+                        "raster",
+                        value=v,
+                        limit=want,
+                        unit="s",
+                        message=f"{key} {v:g} s differs from the system's {want:g} s",
+                    )
+                )
 
 
 def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) -> None:
@@ -205,8 +247,17 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
             blk = seq.get_block(key)
         dur = float(seq.block_durations[key])
         if not _on_raster(dur, system.block_raster_s):
-            out.append(Violation("block_raster", key, None, dur * 1e6, system.block_raster_s * 1e6, "us",
-                                 f"duration {dur * 1e6:.3f} us is not a multiple of the block raster"))
+            out.append(
+                Violation(
+                    "block_raster",
+                    key,
+                    None,
+                    dur * 1e6,
+                    system.block_raster_s * 1e6,
+                    "us",
+                    f"duration {dur * 1e6:.3f} us is not a multiple of the block raster",
+                )
+            )
         first = np.zeros(3)
         last = np.zeros(3)
         for a, ch in enumerate(("gx", "gy", "gz")):
@@ -215,61 +266,224 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
                 continue
             tv, vv = _grad_vertices(gr, r)
             if not _on_raster(gr.delay, r):
-                out.append(Violation("grad_raster", key, AXES[a], gr.delay * 1e6, r * 1e6, "us", "gradient delay not on the gradient raster"))
+                out.append(
+                    Violation(
+                        "grad_raster",
+                        key,
+                        AXES[a],
+                        gr.delay * 1e6,
+                        r * 1e6,
+                        "us",
+                        "gradient delay not on the gradient raster",
+                    )
+                )
             if gr.type == "trap":
                 for nm in ("rise_time", "flat_time", "fall_time"):
                     if not _on_raster(getattr(gr, nm), r):
-                        out.append(Violation("grad_raster", key, AXES[a], getattr(gr, nm) * 1e6, r * 1e6, "us", f"trapezoid {nm} not on the gradient raster"))
+                        out.append(
+                            Violation(
+                                "grad_raster",
+                                key,
+                                AXES[a],
+                                getattr(gr, nm) * 1e6,
+                                r * 1e6,
+                                "us",
+                                f"trapezoid {nm} not on the gradient raster",
+                            )
+                        )
             elif gr.time_id not in (0, -1) and any(not _on_raster(t, r) for t in gr.tt):
-                out.append(Violation("grad_raster", key, AXES[a], None, r * 1e6, "us", "extended-trapezoid vertex not on the gradient raster"))
+                out.append(
+                    Violation(
+                        "grad_raster",
+                        key,
+                        AXES[a],
+                        None,
+                        r * 1e6,
+                        "us",
+                        "extended-trapezoid vertex not on the gradient raster",
+                    )
+                )
             if tv[-1] > dur + _TTOL:
-                out.append(Violation("block_duration", key, AXES[a], tv[-1] * 1e6, dur * 1e6, "us", "gradient ends after its block"))
+                out.append(
+                    Violation(
+                        "block_duration", key, AXES[a], tv[-1] * 1e6, dur * 1e6, "us", "gradient ends after its block"
+                    )
+                )
             if tv[0] <= _TTOL:
                 first[a] = vv[0]
             elif abs(vv[0]) > tol:
-                out.append(Violation("grad_start_nonzero", key, AXES[a], abs(vv[0]), tol, "Hz/m", "gradient starting after the block start does not start at zero"))
+                out.append(
+                    Violation(
+                        "grad_start_nonzero",
+                        key,
+                        AXES[a],
+                        abs(vv[0]),
+                        tol,
+                        "Hz/m",
+                        "gradient starting after the block start does not start at zero",
+                    )
+                )
             if tv[-1] >= dur - _TTOL:
                 last[a] = vv[-1]
             elif abs(vv[-1]) > tol:
-                out.append(Violation("grad_end_nonzero", key, AXES[a], abs(vv[-1]), tol, "Hz/m",
-                                     f"gradient ends at {vv[-1]:.6g} Hz/m before the block end ({tv[-1] * 1e6:.1f} of {dur * 1e6:.1f} us)"))
+                out.append(
+                    Violation(
+                        "grad_end_nonzero",
+                        key,
+                        AXES[a],
+                        abs(vv[-1]),
+                        tol,
+                        "Hz/m",
+                        f"gradient ends at {vv[-1]:.6g} Hz/m before the block end ({tv[-1] * 1e6:.1f} of {dur * 1e6:.1f} us)",
+                    )
+                )
         for a in range(3):
             jump = abs(first[a] - prev_last[a])
             if jump > tol:
                 what = "sequence starts" if b == 0 else f"jump from block {keys[b - 1]}"
-                out.append(Violation("continuity", key, AXES[a], jump, tol, "Hz/m", f"{what}: {prev_last[a]:.6g} -> {first[a]:.6g} Hz/m"))
+                out.append(
+                    Violation(
+                        "continuity",
+                        key,
+                        AXES[a],
+                        jump,
+                        tol,
+                        "Hz/m",
+                        f"{what}: {prev_last[a]:.6g} -> {first[a]:.6g} Hz/m",
+                    )
+                )
         prev_last = last
         rf = getattr(blk, "rf", None)
         if rf is not None:
             if rf.delay < system.rf_dead_time_s - _TTOL:
-                out.append(Violation("rf_dead_time", key, None, rf.delay * 1e6, system.rf_dead_time_s * 1e6, "us", "RF delay shorter than the RF dead time"))
+                out.append(
+                    Violation(
+                        "rf_dead_time",
+                        key,
+                        None,
+                        rf.delay * 1e6,
+                        system.rf_dead_time_s * 1e6,
+                        "us",
+                        "RF delay shorter than the RF dead time",
+                    )
+                )
             tail = dur - (rf.delay + rf.shape_dur)
             if tail < system.rf_ringdown_time_s - _TTOL:
-                out.append(Violation("rf_ringdown", key, None, tail * 1e6, system.rf_ringdown_time_s * 1e6, "us", "time from RF end to block end shorter than the ring-down time"))
+                out.append(
+                    Violation(
+                        "rf_ringdown",
+                        key,
+                        None,
+                        tail * 1e6,
+                        system.rf_ringdown_time_s * 1e6,
+                        "us",
+                        "time from RF end to block end shorter than the ring-down time",
+                    )
+                )
             if not _on_raster(rf.delay, system.rf_raster_s):
-                out.append(Violation("rf_raster", key, None, rf.delay * 1e6, system.rf_raster_s * 1e6, "us", "RF delay not on the RF raster"))
+                out.append(
+                    Violation(
+                        "rf_raster",
+                        key,
+                        None,
+                        rf.delay * 1e6,
+                        system.rf_raster_s * 1e6,
+                        "us",
+                        "RF delay not on the RF raster",
+                    )
+                )
         adc = getattr(blk, "adc", None)
         if adc is not None:
             end = adc.delay + adc.num_samples * adc.dwell
             if adc.delay < system.adc_dead_time_s - _TTOL:
-                out.append(Violation("adc_dead_time", key, None, adc.delay * 1e6, system.adc_dead_time_s * 1e6, "us", "ADC delay shorter than the ADC dead time"))
+                out.append(
+                    Violation(
+                        "adc_dead_time",
+                        key,
+                        None,
+                        adc.delay * 1e6,
+                        system.adc_dead_time_s * 1e6,
+                        "us",
+                        "ADC delay shorter than the ADC dead time",
+                    )
+                )
             if dur - end < system.adc_dead_time_s - _TTOL:
-                out.append(Violation("adc_dead_time", key, None, (dur - end) * 1e6, system.adc_dead_time_s * 1e6, "us", "time from ADC end to block end shorter than the ADC dead time"))
+                out.append(
+                    Violation(
+                        "adc_dead_time",
+                        key,
+                        None,
+                        (dur - end) * 1e6,
+                        system.adc_dead_time_s * 1e6,
+                        "us",
+                        "time from ADC end to block end shorter than the ADC dead time",
+                    )
+                )
             if end > dur + _TTOL:
-                out.append(Violation("block_duration", key, None, end * 1e6, dur * 1e6, "us", "ADC ends after its block"))
+                out.append(
+                    Violation("block_duration", key, None, end * 1e6, dur * 1e6, "us", "ADC ends after its block")
+                )
             if not _on_raster(adc.dwell, system.adc_raster_s):
-                out.append(Violation("adc_raster", key, None, adc.dwell * 1e9, system.adc_raster_s * 1e9, "ns", "ADC dwell not on the ADC raster"))
+                out.append(
+                    Violation(
+                        "adc_raster",
+                        key,
+                        None,
+                        adc.dwell * 1e9,
+                        system.adc_raster_s * 1e9,
+                        "ns",
+                        "ADC dwell not on the ADC raster",
+                    )
+                )
             if not _on_raster(adc.delay, system.rf_raster_s):
-                out.append(Violation("adc_raster", key, None, adc.delay * 1e6, system.rf_raster_s * 1e6, "us", "ADC delay not on the RF raster"))
+                out.append(
+                    Violation(
+                        "adc_raster",
+                        key,
+                        None,
+                        adc.delay * 1e6,
+                        system.rf_raster_s * 1e6,
+                        "us",
+                        "ADC delay not on the RF raster",
+                    )
+                )
             if adc.num_samples % system.adc_samples_divisor:
-                out.append(Violation("adc_samples", key, None, adc.num_samples, system.adc_samples_divisor, "",
-                                     f"{adc.num_samples} samples is not a multiple of {system.adc_samples_divisor}"))
+                out.append(
+                    Violation(
+                        "adc_samples",
+                        key,
+                        None,
+                        adc.num_samples,
+                        system.adc_samples_divisor,
+                        "",
+                        f"{adc.num_samples} samples is not a multiple of {system.adc_samples_divisor}",
+                    )
+                )
             if adc.num_samples > system.adc_max_samples:
-                out.append(Violation("adc_samples", key, None, adc.num_samples, system.adc_max_samples, "",
-                                     f"{adc.num_samples} samples exceeds {system.adc_max_samples} per ADC"))
+                out.append(
+                    Violation(
+                        "adc_samples",
+                        key,
+                        None,
+                        adc.num_samples,
+                        system.adc_max_samples,
+                        "",
+                        f"{adc.num_samples} samples exceeds {system.adc_max_samples} per ADC",
+                    )
+                )
     for a in range(3):
         if abs(prev_last[a]) > tol:
-            out.append(Violation("grad_end_nonzero", keys[-1], AXES[a], abs(prev_last[a]), tol, "Hz/m", "sequence ends with a non-zero gradient"))
+            out.append(
+                Violation(
+                    "grad_end_nonzero",
+                    keys[-1],
+                    AXES[a],
+                    abs(prev_last[a]),
+                    tol,
+                    "Hz/m",
+                    "sequence ends with a non-zero gradient",
+                )
+            )
 
 
 def check_file(path: str | Path, system: SystemSpec | None = None) -> CheckResult:

@@ -31,16 +31,25 @@ class DiffResult:
         return not self.differences
 
     def to_dict(self) -> dict:
-        return {"a": self.a, "b": self.b, "rtol": self.rtol, "atol": self.atol, "same": self.same,
-                "n_differences": self.n_differences, "n_listed": len(self.differences),
-                "differences": self.differences}
+        return {
+            "a": self.a,
+            "b": self.b,
+            "rtol": self.rtol,
+            "atol": self.atol,
+            "same": self.same,
+            "n_differences": self.n_differences,
+            "n_listed": len(self.differences),
+            "differences": self.differences,
+        }
 
 
 def _close(x: float, y: float, rtol: float, atol: float) -> bool:
     return abs(x - y) <= atol + rtol * abs(y)
 
 
-def diff_ir(ia, ib, rtol: float = 1e-6, atol: float = 1e-9, a: str = "A", b: str = "B", max_items: int = 50) -> DiffResult:
+def diff_ir(
+    ia, ib, rtol: float = 1e-6, atol: float = 1e-9, a: str = "A", b: str = "B", max_items: int = 50
+) -> DiffResult:
     """Compare two :class:`SequenceIR` (with their definitions and events)."""
     res = DiffResult(str(a), str(b), rtol, atol)
     d = res.differences
@@ -74,7 +83,12 @@ def diff_ir(ia, ib, rtol: float = 1e-6, atol: float = 1e-9, a: str = "A", b: str
             add("block_duration", f"block {i + 1} (s)", float(f"{dur_a[i]:.9g}"), float(f"{dur_b[i]:.9g}"))
     # RF / ADC events
     for name, la, lb, fields in (
-        ("rf", ia.rf, ib.rf, ("block", "t_start_s", "t_center_s", "duration_s", "flip_angle_rad", "phase_rad", "freq_offset_hz", "use")),
+        (
+            "rf",
+            ia.rf,
+            ib.rf,
+            ("block", "t_start_s", "t_center_s", "duration_s", "flip_angle_rad", "phase_rad", "freq_offset_hz", "use"),
+        ),
         ("adc", ia.adc, ib.adc, ("block", "t_start_s", "num_samples", "dwell_s", "phase_rad", "freq_offset_hz")),
     ):
         if len(la) != len(lb):
@@ -100,8 +114,12 @@ def diff_ir(ia, ib, rtol: float = 1e-6, atol: float = 1e-9, a: str = "A", b: str
             if bad.size:
                 i = int(bad[np.argmax(err[bad])])
                 blk = int(ia.block_of_fine_index(np.array([i]))[0]) + 1
-                add("gradient", f"{AXES[ax]}: {bad.size} samples differ, worst at t = {i * ia.dt_fine_s * 1e3:.4f} ms (block {blk})",
-                    float(ga[ax, i]), float(gb[ax, i]))
+                add(
+                    "gradient",
+                    f"{AXES[ax]}: {bad.size} samples differ, worst at t = {i * ia.dt_fine_s * 1e3:.4f} ms (block {blk})",
+                    float(ga[ax, i]),
+                    float(gb[ax, i]),
+                )
     return res
 
 

@@ -189,7 +189,7 @@ class SequenceIR:
         return np.array([2 * np.pi / f if f else np.inf for f in self.fov_m])
 
     # ---- edits -------------------------------------------------------------------------------
-    def with_grad(self, grad_mT_per_m: np.ndarray) -> "SequenceIR":
+    def with_grad(self, grad_mT_per_m: np.ndarray) -> SequenceIR:
         """A copy with another demanded gradient (same grid); ``source`` is shared, not copied."""
         g = np.asarray(grad_mT_per_m, dtype=np.float64)
         if g.shape != self.grad_mT_per_m.shape:

@@ -12,7 +12,7 @@ the centre of the last excitation pulse; a refocusing pulse negates k (as pypuls
 
 from __future__ import annotations
 
-from typing import Sequence as _Seq
+from collections.abc import Sequence as _Seq
 
 import numpy as np
 import torch

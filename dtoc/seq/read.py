@@ -252,7 +252,12 @@ def from_pypulseq(
     # gradient at RF centres (slice selection)
     t_fine = np.arange(n_fine) * dtf
     rf_events = [
-        RFEvent(**{**r.__dict__, "grad_at_center_mT_per_m": tuple(float(np.interp(r.t_center_s, t_fine, g[a])) for a in range(3))})
+        RFEvent(
+            **{
+                **r.__dict__,
+                "grad_at_center_mT_per_m": tuple(float(np.interp(r.t_center_s, t_fine, g[a])) for a in range(3)),
+            }
+        )
         for r in rf_events
     ]
     defs = _plain_definitions(seq.definitions)

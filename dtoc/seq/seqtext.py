@@ -136,7 +136,9 @@ def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
             continue
         if current is None:
             if p.suffix.lower() in (".yaml", ".yml") or re.match(r"^[A-Za-z_]\w*:(\s|$)", s):
-                raise _err(p, "a spec YAML, not a Pulseq .seq file: build it first with 'dtoc build SPEC.yaml -o base.seq'")
+                raise _err(
+                    p, "a spec YAML, not a Pulseq .seq file: build it first with 'dtoc build SPEC.yaml -o base.seq'"
+                )
             raise _err(p, f"line {i}: content before the first section: {s[:40]!r}")
         st.sections[current].append(SeqLine(i, s))
     if "[VERSION]" not in st.sections:
@@ -181,8 +183,11 @@ def _check_definitions(st: SeqText, p: Path) -> None:
             except ValueError:
                 v = float("nan")
             if not (0 < v < 1):
-                raise _err(p, f"line {ln.lineno}: definition {parts[0]} must be one positive time in s (below 1 s), "
-                              f"got {' '.join(parts[1:])[:30]!r}")
+                raise _err(
+                    p,
+                    f"line {ln.lineno}: definition {parts[0]} must be one positive time in s (below 1 s), "
+                    f"got {' '.join(parts[1:])[:30]!r}",
+                )
 
 
 def _check_structure(st: SeqText, p: Path) -> None:
@@ -244,8 +249,13 @@ def _check_structure(st: SeqText, p: Path) -> None:
     grad_ids = ids["[GRADIENTS]"] | ids["[TRAP]"]
     for ln in st.sections["[BLOCKS]"]:
         t = [int(float(x)) for x in ln.tokens]
-        refs = (("RF", t[2], ids["[RF]"]), ("gradient", t[3], grad_ids), ("gradient", t[4], grad_ids),
-                ("gradient", t[5], grad_ids), ("ADC", t[6], ids["[ADC]"]))
+        refs = (
+            ("RF", t[2], ids["[RF]"]),
+            ("gradient", t[3], grad_ids),
+            ("gradient", t[4], grad_ids),
+            ("gradient", t[5], grad_ids),
+            ("ADC", t[6], ids["[ADC]"]),
+        )
         for name, ref, have in refs:
             if ref and ref not in have:
                 raise _err(p, f"line {ln.lineno}: block {t[0]} uses {name} {ref}, which is not defined{hint}")
@@ -282,7 +292,10 @@ def verify_signature(st: SeqText, require: bool = True) -> None:
         raise _err(st.path, f"unsupported signature type {st.signature_type!r} (expected md5)")
     got = st.content_md5()
     if got != st.signature_hash:
-        raise _err(st.path, f"signature mismatch: md5 of content is {got}, file says {st.signature_hash} (modified after writing?)")
+        raise _err(
+            st.path,
+            f"signature mismatch: md5 of content is {got}, file says {st.signature_hash} (modified after writing?)",
+        )
 
 
 def sign_text(body: str | bytes) -> bytes:
@@ -292,11 +305,14 @@ def sign_text(body: str | bytes) -> bytes:
     if i >= 0:
         b = b[:i]
     md5 = hashlib.md5(b).hexdigest()
-    return b + (
-        "\n[SIGNATURE]\n"
-        "# This is the hash of the Pulseq file, calculated right before the [SIGNATURE] section was added\n"
-        "# It can be reproduced/verified with md5sum if the file trimmed to the position right above [SIGNATURE]\n"
-        "# The new line character preceding [SIGNATURE] BELONGS to the signature (and needs to be stripped away for "
-        "recalculating/verification)\n"
-        f"Type md5\nHash {md5}\n"
-    ).encode("utf-8")
+    return (
+        b
+        + (
+            "\n[SIGNATURE]\n"
+            "# This is the hash of the Pulseq file, calculated right before the [SIGNATURE] section was added\n"
+            "# It can be reproduced/verified with md5sum if the file trimmed to the position right above [SIGNATURE]\n"
+            "# The new line character preceding [SIGNATURE] BELONGS to the signature (and needs to be stripped away for "
+            "recalculating/verification)\n"
+            f"Type md5\nHash {md5}\n"
+        ).encode()
+    )

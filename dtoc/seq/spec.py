@@ -14,7 +14,7 @@ single-shot 2D EPI).  Readout is on x, phase encoding on y, slice on z.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
@@ -74,7 +74,9 @@ class GreSpec(BaseSpec):
     spoiler_mT_per_m: float = Field(17.6, ge=0, description="readout spoiler amplitude, mT/m")
     spoiler_duration_ms: float = Field(2.0, ge=0, description="spoiler lobe duration from the ADC end, ms")
     rewind_phase: bool = Field(True, description="phase-encode rewinder in the spoiler block")
-    system: SystemSpec = SystemSpec(max_grad_mT_per_m=50.0, max_slew_T_per_m_per_s=500.0, name="paper-gre-unconstrained")
+    system: SystemSpec = SystemSpec(
+        max_grad_mT_per_m=50.0, max_slew_T_per_m_per_s=500.0, name="paper-gre-unconstrained"
+    )
 
 
 class EpiSpec(BaseSpec):
@@ -96,7 +98,7 @@ class EpiSpec(BaseSpec):
     system: SystemSpec = SystemSpec()
 
 
-Spec = Annotated[Union[GreSpec, EpiSpec], Field(discriminator="kind")]
+Spec = Annotated[GreSpec | EpiSpec, Field(discriminator="kind")]
 _ADAPTER = TypeAdapter(Spec)
 
 

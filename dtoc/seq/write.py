@@ -31,7 +31,7 @@ from dtoc.constants import AXES, hz_per_m_from_mT_per_m
 from dtoc.errors import DtocError
 from dtoc.seq.ir import SequenceIR
 
-_ORIG_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_ORIG_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 #: a block/axis counts as changed when any fine sample moved by more than this, mT/m
 CHANGE_TOL_MT_PER_M = 1e-9
 

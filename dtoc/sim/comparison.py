@@ -9,8 +9,9 @@ acquisition *is* the ideal one (same tensor), so its NRMSE is exactly 0.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch

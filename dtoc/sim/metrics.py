@@ -99,7 +99,11 @@ def kspace_errors(k_rad_per_m, k0_rad_per_m, dk_rad_per_m=None, mask=None) -> di
         m = np.asarray(mask, dtype=bool)
         k, k0 = k[:, m], k0[:, m]
     if k.shape[1] == 0:
-        return {"kspace_rmse_rad_per_m": 0.0, "kspace_max_err_rad_per_m": 0.0, "kspace_max_err_dk": 0.0 if dk_rad_per_m is not None else None}
+        return {
+            "kspace_rmse_rad_per_m": 0.0,
+            "kspace_max_err_rad_per_m": 0.0,
+            "kspace_max_err_dk": 0.0 if dk_rad_per_m is not None else None,
+        }
     e = k - k0
     norm = np.sqrt((e**2).sum(0))
     out = {"kspace_rmse_rad_per_m": float(np.sqrt(np.mean(norm**2))), "kspace_max_err_rad_per_m": float(norm.max())}

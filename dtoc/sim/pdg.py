@@ -22,9 +22,10 @@ from __future__ import annotations
 import torch
 
 from dtoc.seq.ir import SequenceIR
-from dtoc.sim.phantom import Phantom
 from dtoc.sim.pdg_config import PDGConfig
-from dtoc.sim.pdg_graph import PDGGraph, build_graph as _build_graph
+from dtoc.sim.pdg_graph import PDGGraph
+from dtoc.sim.pdg_graph import build_graph as _build_graph
+from dtoc.sim.phantom import Phantom
 
 __all__ = ["PDGConfig", "PDGGraph", "build_graph", "simulate", "steady_state_mz"]
 

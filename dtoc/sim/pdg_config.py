@@ -94,7 +94,7 @@ class PDGConfig:
     tissue_quantum: float = 0.0
 
     @classmethod
-    def fast(cls, **overrides) -> "PDGConfig":
+    def fast(cls, **overrides) -> PDGConfig:
         """Preset with about MRzeroCore-default accuracy: signal thresholds 1e-4, magnitude 1e-5.
 
         Paper GRE (32x32, 32 TRs, RF spoiling) on the 3 T brain phantom: image NRMSE 1.4 % against
@@ -103,6 +103,11 @@ class PDGConfig:
         return cls(**{**dict(min_magnitude=1e-5, min_latent_signal=1e-4, min_emitted_signal=1e-4), **overrides})
 
     @classmethod
-    def strict(cls, **overrides) -> "PDGConfig":
+    def strict(cls, **overrides) -> PDGConfig:
         """Reference preset: thresholds 1e-8 (magnitude 1e-9), no state cap; ~5x the states of the defaults."""
-        return cls(**{**dict(min_magnitude=1e-9, min_latent_signal=1e-8, min_emitted_signal=1e-8, max_states=100000), **overrides})
+        return cls(
+            **{
+                **dict(min_magnitude=1e-9, min_latent_signal=1e-8, min_emitted_signal=1e-8, max_states=100000),
+                **overrides,
+            }
+        )

@@ -76,7 +76,7 @@ def _factor(step: Step, b: torch.Tensor | None, D: torch.Tensor | None, S: int) 
     # exp(-b D + log E) in place: three passes over (S, V), no concatenated E
     x = torch.outer(-b, D)
     x[: step.nT] -= step.dt * step.r2[None, :]
-    x[step.nT:] -= step.dt * step.r1[None, :]
+    x[step.nT :] -= step.dt * step.r1[None, :]
     return x.exp_()
 
 
@@ -88,7 +88,9 @@ def _rf(step: Step, A_end: torch.Tensor, rec: torch.Tensor) -> torch.Tensor:
     return A
 
 
-def propagate(steps: list[Step], A0: torch.Tensor, bs: list, D, rec: list, final_state: bool, save: str = "none", sink=None):
+def propagate(
+    steps: list[Step], A0: torch.Tensor, bs: list, D, rec: list, final_state: bool, save: str = "none", sink=None
+):
     """Forward recursion (no autograd).  Returns (emitting rows per interval (None where none), final A, saved).
 
     ``save``: 'none', 'full' (A_end and fac per interval) or 'recompute' (A_n only; fac and A_end
@@ -201,12 +203,20 @@ def make_steps(graph, ir, vox, bounds_t, cdtype, with_signal: bool, rf_coefficie
             ck = ("edges", str(dev), n)
             if ck not in cache:
                 at_eq = np.where(nxt.edge_parent == iv.eq_index)[0]
-                cache[ck] = (_groups(nxt.edge_kind, nxt.edge_parent, nxt.edge_child, CONJ_NP, dev),
-                                  (torch.as_tensor(nxt.edge_kind[at_eq], device=dev), torch.as_tensor(nxt.edge_child[at_eq], device=dev))
-                                  if at_eq.size else None)
+                cache[ck] = (
+                    _groups(nxt.edge_kind, nxt.edge_parent, nxt.edge_child, CONJ_NP, dev),
+                    (
+                        torch.as_tensor(nxt.edge_kind[at_eq], device=dev),
+                        torch.as_tensor(nxt.edge_child[at_eq], device=dev),
+                    )
+                    if at_eq.size
+                    else None,
+                )
             groups, eq_edges = cache[ck]
             n_next = nxt.n_states
-        steps.append(Step(iv.n_states, nT, E1, E2, dt, vox.r1, vox.r2, emit, coefs, groups, n_next, eq_edges, iv.eq_index))
+        steps.append(
+            Step(iv.n_states, nT, E1, E2, dt, vox.r1, vox.r2, emit, coefs, groups, n_next, eq_edges, iv.eq_index)
+        )
         rec.append(rc)
     return steps, rec
 

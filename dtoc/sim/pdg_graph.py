@@ -147,10 +147,16 @@ def rf_edge_coefficients_np(flip_rad: float, phase_rad: float, b1: np.ndarray) -
     """(6, P) complex edge coefficients (module table) for relative B1 values ``b1`` (P,)."""
     a = flip_rad * np.asarray(b1, dtype=np.float64)
     e1 = np.exp(1j * phase_rad)
-    return np.stack([
-        np.cos(a / 2) ** 2 + 0j, e1 * e1 * np.sin(a / 2) ** 2, -1j * np.conj(e1) * np.sin(a),
-        -0.5j * e1 * np.sin(a), -0.5j * e1 * np.sin(a), np.cos(a) + 0j,
-    ])
+    return np.stack(
+        [
+            np.cos(a / 2) ** 2 + 0j,
+            e1 * e1 * np.sin(a / 2) ** 2,
+            -1j * np.conj(e1) * np.sin(a),
+            -0.5j * e1 * np.sin(a),
+            -0.5j * e1 * np.sin(a),
+            np.cos(a) + 0j,
+        ]
+    )
 
 
 def voxel_envelope(k_rad_per_m: np.ndarray, voxel_m: tuple, shape: str) -> np.ndarray:
@@ -324,7 +330,9 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
     cfg = config
     bnd = _bounds(ir, cfg, phantom)
     tau_ignored = bool(
-        phantom is not None and not np.any(phantom.b0_hz[phantom.pd > 0]) and np.all(np.isinf(phantom.t2dash_s[phantom.pd > 0]))
+        phantom is not None
+        and not np.any(phantom.b0_hz[phantom.pd > 0])
+        and np.all(np.isinf(phantom.t2dash_s[phantom.pd > 0]))
     )
 
     # --- events --------------------------------------------------------------------------------
@@ -367,7 +375,9 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
     e_child = e_par = e_kind = e_cand = np.zeros(0, dtype=np.int64)
     e_cand = np.zeros(0)
     for n in range(NI):
-        raw.append(dict(is_z=is_z, k=k, tau=tau, mag=mag, eq=eq, e_child=e_child, e_par=e_par, e_kind=e_kind, e_cand=e_cand))
+        raw.append(
+            dict(is_z=is_z, k=k, tau=tau, mag=mag, eq=eq, e_child=e_child, e_par=e_par, e_kind=e_kind, e_cand=e_cand)
+        )
         if n == NI - 1:
             break
         dt = dt_int[n]
@@ -466,13 +476,29 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
             zi = np.where(R["is_z"])[0]
             e[zi] = envelope(R["k"][zi]) * np.exp(-np.abs(R["tau"][zi]) / bnd.t2d)
         emit_b.append(e)
-    ctx = dict(raw=raw, ir=ir, rf_order=rf_order, bnd=bnd, dt_int=dt_int, adc_lo=adc_lo, adc_hi=adc_hi, bounds_t=bounds_t, cfg=cfg)
+    ctx = dict(
+        raw=raw,
+        ir=ir,
+        rf_order=rf_order,
+        bnd=bnd,
+        dt_int=dt_int,
+        adc_lo=adc_lo,
+        adc_hi=adc_hi,
+        bounds_t=bounds_t,
+        cfg=cfg,
+    )
     intervals, keeps = _prune(ctx, emit_b, _latent(ctx, emit_b))
 
     def graph_of(ivs):
         return PDGGraph(
-            intervals=ivs, rf_order=rf_order, adc_times_s=adc_t, adc_order=adc_order, adc_phase_rad=adc_ph,
-            tau_ignored=tau_ignored, config=cfg, n_fine=ir.n_fine,
+            intervals=ivs,
+            rf_order=rf_order,
+            adc_times_s=adc_t,
+            adc_order=adc_order,
+            adc_phase_rad=adc_ph,
+            tau_ignored=tau_ignored,
+            config=cfg,
+            n_fine=ir.n_fine,
         )
 
     graph = graph_of(intervals)
@@ -569,10 +595,21 @@ def _prune(ctx, emit_b, latent, restrict=None) -> tuple[list, list]:
         emit = newi[np.where(em)[0]] if adc_hi[n] > adc_lo[n] else np.zeros(0, dtype=np.int64)
         intervals.append(
             IntervalGraph(
-                t_start_s=float(bounds_t[n]), t_end_s=float(bounds_t[n + 1]), is_z=is_z, tau_s=R["tau"][sel],
-                k_nom_rad_per_m=R["k"][sel], eq_index=eqn, edge_child=ec.astype(np.int64), edge_parent=ep.astype(np.int64),
-                edge_kind=ek.astype(np.int64), rep_parent=rep.astype(np.int64), rep_conj=rconj, emit=emit.astype(np.int64),
-                adc_start=int(adc_lo[n]), adc_stop=int(adc_hi[n]), mag=R["mag"][sel],
+                t_start_s=float(bounds_t[n]),
+                t_end_s=float(bounds_t[n + 1]),
+                is_z=is_z,
+                tau_s=R["tau"][sel],
+                k_nom_rad_per_m=R["k"][sel],
+                eq_index=eqn,
+                edge_child=ec.astype(np.int64),
+                edge_parent=ep.astype(np.int64),
+                edge_kind=ek.astype(np.int64),
+                rep_parent=rep.astype(np.int64),
+                rep_conj=rconj,
+                emit=emit.astype(np.int64),
+                adc_start=int(adc_lo[n]),
+                adc_stop=int(adc_hi[n]),
+                mag=R["mag"][sel],
             )
         )
         prev_keep = keepm

@@ -30,7 +30,9 @@ def _complex_dtype(dtype):
     raise InputError(f"simulate: dtype must be torch.float32 or torch.float64, got {dtype}")
 
 
-def rf_coefficients(flip_rad: float, phase_rad: float, b1: torch.Tensor, cdtype, cache: dict | None = None) -> torch.Tensor:
+def rf_coefficients(
+    flip_rad: float, phase_rad: float, b1: torch.Tensor, cdtype, cache: dict | None = None
+) -> torch.Tensor:
     """(6, V) complex edge coefficients of one RF pulse per voxel (kinds of the pdg_graph table).
 
     ``cache``: optional dict; the phase-free rows (trigonometry of the B1-scaled flip, (6, V)) are
@@ -54,11 +56,29 @@ def rf_coefficients(flip_rad: float, phase_rad: float, b1: torch.Tensor, cdtype,
     e1 = complex(np.cos(phase_rad), np.sin(phase_rad))
     e2 = complex(np.cos(2 * phase_rad), np.sin(2 * phase_rad))
     em1 = e1.conjugate()
-    rows = [c2.to(cdtype), e2 * s2.to(cdtype), (-1j * em1) * s.to(cdtype), (-0.5j * e1) * s.to(cdtype), (-0.5j * e1) * s.to(cdtype), c.to(cdtype)]
+    rows = [
+        c2.to(cdtype),
+        e2 * s2.to(cdtype),
+        (-1j * em1) * s.to(cdtype),
+        (-0.5j * e1) * s.to(cdtype),
+        (-0.5j * e1) * s.to(cdtype),
+        c.to(cdtype),
+    ]
     return torch.stack(rows)
 
 
-def _prepare(ir: SequenceIR, phantom, graph: PDGGraph | None, cfg: PDGConfig, grad, b0_uT, initial_mz, dtype, device, final_z=False):
+def _prepare(
+    ir: SequenceIR,
+    phantom,
+    graph: PDGGraph | None,
+    cfg: PDGConfig,
+    grad,
+    b0_uT,
+    initial_mz,
+    dtype,
+    device,
+    final_z=False,
+):
     if phantom is None:
         raise InputError("simulate: a phantom is required")
     if graph is None:
@@ -70,14 +90,18 @@ def _prepare(ir: SequenceIR, phantom, graph: PDGGraph | None, cfg: PDGConfig, gr
         )
     vox = VoxelData.from_phantom(phantom, initial_mz, dtype, device, cfg)
     if graph.tau_ignored and (vox.has_b0 or vox.has_t2d):
-        raise InputError("simulate: graph was built for a phantom without B0 and T2' (tau merged); rebuild it for this phantom")
+        raise InputError(
+            "simulate: graph was built for a phantom without B0 and T2' (tau merged); rebuild it for this phantom"
+        )
     if grad is None:
         grad = torch.as_tensor(ir.grad_mT_per_m, dtype=torch.float64, device=device)
     else:
         if not isinstance(grad, torch.Tensor):
             grad = torch.as_tensor(np.asarray(grad, dtype=np.float64))
         if tuple(grad.shape) != tuple(ir.grad_mT_per_m.shape):
-            raise InputError(f"simulate: grad_mT_per_m has shape {tuple(grad.shape)}, expected {tuple(ir.grad_mT_per_m.shape)} (3, 2N+1)")
+            raise InputError(
+                f"simulate: grad_mT_per_m has shape {tuple(grad.shape)}, expected {tuple(ir.grad_mT_per_m.shape)} (3, 2N+1)"
+            )
         grad = grad.to(device)
     if b0_uT is not None:
         b0_uT = torch.as_tensor(b0_uT, device=device)
@@ -135,7 +159,10 @@ def _apply_rf(nxt, A_end, rec, eq_prev, K_end, coefs):
         A_new.index_add_(0, torch.as_tensor(child[at_eq], device=dev), cf * rec.to(A_end.dtype)[None, :])
     rep = nxt.rep_parent
     sgn = np.where(rep < 0, 0.0, np.where(nxt.rep_conj, -1.0, 1.0))
-    K_new = K_end.index_select(0, torch.as_tensor(np.maximum(rep, 0), device=dev)) * torch.as_tensor(sgn, dtype=K_end.dtype, device=dev)[:, None]
+    K_new = (
+        K_end.index_select(0, torch.as_tensor(np.maximum(rep, 0), device=dev))
+        * torch.as_tensor(sgn, dtype=K_end.dtype, device=dev)[:, None]
+    )
     return A_new, K_new
 
 
@@ -145,8 +172,14 @@ def _k_and_b(iv, K, mom, n, vox, dt, tr_t):
     K_end = K + tr_t[:, None].to(K.dtype) * dM[None, :]
     if not vox.has_diffusion:
         return K_end, None
-    b = _b_integral(K[:, :3], mom.I_bound[n][:3][None, :], mom.J1_bound[n + 1] - mom.J1_bound[n],
-                    mom.J2_bound[n + 1] - mom.J2_bound[n], dt, tr_t)
+    b = _b_integral(
+        K[:, :3],
+        mom.I_bound[n][:3][None, :],
+        mom.J1_bound[n + 1] - mom.J1_bound[n],
+        mom.J2_bound[n + 1] - mom.J2_bound[n],
+        dt,
+        tr_t,
+    )
     return K_end, b.to(vox.r1.dtype)
 
 
@@ -209,8 +242,14 @@ def _k_and_b_all(graph, C, mom, vox, bounds_t, final_state):
     own = torch.as_tensor(np.repeat(np.arange(NI), sizes), device=dev)
     tr_all = torch.as_tensor(np.concatenate([~iv.is_z for iv in ivs]), device=dev)
     dt = torch.as_tensor(np.diff(np.asarray(bounds_t, dtype=np.float64)), device=dev).index_select(0, own)
-    b = _b_integral(K_all[:, :3], mom.I_bound[:-1, :3].index_select(0, own), (mom.J1_bound[1:] - mom.J1_bound[:-1]).index_select(0, own),
-                    (mom.J2_bound[1:] - mom.J2_bound[:-1]).index_select(0, own), dt, tr_all)
+    b = _b_integral(
+        K_all[:, :3],
+        mom.I_bound[:-1, :3].index_select(0, own),
+        (mom.J1_bound[1:] - mom.J1_bound[:-1]).index_select(0, own),
+        (mom.J2_bound[1:] - mom.J2_bound[:-1]).index_select(0, own),
+        dt,
+        tr_all,
+    )
     bs = list(torch.split(b.to(vox.r1.dtype), sizes, 0))
     if not final_state:
         bs[-1] = None
@@ -221,7 +260,10 @@ def _next_k(nxt, K_end):
     rep = nxt.rep_parent
     dev = K_end.device
     sgn = np.where(rep < 0, 0.0, np.where(nxt.rep_conj, -1.0, 1.0))
-    return K_end.index_select(0, torch.as_tensor(np.maximum(rep, 0), device=dev)) * torch.as_tensor(sgn, dtype=K_end.dtype, device=dev)[:, None]
+    return (
+        K_end.index_select(0, torch.as_tensor(np.maximum(rep, 0), device=dev))
+        * torch.as_tensor(sgn, dtype=K_end.dtype, device=dev)[:, None]
+    )
 
 
 def _emit_view(iv):
@@ -234,7 +276,9 @@ def _emit_view(iv):
     return sub
 
 
-def _loop(ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_signal: bool, final_state: bool, probe=None):
+def _loop(
+    ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_signal: bool, final_state: bool, probe=None
+):
     """Main loop: k recursion (autograd, (S, 4) per interval), amplitudes by :mod:`dtoc.sim.pdg_evolve`
     (one autograd node with a hand-written adjoint), then the signal of every emitting interval."""
     from dtoc.sim.pdg_evolve import make_steps, propagate, run_propagation
@@ -366,7 +410,15 @@ class _SignalBatcher:
         """``Kjs``: per interval, the k (J, 4) of its emitting states (see :func:`_emitting_k`);
         ``probe``: if a dict, the batched path records there the per-state peak |signal| (interval ->
         (J,) array, see :func:`emission_peaks`)."""
-        self.graph, self.steps, self.Kjs, self.mom, self.vox, self.bounds_t, self.cfg = graph, steps, Kjs, mom, vox, bounds_t, cfg
+        self.graph, self.steps, self.Kjs, self.mom, self.vox, self.bounds_t, self.cfg = (
+            graph,
+            steps,
+            Kjs,
+            mom,
+            vox,
+            bounds_t,
+            cfg,
+        )
         self.probe = probe
         self.expand = expand or (lambda A: A)
         self.budget = 4 * cfg.chunk_elems  # larger kernels: per-interval path (chunked, checkpointed)
@@ -384,7 +436,12 @@ class _SignalBatcher:
         if method == "auto":
             method = "separable" if (T >= 256 and iv.emit.size <= 8) else "gemm"
         if method != "gemm" or vox.n_coils * T * vox.n > self.budget:
-            self.pieces.append((iv.adc_start, emit_signal(_emit_view(iv), self.expand(Y), Kj, self.mom, n, vox, self.graph, self.bounds_t, cfg)))
+            self.pieces.append(
+                (
+                    iv.adc_start,
+                    emit_signal(_emit_view(iv), self.expand(Y), Kj, self.mom, n, vox, self.graph, self.bounds_t, cfg),
+                )
+            )
             return
         cost = vox.n_coils * vox.n * (T + Y.shape[0])
         items, used = self.pending.get(T, ([], 0))
@@ -397,8 +454,12 @@ class _SignalBatcher:
     def _flush(self, items) -> None:
         from dtoc.sim.pdg_signal_batch import emit_signal_batched
 
-        for (n, ivv, _, _), s in zip(items, emit_signal_batched(items, self.mom, self.vox, self.graph, self.bounds_t, self.cfg, self.expand,
-                                                                    probe=self.probe)):
+        for (n, ivv, _, _), s in zip(
+            items,
+            emit_signal_batched(
+                items, self.mom, self.vox, self.graph, self.bounds_t, self.cfg, self.expand, probe=self.probe
+            ),
+        ):
             self.pieces.append((ivv.adc_start, s))
 
     def finish(self) -> list:
@@ -547,15 +608,34 @@ def _dummy_train(ir: SequenceIR, n: int, block_range, rf_spoil_rad: float = 0.0)
         dphi = q(d) - (q(d % len(reps)) if block_range is None else 0.0)
         for r in ir.rf:
             if b0 <= r.block < b1:
-                rfs.append(_replace(r, block=len(bedges) - 1 + (r.block - b0), t_start_s=r.t_start_s + shift,
-                                    t_center_s=r.t_center_s + shift, phase_rad=float(np.angle(np.exp(1j * (r.phase_rad + dphi))))))
+                rfs.append(
+                    _replace(
+                        r,
+                        block=len(bedges) - 1 + (r.block - b0),
+                        t_start_s=r.t_start_s + shift,
+                        t_center_s=r.t_center_s + shift,
+                        phase_rad=float(np.angle(np.exp(1j * (r.phase_rad + dphi)))),
+                    )
+                )
         for b in range(b0 + 1, b1 + 1):
             bedges.append(edges[b] + shift)
         t_off += (m1 - m0) * dtf
     last = reps[(n - 1) % len(reps)][1]
-    g = np.concatenate(segs + [ir.grad_mT_per_m[:, int(round(edges[last] / dtf)) : int(round(edges[last] / dtf)) + 1]], axis=1)
-    return _IR(raster_s=ir.raster_s, grad_mT_per_m=g, block_edges_s=np.array(bedges), rf=rfs, adc=[], fov_m=ir.fov_m, matrix=ir.matrix,
-               kind=ir.kind, readout_axis=ir.readout_axis, phase_axis=ir.phase_axis)
+    g = np.concatenate(
+        segs + [ir.grad_mT_per_m[:, int(round(edges[last] / dtf)) : int(round(edges[last] / dtf)) + 1]], axis=1
+    )
+    return _IR(
+        raster_s=ir.raster_s,
+        grad_mT_per_m=g,
+        block_edges_s=np.array(bedges),
+        rf=rfs,
+        adc=[],
+        fov_m=ir.fov_m,
+        matrix=ir.matrix,
+        kind=ir.kind,
+        readout_axis=ir.readout_axis,
+        phase_axis=ir.phase_axis,
+    )
 
 
 def run_dummies(ir, phantom, n_dummies, block_range, cfg, dtype, device, rf_spoil_rad=None):

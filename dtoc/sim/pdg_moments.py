@@ -50,8 +50,15 @@ def _k_waveform(grad_mT_per_m: torch.Tensor, b0_uT: torch.Tensor | None) -> torc
     return torch.cat([g, b], dim=0)
 
 
-def compute_moments(grad_mT_per_m: torch.Tensor, b0_uT: torch.Tensor | None, dt_s: float, bound_t_s: np.ndarray,
-                    adc_t_s: np.ndarray, diffusion: bool, fused: bool = True) -> Moments:
+def compute_moments(
+    grad_mT_per_m: torch.Tensor,
+    b0_uT: torch.Tensor | None,
+    dt_s: float,
+    bound_t_s: np.ndarray,
+    adc_t_s: np.ndarray,
+    diffusion: bool,
+    fused: bool = True,
+) -> Moments:
     """Running k-integrals (and diffusion moments) at the interval bounds and ADC samples.
 
     With ``fused`` (default) the integrals are one autograd node with a hand-written adjoint

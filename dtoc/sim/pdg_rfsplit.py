@@ -35,8 +35,15 @@ def _groups(kind, parent, child, conj_np, device):
             starts = np.concatenate([[0], cuts])
             ends = np.concatenate([cuts, [k.size]])
             ranges = [(int(k[a]), int(a), int(b)) for a, b in zip(starts, ends)]
-            out.append((is_conj, torch.as_tensor(k, device=device), torch.as_tensor(parent[sel], device=device),
-                        torch.as_tensor(child[sel], device=device), ranges))
+            out.append(
+                (
+                    is_conj,
+                    torch.as_tensor(k, device=device),
+                    torch.as_tensor(parent[sel], device=device),
+                    torch.as_tensor(child[sel], device=device),
+                    ranges,
+                )
+            )
     return out
 
 
@@ -45,7 +52,9 @@ def add_rows_(out: torch.Tensor, index: torch.Tensor, src: torch.Tensor) -> torc
     bit-identical: on CPU torch's complex index_add_ takes a generic scatter path ~6x slower than the
     real one).  Not for autograd-tracked tensors (used inside the hand-written adjoints)."""
     if out.is_complex() and out.is_contiguous() and not out.is_conj() and not src.is_conj() and out.dim() >= 1:
-        torch.view_as_real(out).reshape(out.shape[0], -1).index_add_(0, index, torch.view_as_real(src).reshape(src.shape[0], -1))
+        torch.view_as_real(out).reshape(out.shape[0], -1).index_add_(
+            0, index, torch.view_as_real(src).reshape(src.shape[0], -1)
+        )
         return out
     return out.index_add_(0, index, src)
 

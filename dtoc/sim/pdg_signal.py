@@ -20,6 +20,7 @@ import torch
 
 from dtoc.errors import InputError
 
+
 @dataclass
 class VoxelData:
     """Per-voxel tensors of the simulated (PD > 0) voxels, flattened in (iy, ix) order."""
@@ -78,11 +79,13 @@ class VoxelData:
         complex multiply per voxel instead of one complex exponential per voxel.
         """
         shape = kx.shape
-        out = _SpatialPhase.apply(kx.reshape(-1), ky.reshape(-1), self.xg, self.yg, self.ix_t(), self.iy_t(), self.x, self.y)
+        out = _SpatialPhase.apply(
+            kx.reshape(-1), ky.reshape(-1), self.xg, self.yg, self.ix_t(), self.iy_t(), self.x, self.y
+        )
         return out.reshape(*shape, self.n)
 
     @classmethod
-    def from_phantom(cls, ph, initial_mz, dtype, device, cfg) -> "VoxelData":
+    def from_phantom(cls, ph, initial_mz, dtype, device, cfg) -> VoxelData:
         ny, nx = ph.pd.shape
         mask = np.asarray(ph.pd) > 0
         flat = np.where(mask.ravel())[0]
@@ -108,11 +111,27 @@ class VoxelData:
         b0 = np.asarray(ph.b0_hz, dtype=np.float64)
         sel = mask
         return cls(
-            index=torch.as_tensor(flat, device=device), iy=iy, ix=ix, shape=(ny, nx), pd=T(ph.pd), mz0=mz0, r1=T(r1), r2=T(r2),
-            r2d=T(r2d), d=T(ph.d_m2_per_s), omega=T(2 * np.pi * b0), b1=T(ph.b1), x=T(xx), y=T(yy),
-            xg=torch.as_tensor(xx[0], dtype=dtype, device=device), yg=torch.as_tensor(yy[:, 0], dtype=dtype, device=device), coil=coil,
-            voxel_m=(ph.fov_m[0] / nx, ph.fov_m[1] / ny, cfg.voxel_size_z_m), voxel_shape=ph.voxel_shape,
-            has_b0=bool(np.any(b0[sel] != 0)), has_t2d=bool(np.any(np.isfinite(np.asarray(ph.t2dash_s)[sel]))),
+            index=torch.as_tensor(flat, device=device),
+            iy=iy,
+            ix=ix,
+            shape=(ny, nx),
+            pd=T(ph.pd),
+            mz0=mz0,
+            r1=T(r1),
+            r2=T(r2),
+            r2d=T(r2d),
+            d=T(ph.d_m2_per_s),
+            omega=T(2 * np.pi * b0),
+            b1=T(ph.b1),
+            x=T(xx),
+            y=T(yy),
+            xg=torch.as_tensor(xx[0], dtype=dtype, device=device),
+            yg=torch.as_tensor(yy[:, 0], dtype=dtype, device=device),
+            coil=coil,
+            voxel_m=(ph.fov_m[0] / nx, ph.fov_m[1] / ny, cfg.voxel_size_z_m),
+            voxel_shape=ph.voxel_shape,
+            has_b0=bool(np.any(b0[sel] != 0)),
+            has_t2d=bool(np.any(np.isfinite(np.asarray(ph.t2dash_s)[sel]))),
             has_diffusion=bool(np.any(np.asarray(ph.d_m2_per_s)[sel] > 0)),
         )
 
@@ -138,7 +157,9 @@ class _SpatialPhase(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, kx, ky, xg, yg, ix, iy, x, y):
-        sp = (_cis(-xg[:, None] * kx[None, :]).index_select(0, ix) * _cis(-yg[:, None] * ky[None, :]).index_select(0, iy)).T.contiguous()
+        sp = (
+            _cis(-xg[:, None] * kx[None, :]).index_select(0, ix) * _cis(-yg[:, None] * ky[None, :]).index_select(0, iy)
+        ).T.contiguous()
         ctx.save_for_backward(sp, x, y)
         return sp  # (M, V)
 
@@ -191,7 +212,9 @@ def emit_signal(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -> torch
     if method == "separable":
         return emit_signal_gemm(iv, A, K, mom, n, vox, graph, bounds_t, cfg, separable=True)
     if method != "direct":
-        raise InputError(f"PDGConfig.signal_method {cfg.signal_method!r}: expected 'auto', 'gemm', 'direct' or 'separable'")
+        raise InputError(
+            f"PDGConfig.signal_method {cfg.signal_method!r}: expected 'auto', 'gemm', 'direct' or 'separable'"
+        )
     return emit_signal_direct(iv, A, K, mom, n, vox, graph, bounds_t, cfg)
 
 
@@ -224,7 +247,11 @@ def emit_signal_direct(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -
         mag = -dtr[sl][None, :, None] * vox.r2[None, None, :] - ta.abs()[:, :, None] * vox.r2d[None, None, :]
         if bD is not None:
             mag = mag - bD[:, sl, None] * vox.d[None, None, :]
-        ph = -(kk[:, :, 0:1] * vox.x[None, None, :] + kk[:, :, 1:2] * vox.y[None, None, :] + ta[:, :, None] * vox.omega[None, None, :])
+        ph = -(
+            kk[:, :, 0:1] * vox.x[None, None, :]
+            + kk[:, :, 1:2] * vox.y[None, None, :]
+            + ta[:, :, None] * vox.omega[None, None, :]
+        )
         E = torch.exp(torch.complex(mag, ph))  # (J, t, V)
         s = torch.einsum("jtv,cjv->cjt", E, AC)
         out.append((s * vf[None, :, sl]).sum(1))
@@ -344,7 +371,9 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
             tm = t_mask_plus if sgn > 0 else ~t_mask_plus
         if separable:
             Cm = torch.cat(mats, 0) if len(mats) > 1 else mats[0]  # (nterm*Co*J, V)
-            Gs = torch.split(_apply_kernel_separable(Cm, sgn, use_t2d, mt_r, dtt, vox, cfg), [Co * c for c in counts], 0)
+            Gs = torch.split(
+                _apply_kernel_separable(Cm, sgn, use_t2d, mt_r, dtt, vox, cfg), [Co * c for c in counts], 0
+            )
         else:
             rate = vox.r2 + (sgn * vox.r2d if use_t2d else 0.0)
             # large problems: recompute each kernel chunk in the backward pass instead of storing

@@ -59,8 +59,11 @@ def _time_factors(dtt: np.ndarray, dtr: torch.Tensor, sgn: float, vox) -> tuple[
 
 def _tau_factor(utau_t: torch.Tensor, sgn: float, vox) -> torch.Tensor:
     """(U, V) exp(-tau (sgn / T2' + i omega)) for the distinct dephasing times ``utau_t`` (s) of the emitting states."""
-    mag = (torch.clamp(-sgn * utau_t[:, None] * vox.r2d[None], max=80.0) if vox.has_t2d
-           else torch.zeros((utau_t.shape[0], vox.n), dtype=utau_t.dtype, device=utau_t.device))
+    mag = (
+        torch.clamp(-sgn * utau_t[:, None] * vox.r2d[None], max=80.0)
+        if vox.has_t2d
+        else torch.zeros((utau_t.shape[0], vox.n), dtype=utau_t.dtype, device=utau_t.device)
+    )
     return torch.exp(torch.complex(mag, -utau_t[:, None] * vox.omega[None]))
 
 
@@ -110,8 +113,10 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
     own = torch.as_tensor(own_np, device=dev)
     nb = torch.as_tensor(np.asarray(ns), device=dev)
     sel_adc = torch.as_tensor(np.stack([np.arange(a, a + T) for a in lo]).reshape(-1), device=dev)
-    mt = (mom.I_adc.index_select(0, sel_adc).reshape(G, T, 4) - mom.I_bound.index_select(0, nb)[:, None, :])  # (G, T, 4) f64
-    dtt = np.stack([graph.adc_times_s[a:a + T] - bounds_t[n] for a, n in zip(lo, ns)])  # (G, T)
+    mt = (
+        mom.I_adc.index_select(0, sel_adc).reshape(G, T, 4) - mom.I_bound.index_select(0, nb)[:, None, :]
+    )  # (G, T, 4) f64
+    dtt = np.stack([graph.adc_times_s[a : a + T] - bounds_t[n] for a, n in zip(lo, ns)])  # (G, T)
     dtt_own = dtt[own_np]  # (J, T)
     plus = (tau[:, None] + dtt_own) >= 0
     if vox.has_t2d:
@@ -130,8 +135,12 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
     if vox.has_diffusion and T:
         dtt_t = torch.as_tensor(dtt, dtype=torch.float64, device=dev)
         u = Kj[:, :3] - mom.I_bound.index_select(0, nb)[:, :3].index_select(0, own)
-        dJ1 = (mom.J1_adc.index_select(0, sel_adc).reshape(G, T, 3) - mom.J1_bound.index_select(0, nb)[:, None, :]).index_select(0, own)
-        dJ2 = (mom.J2_adc.index_select(0, sel_adc).reshape(G, T) - mom.J2_bound.index_select(0, nb)[:, None]).index_select(0, own)
+        dJ1 = (
+            mom.J1_adc.index_select(0, sel_adc).reshape(G, T, 3) - mom.J1_bound.index_select(0, nb)[:, None, :]
+        ).index_select(0, own)
+        dJ2 = (
+            mom.J2_adc.index_select(0, sel_adc).reshape(G, T) - mom.J2_bound.index_select(0, nb)[:, None]
+        ).index_select(0, own)
         b = (u * u).sum(1)[:, None] * dtt_t.index_select(0, own) + 2.0 * (u[:, None, :] * dJ1).sum(-1) + dJ2  # (J, T)
         bm = b[:, T // 2]
         delta = b - bm[:, None]
@@ -198,7 +207,9 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
                 Gr = torch.cat([blk @ Kern[int(ow[a])].T for blk, a in zip(blocks, starts)], 0)  # (n_r, Co*T)
                 Gr = Gr.reshape(-1, Co, T)
                 if r > 0:
-                    w = ndl.index_select(0, torch.as_tensor(in_c[pos], device=dev)) ** r / float(np.prod(np.arange(1, r + 1)))
+                    w = ndl.index_select(0, torch.as_tensor(in_c[pos], device=dev)) ** r / float(
+                        np.prod(np.arange(1, r + 1))
+                    )
                     Gr = Gr * w[:, None, :]
                 if r == 0:
                     s_c = Gr
@@ -211,11 +222,15 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
     return _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg, probe)
 
 
-def _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg, probe=None) -> list:
+def _finish(
+    out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg, probe=None
+) -> list:
     """Voxel factor, sum of the states per interval, exact evaluation of the far (strong-diffusion) states."""
     out = out * vf[:, None, :]
     if probe is not None:
-        peak = out.detach().abs().reshape(out.shape[0], -1).amax(1).double().cpu().numpy() if T else np.zeros(out.shape[0])
+        peak = (
+            out.detach().abs().reshape(out.shape[0], -1).amax(1).double().cpu().numpy() if T else np.zeros(out.shape[0])
+        )
         peak[far] = np.inf
         for g, it in enumerate(items):
             probe[it[0]] = peak[own_np == g]
@@ -242,7 +257,7 @@ def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np
     tinv = tinv.reshape(-1)
     dtr = torch.as_tensor(dtt, dtype=rdt, device=dev)
     tfs = {}
-    for sgn in ((1.0, -1.0) if vox.has_t2d else (1.0,)):
+    for sgn in (1.0, -1.0) if vox.has_t2d else (1.0,):
         tl, shared = _time_factors(dtt, dtr, sgn, vox)
         tfs[sgn] = tl[0].T[:, None, :] if shared else torch.stack(tl, 0).permute(2, 0, 1)  # (V, 1|G, T)
     dn = vox.d / Dmax
@@ -270,9 +285,17 @@ def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np
                 starts = np.concatenate([[0], cuts]).astype(np.int64)
                 ends = np.concatenate([cuts, [ow.size]]).astype(np.int64)
                 pos_t = torch.as_tensor(pos, device=dev)
-                ords.append(dict(pos_t=pos_t, rows_t=torch.as_tensor(in_c[pos], device=dev), dr=dr, sizes=(ends - starts).tolist(),
-                                 ivs=[int(ow[a]) for a in starts], fact=float(np.prod(np.arange(1, r + 1))),
-                                 mask=None if mask_c is None else (mask_c if r == 0 else mask_c.index_select(0, pos_t))))
+                ords.append(
+                    dict(
+                        pos_t=pos_t,
+                        rows_t=torch.as_tensor(in_c[pos], device=dev),
+                        dr=dr,
+                        sizes=(ends - starts).tolist(),
+                        ivs=[int(ow[a]) for a in starts],
+                        fact=float(np.prod(np.arange(1, r + 1))),
+                        mask=None if mask_c is None else (mask_c if r == 0 else mask_c.index_select(0, pos_t)),
+                    )
+                )
             steps.append(dict(rows=rows_c, sgn=sgn, Pt=Pt_rows, orders=ords))
     # kernels only for the intervals with states of each sign; block interval -> kernel row
     used = {sg: sorted({g for st in steps if st["sgn"] == sg for rr in st["orders"] for g in rr["ivs"]}) for sg in tfs}
@@ -284,7 +307,9 @@ def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np
     plan = dict(vox=vox, Co=Co, tfs={sg: tfs[sg] for sg in used}, used=used, steps=steps)
     bm_r = empty if bm is None else bm.to(rdt)
     ndl_r = empty if ndl is None else ndl
-    return _BatchedGemm.apply(Y, Kj[:, 0].to(rdt), Kj[:, 1].to(rdt), bm_r, mt[:, :, 0].to(rdt), mt[:, :, 1].to(rdt), ndl_r, plan)
+    return _BatchedGemm.apply(
+        Y, Kj[:, 0].to(rdt), Kj[:, 1].to(rdt), bm_r, mt[:, :, 0].to(rdt), mt[:, :, 1].to(rdt), ndl_r, plan
+    )
 
 
 class _BatchedGemm(torch.autograd.Function):
@@ -321,8 +346,10 @@ class _BatchedGemm(torch.autograd.Function):
         # kernels in voxel-major layout KT (V, nK * Co * T) = exp(-i (mx x + my y)) tf (coil): the
         # per-axis factors are gathered by voxel rows (no transposed copy); interval k's kernel is the
         # column block [k Co T, (k + 1) Co T), a strided (V, Co T) operand of the products
-        SPT = (take_rows(_cis(-vox.xg[:, None] * mtx.reshape(1, -1)), vox.ix_t())
-               * take_rows(_cis(-vox.yg[:, None] * mty.reshape(1, -1)), vox.iy_t())).reshape(-1, G, T)
+        SPT = (
+            take_rows(_cis(-vox.xg[:, None] * mtx.reshape(1, -1)), vox.ix_t())
+            * take_rows(_cis(-vox.yg[:, None] * mty.reshape(1, -1)), vox.iy_t())
+        ).reshape(-1, G, T)
         Ks = {}
         signs = list(plan["tfs"])
         for i, sgn in enumerate(signs):
@@ -346,7 +373,9 @@ class _BatchedGemm(torch.autograd.Function):
             for r, rr in enumerate(st["orders"]):
                 Cr = C if r == 0 else take_rows(C, rr["pos_t"]) * rr["dr"][None, :]
                 blocks = torch.split(Cr, rr["sizes"], 0)
-                Gr = torch.cat([blk @ K[:, g * CT:(g + 1) * CT] for blk, g in zip(blocks, rr["kix"])], 0).reshape(-1, Co, T)
+                Gr = torch.cat([blk @ K[:, g * CT : (g + 1) * CT] for blk, g in zip(blocks, rr["kix"])], 0).reshape(
+                    -1, Co, T
+                )
                 w = rr["mask"]
                 if r > 0:
                     raws.append(Gr)
@@ -395,8 +424,10 @@ class _BatchedGemm(torch.autograd.Function):
                         dw = (r * nd ** (r - 1)) / rr["fact"]
                         if w is not None:
                             dw = dw * w
-                        gndl.index_add_(0, rr["rows_t"], (g_r * raw).real.sum(1) * dw)  # Re(conj(G) raw) = Re(G conj(raw))
-                    wr = nd ** r / rr["fact"]
+                        gndl.index_add_(
+                            0, rr["rows_t"], (g_r * raw).real.sum(1) * dw
+                        )  # Re(conj(G) raw) = Re(G conj(raw))
+                    wr = nd**r / rr["fact"]
                     w = wr if w is None else w * wr
                 if w is not None:
                     g_r = g_r * w[:, None, :]
@@ -405,18 +436,18 @@ class _BatchedGemm(torch.autograd.Function):
                 a = 0
                 if r == 0:
                     for n_b, g in zip(rr["sizes"], rr["kix"]):
-                        b = gz[a:a + n_b]
-                        torch.mm(b, K[:, g * CT:(g + 1) * CT].T, out=gCc[a:a + n_b])
+                        b = gz[a : a + n_b]
+                        torch.mm(b, K[:, g * CT : (g + 1) * CT].T, out=gCc[a : a + n_b])
                         if gKc is not None:
-                            gKc[:, g * CT:(g + 1) * CT].addmm_(Cr[a:a + n_b].T, b)
+                            gKc[:, g * CT : (g + 1) * CT].addmm_(Cr[a : a + n_b].T, b)
                         a += n_b
                 else:
                     parts = []
                     for n_b, g in zip(rr["sizes"], rr["kix"]):
-                        b = gz[a:a + n_b]
-                        parts.append(b @ K[:, g * CT:(g + 1) * CT].T)
+                        b = gz[a : a + n_b]
+                        parts.append(b @ K[:, g * CT : (g + 1) * CT].T)
                         if gKc is not None:
-                            gKc[:, g * CT:(g + 1) * CT].addmm_(Cr[a:a + n_b].T, b)
+                            gKc[:, g * CT : (g + 1) * CT].addmm_(Cr[a : a + n_b].T, b)
                         a += n_b
                     add_rows_(gCc, rr["pos_t"], torch.cat(parts, 0) * rr["dr"][None, :])
             add_rows_(gWc, st["rows"], gCc * st["Pt"])

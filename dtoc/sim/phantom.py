@@ -147,7 +147,10 @@ def _label_map(u: np.ndarray, v: np.ndarray, seed: int, lesion: bool) -> np.ndar
     """Tissue labels (indices into TISSUES) at normalised coordinates u, v in [-1, 1] (FOV edge = +-1)."""
     rng = np.random.default_rng(seed)
     # cortex folding: a few random high-order harmonics (deterministic for a given seed)
-    gyri = [(int(n), float(rng.uniform(0.025, 0.045)), float(rng.uniform(0, 2 * np.pi))) for n in rng.choice(np.arange(9, 19), 4, replace=False)]
+    gyri = [
+        (int(n), float(rng.uniform(0.025, 0.045)), float(rng.uniform(0, 2 * np.pi)))
+        for n in rng.choice(np.arange(9, 19), 4, replace=False)
+    ]
     surface = [(int(n), float(rng.uniform(0.006, 0.012)), float(rng.uniform(0, 2 * np.pi))) for n in (3, 5)]
     lab = np.zeros(u.shape, dtype=np.int8)
     lab[_star(u, v, 0, 0, 0.74, 0.90) < 1] = TISSUES.index("fat")
@@ -304,8 +307,15 @@ def brain_phantom(
     b0_map = _smooth_b0_hz(uc, vc, float(field_T), seed) if b0 else np.zeros((ny, nx))
     b1_map = _smooth_b1(uc, vc, float(field_T)) if b1 else np.ones((ny, nx))
     return Phantom(
-        pd=maps["pd"], t1_s=maps["t1_s"], t2_s=maps["t2_s"], t2dash_s=maps["t2dash_s"],
-        d_m2_per_s=maps["d_m2_per_s"], b0_hz=b0_map, b1=b1_map, fov_m=fov, voxel_shape="box",
+        pd=maps["pd"],
+        t1_s=maps["t1_s"],
+        t2_s=maps["t2_s"],
+        t2dash_s=maps["t2dash_s"],
+        d_m2_per_s=maps["d_m2_per_s"],
+        b0_hz=b0_map,
+        b1=b1_map,
+        fov_m=fov,
+        voxel_shape="box",
     )
 
 
@@ -325,7 +335,18 @@ def uniform_phantom(
     """Phantom of identical voxels (physics tests: one voxel = ``n=1``)."""
     ny, nx = _as_shape(n)
     full = lambda val: np.full((ny, nx), float(val))  # noqa: E731
-    p = Phantom(full(pd), full(t1_s), full(t2_s), full(t2dash_s), full(d_m2_per_s), full(b0_hz), full(b1), _as_fov(fov_m), None, voxel_shape)
+    p = Phantom(
+        full(pd),
+        full(t1_s),
+        full(t2_s),
+        full(t2dash_s),
+        full(d_m2_per_s),
+        full(b0_hz),
+        full(b1),
+        _as_fov(fov_m),
+        None,
+        voxel_shape,
+    )
     validate_phantom(p)
     return p
 
@@ -376,8 +397,15 @@ def rotate(phantom: Phantom, deg: float) -> Phantom:
     b0 = _rotate_map(phantom.b0_hz, deg, 0.0)
     b1 = _rotate_map(phantom.b1, deg, 1.0)
     return Phantom(
-        pd=maps["pd"], t1_s=maps["t1_s"], t2_s=maps["t2_s"], t2dash_s=maps["t2dash_s"], d_m2_per_s=maps["d_m2_per_s"],
-        b0_hz=b0, b1=b1, fov_m=phantom.fov_m, coil_sens=None if phantom.coil_sens is None else phantom.coil_sens.copy(),
+        pd=maps["pd"],
+        t1_s=maps["t1_s"],
+        t2_s=maps["t2_s"],
+        t2dash_s=maps["t2dash_s"],
+        d_m2_per_s=maps["d_m2_per_s"],
+        b0_hz=b0,
+        b1=b1,
+        fov_m=phantom.fov_m,
+        coil_sens=None if phantom.coil_sens is None else phantom.coil_sens.copy(),
         voxel_shape=phantom.voxel_shape,
     )
 
@@ -412,7 +440,9 @@ def validate_phantom(p: Phantom, source: str = "phantom") -> Phantom:
         raise InputError(f"{source}: 'b1' must be finite and >= 0 (relative)")
     _as_fov(p.fov_m)
     if p.coil_sens is not None and (np.ndim(p.coil_sens) != 3 or np.shape(p.coil_sens)[1:] != shape):
-        raise InputError(f"{source}: 'coil_sens' has shape {np.shape(p.coil_sens)}, expected (n_coils, {shape[0]}, {shape[1]})")
+        raise InputError(
+            f"{source}: 'coil_sens' has shape {np.shape(p.coil_sens)}, expected (n_coils, {shape[0]}, {shape[1]})"
+        )
     if p.voxel_shape not in ("box", "sinc", "none"):
         raise InputError(f"{source}: voxel_shape {p.voxel_shape!r}: expected 'box', 'sinc' or 'none'")
     return p
@@ -461,10 +491,20 @@ def load_phantom(path: str | os.PathLike) -> Phantom:
     try:
         fov = _as_fov(data["fov_m"])
     except InputError:
-        raise InputError(f"{p}: 'fov_m' {np.asarray(data['fov_m']).tolist()!r}: expected a positive number or (fov_x, fov_y) in m") from None
+        raise InputError(
+            f"{p}: 'fov_m' {np.asarray(data['fov_m']).tolist()!r}: expected a positive number or (fov_x, fov_y) in m"
+        ) from None
     ph = Phantom(
-        pd=get("pd"), t1_s=get("t1_s"), t2_s=get("t2_s"), t2dash_s=get("t2dash_s"), d_m2_per_s=get("d_m2_per_s"),
-        b0_hz=get("b0_hz"), b1=get("b1"), fov_m=fov, coil_sens=coil, voxel_shape=vs,
+        pd=get("pd"),
+        t1_s=get("t1_s"),
+        t2_s=get("t2_s"),
+        t2dash_s=get("t2dash_s"),
+        d_m2_per_s=get("d_m2_per_s"),
+        b0_hz=get("b0_hz"),
+        b1=get("b1"),
+        fov_m=fov,
+        coil_sens=coil,
+        voxel_shape=vs,
     )
     return validate_phantom(ph, str(p))
 
@@ -503,7 +543,9 @@ def is_builtin_spec(spec) -> bool:
     return str(spec).split(":", 1)[0] in BUILTIN_PHANTOMS
 
 
-def resolve_phantom(spec, *, matrix=None, fov_m=None, field_T: float = 3.0, b0: bool = False, b1: bool = False, seed: int = 0) -> Phantom:
+def resolve_phantom(
+    spec, *, matrix=None, fov_m=None, field_T: float = 3.0, b0: bool = False, b1: bool = False, seed: int = 0
+) -> Phantom:
     """A phantom from a CLI-style spec: None / 'brain' (built-in head at ``matrix``), 'brain:N' (N x N),
     'brain-noscalp' / 'brain-noscalp:N' (the same without extracranial fat and skull, see
     :func:`brain_phantom`), or a .npz path."""

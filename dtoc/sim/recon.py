@@ -76,7 +76,9 @@ def _infer_matrix_fov(ir, matrix, fov_m):
     return (ny, nx), (float(fov[0]), float(fov[1]))
 
 
-def cartesian_grid(ir, keep_mask=None, *, matrix=None, fov_m=None, k0_rad_per_m=None, on_grid_tol: float = 0.05) -> CartesianGrid:
+def cartesian_grid(
+    ir, keep_mask=None, *, matrix=None, fov_m=None, k0_rad_per_m=None, on_grid_tol: float = 0.05
+) -> CartesianGrid:
     """Grid indices of every ADC sample of ``ir`` from its nominal k-space.
 
     Args:
@@ -111,7 +113,9 @@ def cartesian_grid(ir, keep_mask=None, *, matrix=None, fov_m=None, k0_rad_per_m=
     outside = keep & ((jx < 0) | (jx >= nx) | (jy < 0) | (jy >= ny))
     if outside.any():
         i = int(np.argmax(outside))
-        raise InputError(f"nominal k-space sample {i} lies outside the {nx}x{ny} grid (k/dk = {u[0, i]:.2f}, {u[1, i]:.2f})")
+        raise InputError(
+            f"nominal k-space sample {i} lies outside the {nx}x{ny} grid (k/dk = {u[0, i]:.2f}, {u[1, i]:.2f})"
+        )
     flat = np.where(keep, jy * nx + jx, -1).astype(np.int64)
     counts = np.bincount(flat[keep], minlength=ny * nx)
     return CartesianGrid((ny, nx), fov, flat, counts, max_off)
@@ -148,7 +152,16 @@ def kspace_to_image(kgrid: torch.Tensor) -> torch.Tensor:
     return torch.fft.fftshift(torch.fft.ifft2(torch.fft.ifftshift(kgrid, dim=dims), dim=dims), dim=dims)
 
 
-def reconstruct(signal, ir, keep_mask=None, *, grid: CartesianGrid | None = None, matrix=None, fov_m=None, coil_axis: bool | None = None) -> torch.Tensor:
+def reconstruct(
+    signal,
+    ir,
+    keep_mask=None,
+    *,
+    grid: CartesianGrid | None = None,
+    matrix=None,
+    fov_m=None,
+    coil_axis: bool | None = None,
+) -> torch.Tensor:
     """Inverse-FFT image from simulated/measured samples assuming nominal k.
 
     Args:
