@@ -23,7 +23,7 @@ sys.path.insert(0, str(REPO))
 
 from bench._report import write_section  # noqa: E402
 from dtoc.hardware import HardwareModel, build_effect, model_from_girf  # noqa: E402
-from dtoc.seq.read import load_sequence  # noqa: E402
+from dtoc.seq.load import load_sequence  # noqa: E402
 
 
 def _time(model, g, dt, dtype, reps=7):

@@ -42,8 +42,8 @@ def main() -> None:
     for name in ("epi_esp081", "gre_paper"):
         spec = load_spec(REPO / "sequences" / f"{name}.yaml")
         path = REPO / "sequences" / f"{name}.seq"
-        tb = _t(lambda: seq_bytes(build(spec)))
-        tr = _t(lambda: read_seq(path))
+        tb = _t(lambda spec=spec: seq_bytes(build(spec)))
+        tr = _t(lambda path=path: read_seq(path))
         ir = tr[2]
         rng = np.random.default_rng(0)
         n = ir.edge_grad_mT_per_m.shape[1]
@@ -53,8 +53,8 @@ def main() -> None:
         new = ir.with_grad(edges_to_fine(ir.edge_grad_mT_per_m + pert))
         with tempfile.TemporaryDirectory() as d:
             out = Path(d) / "o.seq"
-            tw = _t(lambda: write_seq(new, out, force=True))
-            tc = _t(lambda: check_file(out))
+            tw = _t(lambda new=new, out=out: write_seq(new, out, force=True))
+            tc = _t(lambda out=out: check_file(out))
             back = read_seq(out)
         err = np.abs(back.grad_mT_per_m - new.grad_mT_per_m).max()
         kerr = (

@@ -5,7 +5,7 @@ and the `optimize` section of docs/benchmarks.md (time per scenario on this mach
     python -m bench.paper --only epi      # one family
     python -m bench.paper --quick         # fewer iterations (smoke run)
 
-Scenarios (paper Sections 3.2-3.3, BRIEF section 4):
+Scenarios (paper Sections 3.2-3.3, docs/results.md):
 * GRE (sequences/gre_paper_fig5.yaml: the paper's GRE with its gradient amplitudes, prewinder
   -24.7 mT/m with real ramps, TE 3.21 ms), exponential eddy currents alpha 0.1 with tau 1 ms (short), 100 ms
   (long) or both: unconstrained (50 mT/m, 500 T/m/s); amplitude-limited gmax 10/15/20/25/30 mT/m
@@ -154,7 +154,7 @@ def run_one(sc: dict, tmpdir: Path, girf_model, quick: bool, threads: int) -> di
     from dtoc.optimize.config import load_config
     from dtoc.optimize.run import optimize_sequence
     from dtoc.seq.check import check_file
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
     from dtoc.seq.system import SystemSpec
 
     t0 = time.time()
@@ -197,9 +197,9 @@ def gre_phantom_anchor() -> dict:
 
     from dtoc.optimize.config import load_config
     from dtoc.optimize.run import make_phantoms
-    from dtoc.optimize.twin import Imager
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
     from dtoc.sim import metrics
+    from dtoc.sim.imager import Imager
 
     ir = load_sequence(REPO / "sequences" / "gre_paper_fig5.yaml")
     cfg = load_config("gre", None, {})

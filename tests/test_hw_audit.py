@@ -170,8 +170,8 @@ def test_prisma_import_is_band_limited_like_the_published_kernel(shared_data, tm
 def test_show_png_and_predict_png(capsys, tmp_path, repo_root):
     from dtoc.hardware.girf_plot import plot_girf
     from dtoc.hardware.model import HardwareModel, girf_effect
-    from dtoc.hardware.predict import _zoom_window_ms, plot_prediction, predict
     from dtoc.seq.read import read_seq
+    from dtoc.sim.predict import plot_prediction, predict, zoom_window_ms
 
     save_npz(tmp_path / "g.npz", _lowpass())
     gd = load_girf(tmp_path / "g.npz")
@@ -183,7 +183,7 @@ def test_show_png_and_predict_png(capsys, tmp_path, repo_root):
     res = predict(ir, HardwareModel([girf_effect(gd)]))
     # defect: a GRE's repeated readouts were reported as EPI odd/even lines
     assert res["epi"] is None
-    lo, hi = _zoom_window_ms(ir)
+    lo, hi = zoom_window_ms(ir)
     assert 0 < hi - lo < 6.0
     q = plot_prediction(ir, res, tmp_path / "p.png", title="gre")
     assert q.stat().st_size > 20_000
@@ -194,8 +194,8 @@ def test_show_png_and_predict_png(capsys, tmp_path, repo_root):
 
 
 def test_is_epi_without_kind():
-    from dtoc.hardware.predict import _is_epi
     from dtoc.seq.ir import ADCEvent, SequenceIR, edges_to_fine
+    from dtoc.sim.predict import is_epi
 
     r = 10e-6
     e = np.zeros((3, 61))
@@ -207,10 +207,10 @@ def test_is_epi_without_kind():
         adc=[ADCEvent(0, 11 * r, 4, 2 * r), ADCEvent(0, 31 * r, 4, 2 * r)],
         readout_axis=0,
     )
-    assert _is_epi(ir)
+    assert is_epi(ir)
     e[0, 30:40] = 5.0
     ir.grad_mT_per_m = edges_to_fine(e)
-    assert not _is_epi(ir)
+    assert not is_epi(ir)
 
 
 @pytest.mark.parametrize(
@@ -230,7 +230,7 @@ def test_implausible_model_file_parameters(tmp_path, effect, match):
         '{"effects": [{"kind": "exp_eddy", "params": {"alpha": [0.1], "tau_s": [1e-3]}}]}'
     )
     assert len(load_model(tmp_path / "ok.json").effects) == 1
-    (tmp_path / "m.json").write_text('{"effects": [%s]}' % effect)
+    (tmp_path / "m.json").write_text(f'{{"effects": [{effect}]}}')
     with pytest.raises(InputError, match=match):
         load_model(tmp_path / "m.json")
 

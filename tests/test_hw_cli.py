@@ -83,7 +83,7 @@ def test_girf_fit_cli_and_determinism(capsys, repo_root, tmp_path):
 
 
 def test_predict_on_synthetic_epi(capsys, repo_root, tmp_path, monkeypatch):
-    import dtoc.seq.read as rd
+    import dtoc.seq.load as rd
 
     ir = _synthetic_ir()
     monkeypatch.setattr(rd, "load_sequence", lambda p, **k: ir)
@@ -127,7 +127,7 @@ def test_cli_errors_are_one_line(capsys, tmp_path, monkeypatch, argv, match):
 
 
 def test_cli_bad_model_file(capsys, tmp_path, monkeypatch):
-    import dtoc.seq.read as rd
+    import dtoc.seq.load as rd
 
     monkeypatch.setattr(rd, "load_sequence", lambda p, **k: _synthetic_ir())
     (tmp_path / "m.json").write_text('{"effects": [{"kind": "eddy", "params": {}}]}')

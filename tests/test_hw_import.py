@@ -96,8 +96,8 @@ def test_paper_epi_odd_even_offsets(gdir, repo_root):
     seqf = repo_root / "sequences" / "epi_esp073.seq"
     if not seqf.exists():
         pytest.skip("sequences/epi_esp073.seq not built")
-    from dtoc.hardware.predict import predict
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
+    from dtoc.sim.predict import predict
 
     gd = import_girf([gdir / "kcl_7T_terra_2023" / "7T_1pcterms.mat"])
     ir = load_sequence(seqf)

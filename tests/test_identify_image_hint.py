@@ -6,8 +6,8 @@ import torch
 from dtoc.hardware.model import HardwareModel, build_effect, girf_effect
 from dtoc.identify.image_hint import fit_delays_to_raw
 from dtoc.identify.synth import lowpass_girf
-from dtoc.optimize.twin import Imager
-from dtoc.seq.read import load_sequence
+from dtoc.seq.load import load_sequence
+from dtoc.sim.imager import Imager
 from dtoc.sim.phantom import resolve_phantom
 
 

@@ -129,7 +129,7 @@ def test_identdata_validation_messages():
 
 @pytest.mark.parametrize("M", [3, 1])
 def test_lti_toeplitz_statistics_equal_the_generic_ones(M):
-    from dtoc.identify.candidates import _lti_stats_toeplitz
+    from dtoc.identify.candidates import lti_stats_toeplitz
     from dtoc.identify.workspace import Prediction, Workspace
 
     rng = np.random.default_rng(9)
@@ -156,6 +156,6 @@ def test_lti_toeplitz_statistics_equal_the_generic_ones(M):
         return {1: cols}, None
 
     A1, b1 = ws.unit_stats(make, len(lags), full=True)
-    A2, b2 = _lti_stats_toeplitz(ws, g[:, 1], 1, lags)
+    A2, b2 = lti_stats_toeplitz(ws, g[:, 1], 1, lags)
     np.testing.assert_allclose(A2, A1, rtol=1e-10, atol=1e-8)
     np.testing.assert_allclose(b2, b1, rtol=1e-10, atol=1e-8)

@@ -106,7 +106,7 @@ def test_sequence_without_adc_is_rejected(tmp_path):
 
     from dtoc.errors import InputError
     from dtoc.optimize.run import optimize_sequence
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
 
     ir = copy.copy(load_sequence(EPI))
     ir.adc = []

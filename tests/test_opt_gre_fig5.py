@@ -15,7 +15,7 @@ from dtoc.optimize import loss as L
 from dtoc.optimize import optimizer as O
 from dtoc.optimize.config import LossWeights, load_config
 from dtoc.optimize.limits import EdgeProjector, Limits
-from dtoc.optimize.twin import Twin
+from dtoc.optimize.twin import EdgeTwin
 
 SEQ = Path(__file__).resolve().parents[1] / "sequences"
 
@@ -30,13 +30,13 @@ def test_robust_warm_start_puts_more_samples_on_target_under_tight_limits():
     """IRLS (Cauchy weights on the k error) lets the unreachable samples go instead of spreading their
     error over the reachable ones.  gre_small (prewinder 27.6 mT/m) at gmax 15 with both eddy currents,
     measured: plain least squares 73 % of samples within 0.1 dk, IRLS 87.5 %."""
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
 
     torch.set_num_threads(1)
     ir = load_sequence(SEQ / "gre_small.yaml")
     lim = Limits(15.0, 500.0)
     P = EdgeProjector(ir.edge_grad_mT_per_m, ir.free_mask[:, ::2], ir.raster_s, lim)
-    tw, ctx = Twin(ir, eddy_model(), P), L.build_context(ir, lim)
+    tw, ctx = EdgeTwin(ir, eddy_model(), P), L.build_context(ir, lim)
     w = LossWeights(moment=0.1)
     x_ls = O.warm_start(tw, ctx, w, 100)
     x_rb = O.robust_warm_start(tw, ctx, w, 100, rounds=3, scale_dk=0.5)
@@ -57,7 +57,7 @@ def test_variable_te_fallback_matches_the_paper_figure5_timings():
     4.23 / 13.14 ms; ours on the same amplitudes with real ramps (slew headroom for the overdrive,
     spoiler lowered at constant moment) must land within 0.3 ms of TE and 0.7 ms of TR."""
     from dtoc.optimize.preemphasis import fit_preemphasis, variable_te
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
 
     torch.set_num_threads(1)
     ir = load_sequence(SEQ / "gre_paper_fig5.yaml")
@@ -66,7 +66,7 @@ def test_variable_te_fallback_matches_the_paper_figure5_timings():
     for gmax, te_paper, tr_paper in ((20.0, 3.4, 10.4), (10.0, 4.23, 13.14)):
         lim = Limits(gmax, 500.0)
         P = EdgeProjector(ir.edge_grad_mT_per_m, ir.free_mask[:, ::2], ir.raster_s, lim)
-        v = variable_te(ir, Twin(ir, model, P), lim, fit)
+        v = variable_te(ir, EdgeTwin(ir, model, P), lim, fit)
         assert v["te_ms"] is not None, v
         assert abs(v["te_ms"] - te_paper) < 0.3 and abs(v["tr_ms"] - tr_paper) < 0.7, (gmax, v)
         assert v["te_ms"] > 3.21  # longer than the base: the base itself cannot be pre-emphasised
@@ -74,23 +74,23 @@ def test_variable_te_fallback_matches_the_paper_figure5_timings():
 
 def test_loop_imager_shares_steady_state_and_is_consistent_with_its_targets():
     from dtoc.optimize.config import OptimizeConfig
-    from dtoc.optimize.run import _loop_imager, make_phantoms
-    from dtoc.optimize.twin import Imager
-    from dtoc.seq.read import load_sequence
+    from dtoc.optimize.run import loop_imager, make_phantoms
+    from dtoc.seq.load import load_sequence
     from dtoc.sim import metrics
+    from dtoc.sim.imager import Imager
 
     torch.set_num_threads(1)
     ir = load_sequence(SEQ / "gre_small.yaml")
     cfg = OptimizeConfig(n_dummies=20)
     im = Imager(ir, make_phantoms(ir, cfg), n_dummies=20)
-    lo = _loop_imager(im, cfg)
+    lo = loop_imager(im, cfg)
     assert lo is not im and lo.mz0[0] is im.mz0[0] and lo.dtype == torch.float32
     with torch.no_grad():
         img = lo.image(lo.signal(None, None, 0))
     assert float(metrics.nrmse(img, lo.targets[0])) == 0.0  # target simulated with the loop's own preset
     # the fast float32 preset is a close stand-in for the reported (default, float64) image
     assert float(metrics.nrmse(lo.targets[0].to(torch.complex128), im.targets[0])) < 0.03
-    assert _loop_imager(im, OptimizeConfig(sim_preset="default", sim_dtype="float64")) is im
+    assert loop_imager(im, OptimizeConfig(sim_preset="default", sim_dtype="float64")) is im
 
 
 def test_constant_te_fallback_is_the_papers_kspace_shrink():
@@ -102,7 +102,7 @@ def test_constant_te_fallback_is_the_papers_kspace_shrink():
     from dtoc.optimize.preemphasis import constant_te, fit_preemphasis
     from dtoc.optimize.run import free_edges
     from dtoc.seq.ir import edges_to_fine
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
 
     torch.set_num_threads(1)
     ir = load_sequence(SEQ / "gre_paper_fig5.yaml")
@@ -115,11 +115,11 @@ def test_constant_te_fallback_is_the_papers_kspace_shrink():
     for gmax, n, skipped in ((10.0, 6, 0.4922), (25.0, 1, 0.0918)):
         lim = Limits(gmax, 500.0)
         P = EdgeProjector(ir.edge_grad_mT_per_m, free_edges(ir), ir.raster_s, lim)
-        c = constant_te(ir, Twin(ir, model, P), lim, fit)
+        c = constant_te(ir, EdgeTwin(ir, model, P), lim, fit)
         assert c["n"] == n and np.mean(~c["keep_mask"]) == pytest.approx(skipped, abs=5e-4), (gmax, c["n"])
         # the rebuilt lobes themselves (no pre-emphasis, no eddy currents, shrink forced to n)
         e = constant_te(
-            ir, Twin(ir, None, P), Limits(1e3, 500.0), {"alpha": [], "tau_s": []}, max_shrink=n, min_shrink=n
+            ir, EdgeTwin(ir, None, P), Limits(1e3, 500.0), {"alpha": [], "tau_s": []}, max_shrink=n, min_shrink=n
         )
         assert e["n"] == n and np.array_equal(e["keep_mask"], c["keep_mask"])
         g = edges_to_fine(e["edges"])
@@ -135,7 +135,7 @@ def test_preemphasis_method_exports_the_constant_te_shrink_within_limits(tmp_pat
     shrink (paper), within the limits, its skipped samples are the shrink's, and the projection variant
     is reported beside it."""
     from dtoc.optimize.run import optimize_sequence
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
 
     ir = load_sequence(SEQ / "gre_small.yaml")
     cfg = load_config("gre", None, {"method": "preemphasis", "gmax_mT_per_m": 15.0, "threads": 1, "n_dummies": 20})

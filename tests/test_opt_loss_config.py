@@ -105,11 +105,11 @@ def test_moment_term_sees_a_cancelled_spoiler(ir):
     """The k term at the ADC samples is blind to the spoiler; the moment term (k just before each RF
     pulse, in dk^2 per pulse) is not: cancelling the spoiler area costs (area/dk)^2 per repetition."""
     from dtoc.optimize.limits import EdgeProjector
-    from dtoc.optimize.twin import Twin
+    from dtoc.optimize.twin import EdgeTwin
 
     ctx = L.build_context(ir, Limits(50, 500))
     P = EdgeProjector(ir.edge_grad_mT_per_m, ir.free_mask[:, ::2], ir.raster_s, Limits(50, 500))
-    tw = Twin(ir, None, P)
+    tw = EdgeTwin(ir, None, P)
     g0 = torch.as_tensor(ir.grad_mT_per_m)
     assert float(L.moment_term(tw.moments(g0), ctx)) == pytest.approx(0.0, abs=1e-20)
     g = g0.clone()

@@ -16,14 +16,14 @@ from dtoc.optimize import optimizer as O
 from dtoc.optimize.config import LossWeights
 from dtoc.optimize.limits import EdgeProjector, Limits, limit_violations
 from dtoc.optimize.preemphasis import apply_preemphasis, fit_preemphasis
-from dtoc.optimize.twin import Twin
+from dtoc.optimize.twin import EdgeTwin
 
 
 def _setup(gmax, smax, n=8, reps=8, model=None):
     ir = gre_ir(n, reps=reps)
     lim = Limits(gmax, smax)
     P = EdgeProjector(ir.edge_grad_mT_per_m, ir.free_mask[:, ::2], ir.raster_s, lim)
-    tw = Twin(ir, model or eddy_model(), P)
+    tw = EdgeTwin(ir, model or eddy_model(), P)
     return ir, lim, tw, L.build_context(ir, lim)
 
 
@@ -51,7 +51,7 @@ def test_warm_start_constrained_stays_feasible_and_beats_projected_base():
     base = tw.projector.project(tw.base_edges())
     x = O.warm_start(tw, ctx, LossWeights(), 300)
     assert tw.projector.is_feasible(x.numpy())
-    f = O._linear_objective(tw, ctx, LossWeights())
+    f = O.linear_objective(tw, ctx, LossWeights())
     assert float(f(x)[0]) < 0.5 * float(f(base)[0])
     fine = tw.export_fine(x)
     assert limit_violations(fine, ir.dt_fine_s, lim) == []

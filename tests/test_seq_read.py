@@ -7,7 +7,8 @@ import pytest
 
 from dtoc.constants import GAMMA_HZ_PER_T, mT_per_m_from_hz_per_m
 from dtoc.errors import InputError
-from dtoc.seq.read import from_pypulseq, load_sequence, quiet, read_seq, slice_axes
+from dtoc.seq.load import load_sequence
+from dtoc.seq.read import from_pypulseq, quiet, read_seq, slice_axes
 
 REPO = Path(__file__).resolve().parents[1]
 SEQ = REPO / "sequences"

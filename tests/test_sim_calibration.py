@@ -18,18 +18,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_sim_physics import _rich_phantom, _small_gre
+from test_sim_physics import rich_phantom, small_gre
 
 from dtoc.sim import metrics, recon
 from dtoc.sim.pdg import PDGConfig, build_graph, simulate, steady_state_mz
-from dtoc.sim.pdg_main import emission_peaks
+from dtoc.sim.pdg_calibrate import emission_peaks
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def test_emission_peaks_are_the_per_state_signals():
-    ir = _small_gre(n_rep=4)
-    ph = _rich_phantom()
+    ir = small_gre(n_rep=4)
+    ph = rich_phantom()
     cfg = PDGConfig(signal_method="gemm")
     graph = build_graph(ir, cfg, ph)
     peaks = emission_peaks(ir, ph, graph, cfg)
@@ -49,8 +49,8 @@ def test_emission_peaks_are_the_per_state_signals():
 
 
 def test_calibrated_graph_is_a_subgraph_with_measured_emitters():
-    ir = _small_gre(n_rep=4)
-    ph = _rich_phantom()
+    ir = small_gre(n_rep=4)
+    ph = rich_phantom()
     x = 1e-3
     base = PDGConfig(signal_method="gemm", min_emitted_signal=x, min_latent_signal=x, min_magnitude=x / 10)
     g0 = build_graph(ir, base, ph)
@@ -77,7 +77,7 @@ def test_calibrated_graph_is_a_subgraph_with_measured_emitters():
 
 @pytest.mark.slow
 def test_calibration_reaches_the_same_error_with_fewer_states():
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
     from dtoc.sim.phantom import brain_phantom
 
     ir = load_sequence(REPO / "sequences" / "gre_paper.seq")
@@ -104,8 +104,8 @@ def test_tissue_quantum_restores_compression_with_bounded_error():
     """``PDGConfig.tissue_quantum``: with a B1 map and a steady-state initial Mz every voxel is its own
     tissue tuple; rounding B1 and Mz0/PD to 1e-3 merges them (fewer tuples) at a small image error
     (measured on the paper's GRE, 64x64 phantom: 2247 -> 1072 tuples, 0.03 % NRMSE); 0 is exact."""
-    from dtoc.seq.read import load_sequence
-    from dtoc.sim.pdg_main import _Tissues
+    from dtoc.seq.load import load_sequence
+    from dtoc.sim.pdg_main import TissueClasses
     from dtoc.sim.pdg_signal import VoxelData
     from dtoc.sim.phantom import brain_phantom
 
@@ -118,7 +118,7 @@ def test_tissue_quantum_restores_compression_with_bounded_error():
     def run(q):
         cfg = PDGConfig.fast(tissue_quantum=q)
         vox = VoxelData.from_phantom(ph, mz, torch.float64, "cpu", cfg)
-        tis = _Tissues(vox, True, q)
+        tis = TissueClasses(vox, True, q)
         with torch.no_grad():
             s = simulate(ir, ph, graph=graph, config=cfg, initial_mz=mz, dtype=torch.float64)
         return recon.reconstruct(s, ir).abs(), vox, tis

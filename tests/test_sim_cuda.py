@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_sim_physics import _rich_phantom, _small_gre
+from test_sim_physics import rich_phantom, small_gre
 
 from dtoc.sim.pdg import PDGConfig, build_graph, simulate
 
@@ -19,8 +19,8 @@ pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA d
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-9), (torch.float32, 1e-4)])
 @pytest.mark.parametrize("calibrate", [False, True])
 def test_cuda_equals_cpu(dtype, tol, calibrate):
-    ir = _small_gre(n_rep=4)
-    ph = _rich_phantom()
+    ir = small_gre(n_rep=4)
+    ph = rich_phantom()
     ph.coil_sens = np.stack([np.ones((4, 4)), np.exp(1j * np.arange(16).reshape(4, 4) / 3.0)])
     cfg = PDGConfig(calibrate_emission=calibrate)
     graph = build_graph(ir, cfg, ph)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from dtoc.seq.read import load_sequence
+from dtoc.seq.load import load_sequence
 from dtoc.sim import metrics, pdg, recon
 from dtoc.sim.phantom import load_phantom
 

@@ -19,7 +19,7 @@ import torch
 
 from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
 from dtoc.seq.kspace import pwl_integral_at
-from dtoc.seq.read import load_sequence
+from dtoc.seq.load import load_sequence
 from dtoc.sim import pdg
 from dtoc.sim.phantom import uniform_phantom
 

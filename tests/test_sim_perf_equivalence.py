@@ -5,7 +5,7 @@
 * :mod:`dtoc.sim.pdg_signal_batch`: the 'gemm' signal batched over intervals (separable spatial
   phases, per-tau factors, cached time factors, Taylor orders as row prefixes, T2' sign classes);
 
-against ``pdg_main._loop_autograd`` (generic autograd, one interval at a time, the path these replace).
+against ``pdg_reference.main_loop_autograd`` (generic autograd, one interval at a time, the path these replace).
 Tolerances: float64 signal 1e-10 and gradient 1e-9 relative to their maxima (rounding only: the
 same terms summed in another order); float32 1e-5 of the maximum.
 """
@@ -15,10 +15,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_sim_physics import _rich_phantom, _se_epi_like, _small_gre
+from test_sim_physics import rich_phantom, se_epi_like, small_gre
 
 import dtoc.sim.pdg_main as M
 from dtoc.sim.pdg import PDGConfig, build_graph, simulate
+from dtoc.sim.pdg_reference import main_loop_autograd
 
 
 def _signal_and_grad(ir, ph, graph, cfg, dtype=torch.float64):
@@ -33,8 +34,8 @@ def test_fast_paths_equal_generic_autograd(seq, d_scale, coils, monkeypatch):
     """Signal and gradient w.r.t. every gradient sample: fast paths == reference (B0, T2', B1, D, coils,
     tau crossing zero in the ADC, strong diffusion with per-state exact fallback), also with the
     recomputing adjoint (checkpoint_bytes 0)."""
-    ir = _small_gre(n_rep=4) if seq == "gre" else _se_epi_like()
-    ph = _rich_phantom()
+    ir = small_gre(n_rep=4) if seq == "gre" else se_epi_like()
+    ph = rich_phantom()
     ph.d_m2_per_s = ph.d_m2_per_s * d_scale
     if coils:
         ph.coil_sens = np.stack([np.ones((4, 4)), np.exp(1j * np.arange(16).reshape(4, 4) / 3.0)])
@@ -42,7 +43,7 @@ def test_fast_paths_equal_generic_autograd(seq, d_scale, coils, monkeypatch):
     graph = build_graph(ir, cfg, ph)
     s_new, g_new = _signal_and_grad(ir, ph, graph, cfg)
     s_rc, g_rc = _signal_and_grad(ir, ph, graph, PDGConfig(signal_method="gemm", checkpoint_bytes=0))
-    monkeypatch.setattr(M, "_loop", M._loop_autograd)
+    monkeypatch.setattr(M, "main_loop", main_loop_autograd)
     s_ref, g_ref = _signal_and_grad(ir, ph, graph, cfg)
     assert np.abs(g_ref).max() > 0
     assert np.abs(s_new - s_ref).max() < 1e-10 * np.abs(s_ref).max()
@@ -56,7 +57,7 @@ def test_fast_paths_float32_and_paper_gre(monkeypatch):
     timing in every TR, so the cached time factors are reused)."""
     from pathlib import Path
 
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
     from dtoc.sim.phantom import brain_phantom
 
     seq = Path(__file__).resolve().parents[1] / "sequences" / "gre_paper_r100us.seq"
@@ -68,7 +69,7 @@ def test_fast_paths_float32_and_paper_gre(monkeypatch):
     graph = build_graph(ir, cfg, ph)
     s32, g32 = _signal_and_grad(ir, ph, graph, cfg, torch.float32)
     s64, g64 = _signal_and_grad(ir, ph, graph, cfg)
-    monkeypatch.setattr(M, "_loop", M._loop_autograd)
+    monkeypatch.setattr(M, "main_loop", main_loop_autograd)
     s_ref, g_ref = _signal_and_grad(ir, ph, graph, cfg)
     assert np.abs(s64 - s_ref).max() < 1e-10 * np.abs(s_ref).max()
     assert np.abs(g64 - g_ref).max() < 1e-9 * np.abs(g_ref).max()
@@ -79,10 +80,10 @@ def test_fast_paths_float32_and_paper_gre(monkeypatch):
 def test_separable_spatial_phase_and_vectorised_taylor_orders():
     """VoxelData.spatial_phase (per-axis factors on the voxel grid) equals exp(-i (kx x + ky y)) per
     voxel (1e-12, float64, k up to 1e5 rad/m); the vectorised Taylor orders equal the scalar rule."""
-    from dtoc.sim.pdg_signal import VoxelData, _taylor_order
-    from dtoc.sim.pdg_signal_batch import _taylor_orders
+    from dtoc.sim.pdg_signal import VoxelData, taylor_order
+    from dtoc.sim.pdg_signal_batch import taylor_orders
 
-    ph = _rich_phantom(n=6)
+    ph = rich_phantom(n=6)
     vox = VoxelData.from_phantom(ph, None, torch.float64, "cpu", PDGConfig())
     rng = np.random.default_rng(3)
     kx = torch.as_tensor(rng.uniform(-1e5, 1e5, (3, 5)))
@@ -103,7 +104,7 @@ def test_separable_spatial_phase_and_vectorised_taylor_orders():
         assert torch.allclose(u, w, rtol=1e-9, atol=1e-9 * float(w.abs().max()))
     x = np.concatenate([[0.0, 1e-12, 1e-9], np.logspace(-10, 0.5, 300)])
     for tol in (1e-9, 1e-6):
-        assert np.array_equal(_taylor_orders(x, tol), [_taylor_order(float(v), tol) for v in x])
+        assert np.array_equal(taylor_orders(x, tol), [taylor_order(float(v), tol) for v in x])
 
 
 def test_tissue_compression_is_exact():
@@ -111,14 +112,14 @@ def test_tissue_compression_is_exact():
     signal (1e-10) and gradient (1e-9) in float64 with a steady-state initial Mz (ratio varies per
     tissue) and a partial-volume brain phantom (fewer tuples than voxels); steady_state_mz too."""
     from dtoc.sim.pdg import steady_state_mz
-    from dtoc.sim.pdg_main import _Tissues
+    from dtoc.sim.pdg_main import TissueClasses
     from dtoc.sim.pdg_signal import VoxelData
     from dtoc.sim.phantom import brain_phantom
 
-    ir = _small_gre(n_rep=4, n=4, fov=0.032)
+    ir = small_gre(n_rep=4, n=4, fov=0.032)
     ph = brain_phantom(12, fov_m=0.032, b0=True)
     vox = VoxelData.from_phantom(ph, None, torch.float64, "cpu", PDGConfig())
-    assert 1 < _Tissues(vox, True).n < vox.n  # the compression does something here
+    assert 1 < TissueClasses(vox, True).n < vox.n  # the compression does something here
     res = []
     for comp in (True, False):
         cfg = PDGConfig(compress_tissues=comp)
@@ -146,15 +147,15 @@ def test_tissue_compression_with_strong_diffusion_fallback(fused, monkeypatch):
     receive voxel amplitudes, not tissue-tuple rows, when the tissue compression is on (it crashed on a
     128x128 brain phantom).  Compressed == per-voxel, float64, signal 1e-10 and gradient 1e-9."""
     import dtoc.sim.pdg_signal_batch as SB
-    from dtoc.sim.pdg_main import _Tissues
+    from dtoc.sim.pdg_main import TissueClasses
     from dtoc.sim.pdg_signal import VoxelData
     from dtoc.sim.phantom import brain_phantom
 
-    ir = _small_gre(n_rep=4, n=4, fov=0.032)
+    ir = small_gre(n_rep=4, n=4, fov=0.032)
     ph = brain_phantom(12, fov_m=0.032, b0=True)
     ph.d_m2_per_s = ph.d_m2_per_s * 1e4  # strongly dephased pathways take the exact per-state path
     vox = VoxelData.from_phantom(ph, None, torch.float64, "cpu", PDGConfig())
-    assert 1 < _Tissues(vox, True).n < vox.n
+    assert 1 < TissueClasses(vox, True).n < vox.n
     calls = []
     orig = SB._sig.emit_signal_direct
     monkeypatch.setattr(SB._sig, "emit_signal_direct", lambda *a, **k: calls.append(1) or orig(*a, **k))
@@ -174,8 +175,8 @@ def test_tissue_compression_with_strong_diffusion_fallback(fused, monkeypatch):
 def test_unrolled_k_paths_equal_recursion(monkeypatch):
     """The k of every state from the unrolled path matrix (one product for all intervals) equals the
     interval-by-interval recursion (used above _K_PATH_MAX_ELEMS): signal 1e-12, gradient 1e-10."""
-    ir = _small_gre(n_rep=4)
-    ph = _rich_phantom()
+    ir = small_gre(n_rep=4)
+    ph = rich_phantom()
     graph = build_graph(ir, PDGConfig(), ph)
     s_mat, g_mat = _signal_and_grad(ir, ph, graph, PDGConfig())
     assert graph._torch_cache.get("kpath") is not None
@@ -199,8 +200,8 @@ def test_fused_signal_adjoint_equals_generic_chain(seq, d_scale, coils, monkeypa
     contain those features (else the comparison would not test them)."""
     import dtoc.sim.pdg_signal_batch as B
 
-    ir = _small_gre(n_rep=4) if seq == "gre" else _se_epi_like()
-    ph = _rich_phantom()
+    ir = small_gre(n_rep=4) if seq == "gre" else se_epi_like()
+    ph = rich_phantom()
     ph.d_m2_per_s = ph.d_m2_per_s * d_scale
     if coils:
         ph.coil_sens = np.stack([np.ones((4, 4)), np.exp(1j * np.arange(16).reshape(4, 4) / 3.0)])
@@ -211,10 +212,10 @@ def test_fused_signal_adjoint_equals_generic_chain(seq, d_scale, coils, monkeypa
 
     def spy(*args):
         plan = args[-1]
-        for st in plan["steps"]:
-            seen["signs"].add(st["sgn"])
-            seen["order"] = max(seen["order"], len(st["orders"]) - 1)
-            seen["masked"] |= st["orders"][0]["mask"] is not None
+        for st in plan.steps:
+            seen["signs"].add(st.sgn)
+            seen["order"] = max(seen["order"], len(st.orders) - 1)
+            seen["masked"] |= st.orders[0].mask is not None
         return apply(*args)
 
     monkeypatch.setattr(B._BatchedGemm, "apply", spy)
@@ -307,14 +308,14 @@ def test_add_rows_equals_complex_index_add(cdtype):
 
 
 def test_unique_rows_equals_numpy_unique():
-    """The pre-pass merges states with ``_unique_rows`` (one lexsort): same rows, same order, same inverse
+    """The pre-pass merges states with ``unique_rows`` (one lexsort): same rows, same order, same inverse
     as ``np.unique(axis=0)`` (the graph, and so every simulation, is unchanged), negatives and huge keys included."""
-    from dtoc.sim.pdg_graph import _unique_rows
+    from dtoc.sim.pdg_graph import unique_rows
 
     rng = np.random.default_rng(3)
     for n in (0, 1, 7, 5000):
         a = rng.integers(-4, 4, size=(n, 5)).astype(np.int64)
         a[:, 2] *= 10**12
         u0, i0 = np.unique(a, axis=0, return_inverse=True)
-        u1, i1 = _unique_rows(a)
+        u1, i1 = unique_rows(a)
         assert np.array_equal(u0, u1) and np.array_equal(i0.reshape(-1), i1)

@@ -13,7 +13,7 @@ import torch
 from dtoc.constants import GAMMA_RAD_PER_S_PER_MT as GAM
 from dtoc.seq.ir import ADCEvent, RFEvent, SequenceIR
 from dtoc.sim.pdg import PDGConfig, build_graph, simulate, steady_state_mz
-from dtoc.sim.pdg_main import rf_coefficients
+from dtoc.sim.pdg_rfsplit import rf_coefficients
 from dtoc.sim.phantom import Phantom
 
 
@@ -296,7 +296,7 @@ def test_global_b0_equals_uniform_offresonance():
     np.testing.assert_allclose(s_hw, s_ph, atol=1e-9)
 
 
-def _small_gre(n_rep=3, n=4, fov=0.032, raster=10e-6):
+def small_gre(n_rep=3, n=4, fov=0.032, raster=10e-6):
     """A tiny Cartesian GRE: readout on x, phase encode on y, spoiler; 3 repetitions of 10 ms."""
     dk = 2 * np.pi / fov
     rfs, adcs, traps = [], [], []
@@ -312,7 +312,7 @@ def _small_gre(n_rep=3, n=4, fov=0.032, raster=10e-6):
     return make_ir(n_rep * 10e-3, traps=traps, rfs=rfs, adcs=adcs, raster_s=raster, block_s=10e-3)
 
 
-def _rich_phantom(n=4, fov=0.032):
+def rich_phantom(n=4, fov=0.032):
     rng = np.random.default_rng(0)
     ph = phantom(n=n, fov=fov)
     ph.pd = rng.uniform(0.5, 1.0, (n, n))
@@ -329,8 +329,8 @@ def _rich_phantom(n=4, fov=0.032):
 def test_gradient_wrt_gradient_samples_matches_finite_differences():
     """d(loss)/d(g_m) by autograd equals central differences (float64, relative 1e-6) on a GRE with
     B0, T2', B1, diffusion and RF spoiling; the graph is fixed (built once on the nominal gradient)."""
-    ir = _small_gre()
-    ph = _rich_phantom()
+    ir = small_gre()
+    ph = rich_phantom()
     graph = build_graph(ir, PDGConfig(), ph)
     rng = np.random.default_rng(3)
     w = torch.as_tensor(rng.normal(size=ir.n_adc_samples) + 1j * rng.normal(size=ir.n_adc_samples))
@@ -355,8 +355,8 @@ def test_gradient_wrt_gradient_samples_matches_finite_differences():
 
 def test_float32_and_chunking_agree_with_float64():
     """float32 matches float64 to 1e-4 of the signal maximum; a tiny chunk size changes nothing (1e-12)."""
-    ir = _small_gre()
-    ph = _rich_phantom()
+    ir = small_gre()
+    ph = rich_phantom()
     s64 = simulate(ir, ph).numpy()
     s32 = simulate(ir, ph, dtype=torch.float32).numpy()
     assert np.abs(s32 - s64).max() < 1e-4 * np.abs(s64).max()
@@ -366,8 +366,8 @@ def test_float32_and_chunking_agree_with_float64():
 
 def test_multicoil_is_linear_in_sensitivities():
     """Two coils: s_c = sum_v C_c(v) m(v); coil 2 = (1 + 2i) x coil 1 gives (1 + 2i) x signal (1e-12)."""
-    ir = _small_gre()
-    ph = _rich_phantom()
+    ir = small_gre()
+    ph = rich_phantom()
     s1 = simulate(ir, ph).numpy()
     c = np.exp(1j * np.arange(16).reshape(4, 4) / 5.0)
     ph.coil_sens = np.stack([c, (1 + 2j) * c])
@@ -377,7 +377,7 @@ def test_multicoil_is_linear_in_sensitivities():
     assert np.abs(s2[0] - s1[0]).max() > 1e-3 * np.abs(s1).max()  # the sensitivity does act
 
 
-def _se_epi_like(raster=10e-6):
+def se_epi_like(raster=10e-6):
     """Spin echo with a readout crossing the echo (tau changes sign inside the ADC), 2 lines."""
     fov, n = 0.032, 4
     dk = 2 * np.pi / fov
@@ -398,8 +398,8 @@ def _se_epi_like(raster=10e-6):
 def test_gemm_evaluation_equals_direct(seq):
     """The shared-kernel matrix-product evaluation equals the exact per-state evaluation (1e-9 of the
     maximum; diffusion's second-order expansion is well inside) with B0, T2', B1, D, two coils."""
-    ir = _small_gre() if seq == "gre" else _se_epi_like()
-    ph = _rich_phantom()
+    ir = small_gre() if seq == "gre" else se_epi_like()
+    ph = rich_phantom()
     ph.coil_sens = np.stack([np.ones((4, 4)), np.exp(1j * np.arange(16).reshape(4, 4) / 3.0)])
     g = build_graph(ir, PDGConfig(), ph)
     if seq == "se":
@@ -413,8 +413,8 @@ def test_gemm_evaluation_equals_direct(seq):
 def test_separable_evaluation_equals_direct(seq):
     """Per-axis factorisation with the windowed Taylor expansion equals the exact evaluation (1e-8 of
     the maximum, taylor_tol 1e-10) including tau sign changes, B0, T2', D and coils."""
-    ir = _small_gre() if seq == "gre" else _se_epi_like()
-    ph = _rich_phantom()
+    ir = small_gre() if seq == "gre" else se_epi_like()
+    ph = rich_phantom()
     ph.coil_sens = np.stack([np.ones((4, 4)), np.exp(1j * np.arange(16).reshape(4, 4) / 3.0)])
     g = build_graph(ir, PDGConfig(), ph)
     sd = simulate(ir, ph, graph=g, config=PDGConfig(signal_method="direct")).numpy()
@@ -431,8 +431,8 @@ def test_gemm_diffusion_taylor_and_per_state_fallback(d_scale, monkeypatch):
     direct evaluation to 1e-9 of the maximum in float64, and float32 stays finite and within 1e-4."""
     import dtoc.sim.pdg_signal as S
 
-    ir = _small_gre()
-    ph = _rich_phantom()
+    ir = small_gre()
+    ph = rich_phantom()
     ph.d_m2_per_s = ph.d_m2_per_s * d_scale
     g = build_graph(ir, PDGConfig(), ph)
     sd = simulate(ir, ph, graph=g, config=PDGConfig(signal_method="direct")).numpy()
@@ -449,8 +449,8 @@ def test_gemm_diffusion_taylor_and_per_state_fallback(d_scale, monkeypatch):
 
 def test_presets_order_states():
     """PDGConfig.fast() keeps fewer states than the defaults, strict() more (same graph builder)."""
-    ir = _small_gre(n_rep=6)
-    ph = _rich_phantom()
+    ir = small_gre(n_rep=6)
+    ph = rich_phantom()
     n = [build_graph(ir, c, ph).n_states_total for c in (PDGConfig.fast(), PDGConfig(), PDGConfig.strict())]
     assert n[0] <= n[1] <= n[2] and n[0] < n[2]
     assert PDGConfig.fast(max_states=7).max_states == 7 and PDGConfig.fast().min_latent_signal == 1e-4
@@ -487,9 +487,9 @@ def test_raster_independence_and_checkpointed_chunks():
     exact moments at RF centres and ADC samples enter.  Checkpointed chunks give the same gradient."""
 
     def gre(raster):
-        return _small_gre(raster=raster)
+        return small_gre(raster=raster)
 
-    ph = _rich_phantom()
+    ph = rich_phantom()
     s10 = simulate(gre(10e-6), ph).numpy()
     s100 = simulate(gre(100e-6), ph).numpy()
     assert np.abs(s10 - s100).max() < 1e-10 * np.abs(s10).max()
@@ -510,15 +510,15 @@ def test_bad_inputs_give_one_line_input_errors():
     """Shape mismatches name the argument and the expected shape (dtoc InputError, one line)."""
     from dtoc.errors import InputError
 
-    ir = _small_gre()
-    ph = _rich_phantom()
+    ir = small_gre()
+    ph = rich_phantom()
     with pytest.raises(InputError, match=r"grad_mT_per_m has shape \(3, 5\)"):
         simulate(ir, ph, torch.zeros(3, 5))
     with pytest.raises(InputError, match="b0_uT"):
         simulate(ir, ph, b0_uT=torch.zeros(7))
     with pytest.raises(InputError, match="initial_mz"):
         simulate(ir, ph, initial_mz=torch.zeros(3, 3))
-    g_other = build_graph(_small_gre(n_rep=2), PDGConfig(), ph)
+    g_other = build_graph(small_gre(n_rep=2), PDGConfig(), ph)
     with pytest.raises(InputError, match="graph was built"):
         simulate(ir, ph, graph=g_other)
 
@@ -527,7 +527,7 @@ def test_graph_structure_and_dummy_modes():
     """Pre-pass contracts: one excitation without refocusing -> one emitting state; states ordered
     transverse first; the default dummy train (cycled repetitions) equals the explicit block range
     for identical TRs (1e-12); the RF-spoiling increment is detected from the phases (117 deg)."""
-    from dtoc.sim.pdg_main import detect_rf_spoiling
+    from dtoc.sim.pdg_dummies import detect_rf_spoiling
 
     ir = make_ir(
         10e-3,

@@ -105,7 +105,7 @@ def test_area_averaging_is_consistent_across_resolutions():
         u = (ix - 16 + sub) * 2 / 32
         v = (iy - 16 + sub) * 2 / 32
         vv, uu = np.meshgrid(v, u, indexing="ij")
-        lab = P._label_map(uu, vv, 0, True)
+        lab = P.label_map(uu, vv, 0, True)
         pd_ref = np.mean([tab[P.TISSUES[t]][0] if t else 0.0 for t in lab.ravel()])
         assert lo.pd[iy, ix] == pytest.approx(pd_ref, abs=0.01)
     assert np.sum((lo.pd > 0.06) & (lo.pd < 0.68)) > 10  # partial voxels on boundaries, no hard aliasing edges

@@ -40,7 +40,7 @@ CASES = {
 
 
 def _load(case):
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
 
     if case.get("seq"):
         return load_sequence(str(REPO / "sequences" / case["seq"]))

@@ -137,7 +137,7 @@ def worker(seq_path: str, phantom_path: str, out_json: str, repeats: int, dtype:
     import numpy as np
     import torch
 
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
     from dtoc.sim import pdg
     from dtoc.sim.phantom import load_phantom
 
@@ -245,7 +245,7 @@ def _nrmse_vs(seq: Path, a_npy: Path, b_npy: Path) -> float | None:
     import numpy as np
     import torch
 
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
     from dtoc.sim import metrics, recon
 
     if not (a_npy.exists() and b_npy.exists()):

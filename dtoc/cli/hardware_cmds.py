@@ -239,8 +239,8 @@ def predict_cmd(
     Without --girf/--model the hardware is ideal (all errors 0).
     """
     from dtoc.hardware.model import resolve_model
-    from dtoc.hardware.predict import plot_prediction, predict
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
+    from dtoc.sim.predict import plot_prediction, predict
 
     _check_device(device)
     if png is not None:

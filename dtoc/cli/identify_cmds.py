@@ -16,11 +16,13 @@ KINDS = ("delay", "gain", "offset", "exp_eddy", "cross_eddy", "b0_eddy", "lti", 
 
 
 def identify_cmd(
-    measured: Path = typer.Argument(..., help="measurement .npz (BRIEF §2.1: dt, g, G and/or k, optional b0)"),
+    measured: Path = typer.Argument(
+        ..., help="measurement .npz (docs/contracts.md §1: dt, g, G and/or k, optional b0)"
+    ),
     girf: Path | None = typer.Option(None, "--girf", help="declared model: a GIRF .npz"),
     model: Path | None = typer.Option(None, "--model", help="declared model: a model JSON file"),
     out: Path = typer.Option(..., "-o", "--out", help="updated model JSON (declared model + effects found)"),
-    json_out: Path | None = typer.Option(None, "--json", help="write the report JSON (BRIEF §2.3) here"),
+    json_out: Path | None = typer.Option(None, "--json", help="write the report JSON (docs/contracts.md §3) here"),
     png: Path | None = typer.Option(None, "--png", help="write a PNG of residuals before/after (time and frequency)"),
     force: bool = typer.Option(False, "--force", help="overwrite existing outputs"),
     max_effects: int = typer.Option(6, "--max-effects", min=0, help="cap on the number of effects added"),

@@ -13,7 +13,7 @@ import sys
 
 import typer
 
-from dtoc import __version__
+from dtoc.version import __version__
 
 app = typer.Typer(
     name="dtoc",

@@ -43,7 +43,7 @@ def optimize_cmd(
     from dtoc.errors import InputError
     from dtoc.optimize.config import load_config
     from dtoc.optimize.run import optimize_sequence
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
     from dtoc.util.atomic import check_output_path
 
     if method is not None and method not in ("dto", "adam-paper", "warmstart", "preemphasis"):

@@ -68,7 +68,8 @@ def check_cmd(
     from dtoc.errors import InputError
     from dtoc.seq.check import check_file, system_from_definitions
     from dtoc.seq.seqtext import parse_seq_text
-    from dtoc.seq.system import SystemSpec, load_system
+    from dtoc.seq.spec import load_system
+    from dtoc.seq.system import SystemSpec
 
     for name, v in (("--gmax", gmax), ("--smax", smax)):
         if v is not None and not (math.isfinite(v) and v > 0):

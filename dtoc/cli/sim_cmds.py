@@ -48,11 +48,10 @@ def simulate_cmd(
     from rich.console import Console
     from rich.table import Table
 
-    from dtoc import __version__
-    from dtoc.errors import InputError
     from dtoc.sim.comparison import check_device, compare_ideal_realized, plot_comparison, torch_dtype
-    from dtoc.sim.phantom import resolve_phantom
+    from dtoc.sim.phantom import phantom_for
     from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_output_path, sha256_file
+    from dtoc.version import __version__
 
     err = Console(stderr=True)
     tdtype = torch_dtype(dtype)
@@ -61,19 +60,13 @@ def simulate_cmd(
         if out is not None:
             check_output_path(out, force)
     from dtoc.hardware.model import resolve_model
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
 
     with err.status("reading sequence and hardware model"):
         ir = load_sequence(seq)
         hw = resolve_model(girf=girf, model=model)
-    if ir.fov_m is None or ir.matrix is None:
-        raise InputError(f"{seq}: the sequence declares no FOV/matrix; simulate needs a Cartesian base sequence")
-    ro = ir.readout_axis if ir.readout_axis is not None else 0
-    n = [0, 0]
-    n[ro], n[1 - ro] = int(ir.matrix[0]), int(ir.matrix[1])
-    ph = resolve_phantom(
-        phantom, matrix=(n[1], n[0]), fov_m=(ir.fov_m[0], ir.fov_m[1]), field_T=field_T, b0=b0_map, b1=b1_map
-    )
+    ir.require_geometry(f"{seq}: simulate")
+    ph = phantom_for(ir, phantom, field_T=field_T, b0=b0_map, b1=b1_map)
     with err.status("simulating") as status:
         res = compare_ideal_realized(
             ir, ph, hw, n_dummies=dummies, dtype=tdtype, device=dev, step=lambda s: status.update(f"simulating: {s}")

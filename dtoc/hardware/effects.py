@@ -13,7 +13,7 @@ them; every effect is differentiable w.r.t. the waveform and its parameters (``s
 ``delay`` almost everywhere).  Axes: ``axis`` is the output axis ('x'|'y'|'z'; None = all three with
 the same parameters), ``input_axis`` the source axis of cross and B0 terms.
 
-Units: gradient mT/m, B0 uT, time s, slew T/m/s.  Kinds and parameter names follow BRIEF §2.3.
+Units: gradient mT/m, B0 uT, time s, slew T/m/s.  Kinds and parameter names follow docs/contracts.md §3.
 """
 
 from __future__ import annotations
@@ -316,7 +316,7 @@ class SlewLimit(Effect):
 
 
 class Girf(Effect):
-    """``girf``: measured linear response, 3x3 with optional B0 row (BRIEF §2.2).
+    """``girf``: measured linear response, 3x3 with optional B0 row (docs/contracts.md §2).
 
     ``G[o](t) = sum_i (h[o, i] * g[i])(t)``, ``b0(t) += sum_i (h0[i] * g[i])(t)``, where ``h[o, i, l]`` is the
     per-sample response on output axis o to input axis i at time ``t0_s + l*dt_s`` after the impulse

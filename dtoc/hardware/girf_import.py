@@ -271,7 +271,7 @@ def _import_prisma(paths: list[Path], include_b0: bool) -> GirfData:
             raise InputError(f"{p}: axis {AXES[a]} given twice")
         got[a] = data
     f = None
-    for a, (fa, _, _, _) in got.items():
+    for fa, _, _, _ in got.values():
         if f is None:
             f = fa
         elif fa.shape != f.shape or np.max(np.abs(fa - f)) > 1e-6 * np.max(np.abs(f)):

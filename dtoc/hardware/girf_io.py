@@ -1,4 +1,4 @@
-"""GIRF files (contract BRIEF §2.2): load, validate, save, convert frequency <-> time domain.
+"""GIRF files (contract docs/contracts.md §2): load, validate, save, convert frequency <-> time domain.
 
 Time domain: ``dt`` (s), ``h`` (3, 3, L) real, ``h[o, i, l]`` = per-sample response on output axis o to a
 unit-area impulse on input axis i at time ``t0 + l*dt`` after it (``h[o, o].sum()`` = DC gain);

@@ -1,4 +1,4 @@
-"""Measurement files (contract BRIEF §2.1): what was sent (``g``) and what was measured (``G``/``k``/``b0``).
+"""Measurement files (contract docs/contracts.md §1): what was sent (``g``) and what was measured (``G``/``k``/``b0``).
 
 Keys: ``dt`` scalar s; ``g`` (M, 3, N) mT/m demanded, sample n at ``t = n*dt``; ``G`` (M, 3, N) mT/m and/or
 ``k`` (M, 3, N) rad/m (``k(t_n) = gamma * integral_0^t_n G dt``); optional ``b0`` (M, N) uT; optional scalar

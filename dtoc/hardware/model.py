@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -30,7 +30,7 @@ from dtoc.errors import InputError
 from dtoc.hardware.effects import EFFECTS, Effect, Girf
 from dtoc.util.atomic import atomic_write_text
 
-Axis = Optional[Literal["x", "y", "z"]]
+Axis = Literal["x", "y", "z"] | None
 
 
 class EffectSpec(BaseModel):

@@ -283,7 +283,7 @@ def screen_lti(ws: Workspace, ctx: Context, axis: str, n_taps: int | None = None
         return {a: dG}, None
 
     if ws.data.k is None:  # G only: the columns change nothing else
-        A, b = _lti_stats_toeplitz(ws, ctx.P[:, a], a, [j + j0 for j in range(L)])
+        A, b = lti_stats_toeplitz(ws, ctx.P[:, a], a, [j + j0 for j in range(L)])
     else:
         A, b = ws.unit_stats(make, L, full=True)
     res = cross_validate(A, b, ws.c_units, ws.folds, [list(range(L))], free=True)
@@ -301,7 +301,7 @@ def screen_lti(ws: Workspace, ctx: Context, axis: str, n_taps: int | None = None
     )
 
 
-def _lti_stats_toeplitz(ws: Workspace, x: np.ndarray, a: int, lags: list) -> tuple[np.ndarray, np.ndarray]:
+def lti_stats_toeplitz(ws: Workspace, x: np.ndarray, a: int, lags: list) -> tuple[np.ndarray, np.ndarray]:
     """Per-unit Gram and projection of shifted copies x[n - lag] on the G channel of axis a, in O(p N).
 
     Column j is x(t - lag_j dt) (zero outside the record), whitened by sigma_G, restricted to the unit's

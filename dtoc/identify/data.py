@@ -1,6 +1,6 @@
 """The measurement as the identification sees it: channels, masks, noise levels.
 
-A measurement (BRIEF §2.1) holds the demanded gradient ``g`` (M, 3, N) mT/m and one or more measured
+A measurement (docs/contracts.md §1) holds the demanded gradient ``g`` (M, 3, N) mT/m and one or more measured
 channels: the realized gradient ``G`` (M, 3, N) mT/m, the k-space ``k`` (M, 3, N) rad/m and the
 zeroth-order field ``b0`` (M, N) uT, all sampled at t_n = n*dt.  :class:`IdentData` keeps them as float64
 numpy arrays together with the per-(waveform, axis) mask of measured axes, so that every residual,
@@ -121,7 +121,7 @@ class IdentData:
 
 def from_measurement(meas) -> IdentData:
     """Build :class:`IdentData` from a :class:`dtoc.hardware.measurement.Measurement` (or any object or
-    mapping with the BRIEF §2.1 names: dt, g, G, k, b0, sigma_G, sigma_k, sigma_b0, labels, axes_measured)."""
+    mapping with the docs/contracts.md §1 names: dt, g, G, k, b0, sigma_G, sigma_k, sigma_b0, labels, axes_measured)."""
 
     def get(name):
         if isinstance(meas, dict):

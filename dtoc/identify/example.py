@@ -63,15 +63,12 @@ class _Plays(torch.nn.Module):
 def image_on_scanner(base_seq, played_seq, scanner) -> dict:
     """NRMSE / ghost ratio / k error of ``played_seq`` (default: the base itself) on ``scanner``,
     against the ideal image of ``base_seq`` (same phantom and reconstruction as ``dtoc simulate``)."""
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
     from dtoc.sim.comparison import compare_ideal_realized
-    from dtoc.sim.phantom import resolve_phantom
+    from dtoc.sim.phantom import phantom_for
 
     ir = load_sequence(base_seq)
-    ro = ir.readout_axis if ir.readout_axis is not None else 0
-    n = [0, 0]
-    n[ro], n[1 - ro] = int(ir.matrix[0]), int(ir.matrix[1])
-    ph = resolve_phantom(None, matrix=(n[1], n[0]), fov_m=(ir.fov_m[0], ir.fov_m[1]))
+    ph = phantom_for(ir, None)
     played = ir.grad_mT_per_m if played_seq is None else load_sequence(played_seq).grad_mT_per_m
     res = compare_ideal_realized(ir, ph, _Plays(scanner, played))
     m = res.metrics

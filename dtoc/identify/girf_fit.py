@@ -1,4 +1,4 @@
-"""Estimate a 3x3 GIRF (+ B0 row) from measured input/output pairs (measurement contract, BRIEF §2.1).
+"""Estimate a 3x3 GIRF (+ B0 row) from measured input/output pairs (measurement contract, docs/contracts.md §1).
 
 Per frequency f and output o (x, y, z, and b0 when measured), the row ``H[o, :]`` (1 x 3) minimises
 

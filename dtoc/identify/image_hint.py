@@ -8,7 +8,7 @@ and the measured raw ADC signal of one scan of a known object (a phantom), :func
     L(tau) = || s_measured - s_twin(tau) ||^2 / || s_measured ||^2
 
 where ``s_twin`` is the PDG simulation of the base sequence played through declared model + delays
-(:class:`dtoc.optimize.twin.Imager`, differentiable), by L-BFGS on the delays (in us) with gradients from
+(:class:`dtoc.sim.imager.Imager`, differentiable), by L-BFGS on the delays (in us) with gradients from
 autograd through simulator and hardware model.  Returns the fitted delays, the loss and the EPI ghost ratio of
 the reconstructed twin images before/after, and the updated model.
 
@@ -43,8 +43,7 @@ def _ghost(img, ref, ir) -> float | None:
 
     if ir.kind != "epi":
         return None
-    pdim = -1 if ir.phase_axis == 0 else -2
-    return float(metrics.ghost_ratio(img, ref, phase_dim=pdim))
+    return float(metrics.ghost_ratio(img, ref, phase_dim=ir.phase_image_dim))
 
 
 def fit_delays_to_raw(
@@ -59,7 +58,7 @@ def fit_delays_to_raw(
         signal_measured: complex raw ADC signal, shape as :meth:`Imager.signal` returns.
         axes: axes whose delay is fitted.
     """
-    from dtoc.optimize.twin import Imager
+    from dtoc.sim.imager import Imager
 
     declared = declared if declared is not None else HardwareModel([])
     for p in declared.parameters():

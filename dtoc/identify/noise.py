@@ -1,6 +1,6 @@
 """Noise floor of a measured channel, estimated from the data itself.
 
-Two estimators, both for white per-sample noise (the meaning of ``sigma_*`` in BRIEF §2.1):
+Two estimators, both for white per-sample noise (the meaning of ``sigma_*`` in docs/contracts.md §1):
 
 * **Repeated waveforms** (preferred when available): waveforms whose demanded ``g`` is identical must
   have identical realized responses, so the scatter of the measurements about their group mean is noise

@@ -1,4 +1,4 @@
-"""The identify report: JSON (BRIEF §2.3 plus extras), a rich table, a PNG of residuals.
+"""The identify report: JSON (docs/contracts.md §3 plus extras), a rich table, a PNG of residuals.
 
 JSON keys (minimum, exactly as the contract): ``before``, ``after``, ``heldout_before``, ``heldout_after``
 (each {"G_rmse", "k_rmse", "b0_rmse"}, null for unmeasured channels), ``noise`` ({"G", "k", "b0"}),
@@ -16,11 +16,11 @@ import math
 
 import numpy as np
 
-from dtoc import __version__
 from dtoc.constants import AXES
 from dtoc.identify.candidates import lti_features
 from dtoc.identify.search import IdentifyResult
 from dtoc.util.figures import png_bytes
+from dtoc.version import __version__
 
 CH = ("G", "k", "b0")
 UNITS = {"G": "mT/m", "k": "rad/m", "b0": "uT"}
@@ -130,7 +130,7 @@ def print_table(r: IdentifyResult, console=None) -> None:
     for c in r.data.channels():
         n = d["noise"][c]
 
-        def cell(key):
+        def cell(key, c=c, n=n):
             v = d[key][f"{c}_rmse"]
             return "—" if v is None else f"{v:.4g} ({v / n:.2f}x)"
 

@@ -5,7 +5,7 @@ axis independently, a random train of trapezoids and triangles (random signed am
 and 100 % of the limit, random plateau and gap lengths), starting and ending at zero.  Axes differ, so
 cross terms are identifiable.  :func:`simulate_measurement` plays them through a "true scanner"
 (a :class:`dtoc.hardware.model.HardwareModel`) and adds white Gaussian noise; :func:`save_measurement`
-writes the BRIEF §2.1 ``.npz``.  Everything is seeded: same arguments, same arrays.
+writes the docs/contracts.md §1 ``.npz``.  Everything is seeded: same arguments, same arrays.
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ def simulate_measurement(
 
 
 def measurement_npz_bytes(d: IdentData) -> bytes:
-    """The BRIEF §2.1 ``.npz`` bytes of a measurement (deterministic)."""
+    """The docs/contracts.md §1 ``.npz`` bytes of a measurement (deterministic)."""
     arrays = {"dt": np.float64(d.dt_s), "g": d.g}
     for c in ("G", "k", "b0"):
         if getattr(d, c) is not None:

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from dtoc.optimize.config import LossWeights
+from dtoc.sim import metrics
 
 
 @dataclass
@@ -110,17 +111,14 @@ def kspace_term(k: torch.Tensor, ctx: LossContext) -> torch.Tensor:
 
 def moment_term(k_mom: torch.Tensor, ctx: LossContext) -> torch.Tensor:
     """mean over RF pulses of sum_axes ((m - m0)/dk)^2, m the k-space moment just before each pulse."""
+    assert ctx.k0_moment_rad_per_m is not None, "moment term of a sequence with fewer than two RF pulses"
     inv = torch.where(torch.isfinite(ctx.dk_rad_per_m), 1.0 / ctx.dk_rad_per_m, torch.zeros_like(ctx.dk_rad_per_m))
     return (((k_mom - ctx.k0_moment_rad_per_m) * inv[:, None]) ** 2).sum(0).mean()
 
 
 def image_term(images: list[torch.Tensor], targets: list[torch.Tensor]) -> torch.Tensor:
     """Mean NRMSE ||I - I0|| / ||I0|| over image pairs (complex or magnitude; magnitudes are compared)."""
-    vals = []
-    for im, im0 in zip(images, targets):
-        a, b = im.abs(), im0.abs()
-        vals.append(torch.linalg.vector_norm(a - b) / torch.linalg.vector_norm(b).clamp_min(1e-30))
-    return torch.stack(vals).mean()
+    return torch.stack([metrics.nrmse(im, im0) for im, im0 in zip(images, targets)]).mean()
 
 
 def amplitude_term(g: torch.Tensor, ctx: LossContext) -> torch.Tensor:
@@ -163,7 +161,7 @@ def total_loss(
         images / targets: simulated and target images (None: image term skipped).
     """
     terms: dict[str, torch.Tensor] = {}
-    if images is not None and weights.image > 0:
+    if images is not None and targets is not None and weights.image > 0:
         terms["image"] = weights.image * image_term(images, targets)
     if weights.kspace > 0:
         terms["kspace"] = weights.kspace * kspace_term(k, ctx)

@@ -29,6 +29,7 @@ import torch
 
 from dtoc.optimize import loss as L
 from dtoc.optimize.config import PAPER_RESTARTS, OptimizeConfig
+from dtoc.sim import metrics
 
 ProgressFn = Callable[[str, int, int, float], None]
 
@@ -58,13 +59,19 @@ class StageState:
 # ---------------------------------------------------------------------------------------------------
 # linear warm start
 # ---------------------------------------------------------------------------------------------------
-def _linear_objective(twin, ctx, weights):
+def linear_objective(twin, ctx, weights):
     def f(x: torch.Tensor) -> tuple[torch.Tensor, dict]:
-        g = twin.played(x)
-        G, _ = twin.realize(g)
-        k = twin.kspace(G)
+        r = twin.forward_edges(x)
         w = weights.model_copy(update={"image": 0.0, "amplitude": 0.0, "slew": 0.0})
-        return L.total_loss(w, ctx, g=g, G=G, k=k, include_reg=True, k_moment=twin.moments(G))
+        return L.total_loss(
+            w,
+            ctx,
+            g=r.demanded_grad_mT_per_m,
+            G=r.realized_grad_mT_per_m,
+            k=r.kspace_rad_per_m,
+            include_reg=True,
+            k_moment=r.moments_rad_per_m,
+        )
 
     return f
 
@@ -100,7 +107,7 @@ def warm_start(
     """
     P = twin.projector
     free = twin.free_t
-    f = _linear_objective(twin, ctx, weights)
+    f = linear_objective(twin, ctx, weights)
     x0 = twin.base_edges() if x_init is None else x_init.detach().clone()
     hist = state.history if state is not None else []
     if iters <= 0:
@@ -206,11 +213,11 @@ def robust_warm_start(
     few samples).  Without active limits the first solve is already exact and no round runs.
     """
     x = warm_start(twin, ctx, weights, iters, state, progress)
-    for r in range(rounds):
+    for _r in range(rounds):
         if state is not None and state.interrupted:
             break
         with torch.no_grad():
-            err = kspace_error_dk(twin.kspace(twin.realize(twin.played(x))[0]), ctx)
+            err = kspace_error_dk(twin.forward_edges(x, moments=False).kspace_rad_per_m, ctx)
         if err.max() <= scale_dk:
             break
         old = ctx.sample_weight
@@ -227,15 +234,16 @@ def robust_warm_start(
 # ---------------------------------------------------------------------------------------------------
 def evaluate(twin, imager, ctx, weights, edges: torch.Tensor, idx: int = 0, keep_mask=None, with_image: bool = True):
     """Forward pass: returns (total loss tensor, term dict, dict of intermediate tensors)."""
-    g = twin.played(edges)
-    G, b0 = twin.realize(g)
-    k = twin.kspace(G)
+    r = twin.forward_edges(edges)
+    g, G, b0, k = r.demanded_grad_mT_per_m, r.realized_grad_mT_per_m, r.b0_uT, r.kspace_rad_per_m
     images = targets = None
     if imager is not None and with_image and weights.image > 0:
         sig = imager.signal(G, b0, idx)
         images = [imager.image(sig, keep_mask=keep_mask)]
         targets = [imager.targets[idx]]
-    total, terms = L.total_loss(weights, ctx, g=g, G=G, k=k, images=images, targets=targets, k_moment=twin.moments(G))
+    total, terms = L.total_loss(
+        weights, ctx, g=g, G=G, k=k, images=images, targets=targets, k_moment=r.moments_rad_per_m
+    )
     return total, terms, {"g": g, "G": G, "b0": b0, "k": k, "images": images}
 
 
@@ -287,25 +295,27 @@ def full_loss(
             if it in restarts:
                 opt = _make_opt(cfg, x, lr)
 
-            def closure():
+            last: dict = {}  # the closure's figures of its (last) evaluation
+
+            def closure(opt=opt, idx=idx, last=last):
                 opt.zero_grad()
                 total, terms, _ = evaluate(twin, imager, ctx, weights, x, idx)
                 total.backward()
                 with torch.no_grad():
                     x.grad.mul_(free)
-                closure.terms = terms
-                closure.total = float(total.detach())
+                last["terms"] = terms
+                last["total"] = float(total.detach())
                 return total
 
             cur = x.detach().clone()
             opt.step(closure)
-            val = closure.total
+            val = last["total"]
             # the loss was evaluated at the (feasible) iterate before the step
             if n_img == 1 and val < state.best_loss:
                 state.best_loss, state.best_edges = val, cur
             with torch.no_grad():
                 x.copy_(P.project(x.detach(), n_iter=8, exact=False))
-            state.history.append({"stage": "full", "it": it + 1, "loss": val, "phantom": idx, **closure.terms})
+            state.history.append({"stage": "full", "it": it + 1, "loss": val, "phantom": idx, **last["terms"]})
             if progress:
                 progress("full", it + 1, cfg.iters, val)
             if checkpoint is not None and (it + 1) % cfg.checkpoint_every == 0:
@@ -399,19 +409,16 @@ def choose_discard(twin, imager, ctx, edges: torch.Tensor, n_candidates: int = 4
         (keep_mask (N_adc,) bool, threshold_dk (float, inf = keep all), nrmse at that threshold).
     """
     with torch.no_grad():
-        g = twin.played(edges)
-        G, b0 = twin.realize(g)
-        k = twin.kspace(G)
-        err = kspace_error_dk(k, ctx)
+        r = twin.forward_edges(edges, moments=False)
+        err = kspace_error_dk(r.kspace_rad_per_m, ctx)
         keep_all = np.ones(err.shape, dtype=bool)
         if imager is None:
             return keep_all, math.inf, float("nan")
-        sig = imager.signal(G, b0, 0)
+        sig = imager.signal(r.realized_grad_mT_per_m, r.b0_uT, 0)
         target = imager.targets[0]
 
         def nrmse(mask):
-            im = imager.image(sig, keep_mask=torch.as_tensor(mask))
-            return float((im.abs() - target.abs()).norm() / target.abs().norm())
+            return float(metrics.nrmse(imager.image(sig, keep_mask=torch.as_tensor(mask)), target))
 
         best = (nrmse(keep_all), math.inf, keep_all)
         qs = np.unique(np.quantile(err, np.linspace(0.5, 1.0, n_candidates)))

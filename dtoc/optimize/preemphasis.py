@@ -27,6 +27,7 @@ When ``g_pre`` breaks the hard limits the paper offers two fallbacks:
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import torch
@@ -275,9 +276,11 @@ def variable_te(ir, twin, limits, fit, max_steps: int = 2000) -> dict | None:
         return None
     from dtoc.errors import DtocError
     from dtoc.seq.build import build_ir
-    from dtoc.seq.spec import load_spec
+    from dtoc.seq.spec import GreSpec, load_spec
 
     spec = load_spec(spec_path)
+    if not isinstance(spec, GreSpec):
+        return None
     step_ms = spec.system.grad_raster_s * 1e3
     # the spoiler keeps its moment but is lowered to what pre-emphasis can still overdrive within gmax
     # (a step of amplitude A pre-emphasised peaks at A (1 + sum a_n)); its lobe grows longer, TR with it
@@ -333,7 +336,10 @@ def variable_te(ir, twin, limits, fit, max_steps: int = 2000) -> dict | None:
             hi = mid
         else:
             lo = mid
-    out = {"te_ms": round(spec.te_ms + hi * step_ms, 6), "tr_ms": round(spec.tr_ms + hi * step_ms + extra_tr_ms, 6)}
+    out: dict[str, Any] = {
+        "te_ms": round(spec.te_ms + hi * step_ms, 6),
+        "tr_ms": round(spec.tr_ms + hi * step_ms + extra_tr_ms, 6),
+    }
     if extra_tr_ms > 0:
         out["spoiler"] = {
             "mT_per_m": round(sp_amp, 4),

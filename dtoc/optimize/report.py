@@ -19,7 +19,7 @@ def write_report_png(path, figures: dict, manifest: dict, force: bool = False):
     before, after, keep = figures["before"], figures["after"], figures["keep"]
     t_ms = ir.t_fine_s * 1e3
     ro = ir.readout_axis if ir.readout_axis is not None else 0
-    pa = ir.phase_axis if ir.phase_axis is not None else 1
+    pa = ir.phase_axis if ir.phase_axis is not None else 1 - ro if ro in (0, 1) else 1
     fig, ax = plt.subplots(2, 3, figsize=(15, 8.5))
     # waveforms over the first ~3 ADC windows (or all when short)
     t_end = ir.duration_s

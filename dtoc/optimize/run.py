@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -25,8 +26,14 @@ from dtoc.errors import InputError, LimitError, ValidationFailed
 from dtoc.optimize import loss as L
 from dtoc.optimize import optimizer as O
 from dtoc.optimize.config import OptimizeConfig
-from dtoc.optimize.limits import EdgeProjector, Limits, check_area_reachable, limit_violations
-from dtoc.optimize.twin import Imager, Twin
+from dtoc.optimize.limits import EdgeProjector, Limits, check_area_reachable, limit_violations, waveform_extremes
+from dtoc.optimize.twin import EdgeTwin
+from dtoc.seq.check import check_file, check_ir_limits
+from dtoc.seq.ir import SequenceIR
+from dtoc.seq.system import SystemSpec
+from dtoc.seq.write import write_seq
+from dtoc.sim import metrics
+from dtoc.sim.imager import Imager
 from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_output_path, sha256_file
 
 
@@ -35,8 +42,6 @@ from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_output
 # ---------------------------------------------------------------------------------------------------
 def system_limits(ir, cfg: OptimizeConfig) -> Limits:
     """Hard limits: config values, else the sequence's recorded system limits, else SystemSpec defaults."""
-    from dtoc.seq.system import SystemSpec
-
     d = ir.definitions or {}
 
     def num(key):
@@ -71,19 +76,11 @@ def make_phantoms(ir, cfg: OptimizeConfig, phantom=None) -> list:
     None = 'brain'.  Built-in phantoms are made at the sequence's matrix (``cfg.phantom_size``
     overrides it) and FOV, with 7 T tissue values for EPI (the paper's 7 T experiment), 3 T otherwise.
     """
-    from dtoc.sim.phantom import Phantom, is_builtin_spec, resolve_phantom, rotate
+    from dtoc.sim.phantom import Phantom, phantom_for, rotate
 
     if not isinstance(phantom, Phantom):
         spec = "brain" if phantom is None else str(phantom)
-        if is_builtin_spec(spec) and (not ir.matrix or not ir.fov_m):
-            raise InputError("sequence has no matrix/FOV definitions: cannot build the phantom")
-        matrix = None
-        if ir.matrix:
-            nx = cfg.phantom_size or int(ir.matrix[0])
-            ny = cfg.phantom_size or int(ir.matrix[1] if len(ir.matrix) > 1 else ir.matrix[0])
-            matrix = (ny, nx)
-        fov = (ir.fov_m[0], ir.fov_m[1]) if ir.fov_m else None
-        phantom = resolve_phantom(spec, matrix=matrix, fov_m=fov, field_T=7.0 if ir.kind == "epi" else 3.0)
+        phantom = phantom_for(ir, spec, size=cfg.phantom_size, field_T=7.0 if ir.kind == "epi" else 3.0)
     out = [phantom]
     if cfg.augment_rotations > 0:
         rng = np.random.default_rng(cfg.seed)
@@ -95,17 +92,14 @@ def make_phantoms(ir, cfg: OptimizeConfig, phantom=None) -> list:
 # ---------------------------------------------------------------------------------------------------
 # metrics
 # ---------------------------------------------------------------------------------------------------
-def quality(twin: Twin, imager: Imager | None, ctx, edges, keep_mask=None, played=None) -> dict:
+def quality(twin: EdgeTwin, imager: Imager | None, ctx, edges, keep_mask=None, played=None) -> dict:
     """Figures of one demanded waveform: nrmse, ghost_ratio (EPI), k-space errors, discards.
 
     ``played`` overrides the fine waveform (e.g. the base sequence as given, limits ignored).
     """
-    from dtoc.sim import metrics
-
     with torch.no_grad():
-        g = twin.played(edges) if played is None else torch.as_tensor(played, dtype=twin.dtype)
-        G, b0 = twin.realize(g)
-        k = twin.kspace(G)
+        r = twin.forward(twin.demanded(played)) if played is not None else twin.forward_edges(edges, moments=False)
+        g, G, b0, k = r.demanded_grad_mT_per_m, r.realized_grad_mT_per_m, r.b0_uT, r.kspace_rad_per_m
         dk = ctx.dk_rad_per_m.cpu().numpy()
         ke = metrics.kspace_errors(k, ctx.k0_rad_per_m, dk)
         out = {
@@ -124,16 +118,14 @@ def quality(twin: Twin, imager: Imager | None, ctx, edges, keep_mask=None, playe
             sig = imager.signal(G, b0, 0)
             km = None if keep_mask is None else torch.as_tensor(np.asarray(keep_mask))
             im = imager.image(sig, keep_mask=km)
-            out["nrmse"] = float(metrics.nrmse(im, imager.targets[0]))
-            if twin.ir.kind == "epi":
-                pdim = -1 if twin.ir.phase_axis == 0 else -2
-                out["ghost_ratio"] = float(metrics.ghost_ratio(im, imager.targets[0], phase_dim=pdim))
-                # the ideal image's own energy in the ghost region (Gibbs ringing, T2* blurring along the
-                # echo train): the floor no gradient correction can go below; the excess is the hardware's
-                out["ghost_ratio_ideal"] = float(
-                    metrics.ghost_ratio(imager.targets[0], imager.targets[0], phase_dim=pdim)
-                )
-                out["ghost_ratio_excess"] = out["ghost_ratio"] - out["ghost_ratio_ideal"]
+            m = metrics.image_metrics(
+                im, imager.targets[0], epi=twin.ir.kind == "epi", phase_dim=twin.ir.phase_image_dim
+            )
+            out["nrmse"] = m["nrmse"]
+            if m["ghost_ratio"] is not None:
+                out["ghost_ratio"] = m["ghost_ratio"]
+                out["ghost_ratio_ideal"] = m["ghost_ratio_ideal"]
+                out["ghost_ratio_excess"] = m["ghost_ratio"] - m["ghost_ratio_ideal"]  # what the hardware adds
             out["_image"] = im.abs().cpu().numpy()
         out["_k"] = k.cpu().numpy()
         out["_G"] = G.cpu().numpy()
@@ -170,14 +162,21 @@ def load_checkpoint(path, n_edges: int) -> dict:
     p = Path(path)
     try:
         with np.load(p, allow_pickle=False) as z:
-            e = np.asarray(z["edges_mT_per_m"], dtype=np.float64)
-            out = {"edges": e, "it": int(z["it"]), "stage": str(z["stage"]), "history": json.loads(str(z["history"]))}
+            edges = np.asarray(z["edges_mT_per_m"], dtype=np.float64)
+            out = {
+                "edges": edges,
+                "it": int(z["it"]),
+                "stage": str(z["stage"]),
+                "history": json.loads(str(z["history"])),
+            }
     except FileNotFoundError:
         raise InputError(f"{p}: checkpoint not found") from None
     except Exception as e:  # noqa: BLE001
         raise InputError(f"{p}: not a dtoc optimize checkpoint ({type(e).__name__})") from None
-    if e.shape != (3, n_edges):
-        raise InputError(f"{p}: key 'edges_mT_per_m' has shape {e.shape}, expected (3, {n_edges}) for this sequence")
+    if edges.shape != (3, n_edges):
+        raise InputError(
+            f"{p}: key 'edges_mT_per_m' has shape {edges.shape}, expected (3, {n_edges}) for this sequence"
+        )
     return out
 
 
@@ -187,14 +186,14 @@ def load_checkpoint(path, n_edges: int) -> dict:
 @dataclass
 class RunOutputs:
     manifest: dict
-    ir_out: object
+    ir_out: SequenceIR
     figures: dict
 
 
 def _versions() -> dict:
     import importlib.metadata as md
 
-    out = {"python": platform.python_version()}
+    out: dict[str, str | None] = {"python": platform.python_version()}
     for pkg in ("dtoc", "torch", "numpy", "scipy", "pypulseq", "pydantic"):
         try:
             out[pkg] = md.version(pkg)
@@ -241,7 +240,7 @@ def optimize_sequence(
     """
     t_start = time.time()
     from dtoc.optimize.config import load_config
-    from dtoc.seq.read import load_sequence
+    from dtoc.seq.load import load_sequence
 
     for p in (out, manifest_path, png_path):
         if p is not None:
@@ -272,7 +271,7 @@ def optimize_sequence(
     projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
     check_area_reachable(ir, limits)
     dtype = torch.float64
-    twin = Twin(ir, hardware, projector, dtype=dtype, device=device)
+    twin = EdgeTwin(ir, hardware, projector, dtype=dtype, device=device)
     ctx = L.build_context(ir, limits, dtype=dtype, device=device)
     if with_image is None:
         with_image = True
@@ -329,7 +328,7 @@ def optimize_sequence(
         if cfg.method in ("dto", "adam-paper") and not state.interrupted and cfg.iters > 0:
             t0 = time.time()
             state.best_loss = math.inf
-            opt_imager = _loop_imager(imager, cfg) if cfg.weights.image > 0 else None
+            opt_imager = loop_imager(imager, cfg) if cfg.weights.image > 0 else None
             stage_times["loop_imager_s"] = time.time() - t0
             x = O.full_loss(
                 twin,
@@ -410,30 +409,27 @@ def optimize_sequence(
     return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)
 
 
-def _loop_imager(imager, cfg: OptimizeConfig):
+def loop_imager(imager, cfg: OptimizeConfig):
     """The imager of the full-loss loop: ``cfg.sim_preset`` / ``cfg.sim_dtype`` (shares phantoms and steady state)."""
     if imager is None or (cfg.sim_preset == "default" and cfg.sim_dtype == "float64"):
         return imager
     from dtoc.sim.pdg import PDGConfig
 
-    preset = {"fast": PDGConfig.fast, "default": PDGConfig, "strict": PDGConfig.strict}[cfg.sim_preset]()
+    presets: dict[str, Callable[[], PDGConfig]] = {
+        "fast": PDGConfig.fast,
+        "default": PDGConfig,
+        "strict": PDGConfig.strict,
+    }
+    preset = presets[cfg.sim_preset]()
     return imager.with_config(preset, {"float32": torch.float32, "float64": torch.float64}[cfg.sim_dtype])
 
 
 def _extremes(fine, dt):
-    from dtoc.optimize.limits import waveform_extremes
-
     return waveform_extremes(fine, dt)
 
 
-def _check_system_limits(ir_out, limits: Limits) -> None:
+def _check_system_limits(ir_out: SequenceIR, limits: Limits) -> None:
     """The validator's IR limit check (per axis and vector) before anything is written."""
-    from dtoc.seq.system import SystemSpec
-
-    try:
-        from dtoc.seq.check import check_ir_limits
-    except ImportError:  # validator not available: the per-axis check above stands
-        return
     sysspec = SystemSpec(
         max_grad_mT_per_m=limits.gmax_mT_per_m,
         max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
@@ -444,34 +440,28 @@ def _check_system_limits(ir_out, limits: Limits) -> None:
         raise LimitError(f"exported waveform fails the validator: {v[0].message}; nothing written")
 
 
-def _write_checked(ir_out, out, force: bool, limits: Limits) -> dict:
+def _write_checked(ir_out: SequenceIR, out, force: bool, limits: Limits) -> dict:
     """Write via the seq writer into a temporary file, validate it, then move it into place."""
-    from dtoc.seq.write import write_seq
-
     outp = Path(out)
     with tempfile.TemporaryDirectory(dir=outp.parent if str(outp.parent) else ".") as d:
         tmp = Path(d) / outp.name
         write_seq(ir_out, tmp, force=True)
-        result = {"path": str(outp)}
-        try:
-            from dtoc.seq.check import check_file
-            from dtoc.seq.system import SystemSpec
-
-            sysspec = SystemSpec(
-                max_grad_mT_per_m=limits.gmax_mT_per_m,
-                max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
-                grad_raster_s=ir_out.raster_s,
-                block_raster_s=_block_raster(ir_out),
-            )
-            res = check_file(tmp, sysspec)
-            lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector"}
-            bad = [v for v in res.violations if v.rule in lim_rules]
-            if bad:
-                raise ValidationFailed(f"written file fails dtoc check: {bad[0].message}; nothing written")
-            result["check_ok"] = res.ok
-            result["check_other_rules"] = sorted(res.rules() - lim_rules)
-        except ImportError:
-            result["check_ok"] = None
+        sysspec = SystemSpec(
+            max_grad_mT_per_m=limits.gmax_mT_per_m,
+            max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
+            grad_raster_s=ir_out.raster_s,
+            block_raster_s=_block_raster(ir_out),
+        )
+        res = check_file(tmp, sysspec)
+        lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector"}
+        bad = [v for v in res.violations if v.rule in lim_rules]
+        if bad:
+            raise ValidationFailed(f"written file fails dtoc check: {bad[0].message}; nothing written")
+        result: dict[str, Any] = {
+            "path": str(outp),
+            "check_ok": res.ok,
+            "check_other_rules": sorted(res.rules() - lim_rules),
+        }
         data = tmp.read_bytes()
     atomic_write_bytes(outp, data, force=force)
     result["sha256"] = sha256_file(outp)
@@ -479,7 +469,7 @@ def _write_checked(ir_out, out, force: bool, limits: Limits) -> dict:
 
 
 def _block_raster(ir) -> float:
-    v = (ir.definitions or {}).get("BlockDurationRaster")
+    v: Any = (ir.definitions or {}).get("BlockDurationRaster")
     try:
         return float(v[0] if isinstance(v, (list, tuple)) else v)
     except (TypeError, ValueError):

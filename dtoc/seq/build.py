@@ -1,7 +1,7 @@
 """Build base sequences from specs (:mod:`dtoc.seq.spec`) with pypulseq.
 
 Every gradient is an extended trapezoid (or trapezoid) with its vertices on raster edges, so the file
-plays exactly the piecewise-linear waveform the IR holds (no corner loss, BRIEF §3).  Waveforms are
+plays exactly the piecewise-linear waveform the IR holds (no corner loss, docs/contracts.md §4).  Waveforms are
 designed at the spec's ``system`` limits; a spec whose *ideal* waveforms cannot meet them (the 0.73 ms
 EPI) is still built - it is an optimization target - and :func:`build` warns with the violation
 figures (``dtoc check`` then rejects the file).  pypulseq's own limit checks are bypassed for that
@@ -22,6 +22,9 @@ import numpy as np
 
 from dtoc.constants import GAMMA_HZ_PER_T
 from dtoc.errors import InputError
+from dtoc.seq.check import check_ir_limits
+from dtoc.seq.pulseq import quiet, representable_amplitudes, seq_bytes
+from dtoc.seq.read import from_pypulseq, read_pypulseq
 from dtoc.seq.spec import BaseSpec, EpiSpec, GreSpec
 
 _EPS = 1e-9
@@ -41,19 +44,6 @@ def _ceil_r(t: float, r: float) -> float:
 
 def _round_r(t: float, r: float) -> float:
     return round(t / r) * r
-
-
-def representable_amplitudes(amps_hz_per_m) -> np.ndarray:
-    """Round the largest-magnitude vertex to 6 significant digits (what pypulseq writes for the
-    amplitude), so that the file plays ``amplitude x shape`` with only the 1e-7 shape quantisation:
-    played error <= 5e-8 x |amplitude| (0.15 Hz/m at 72 mT/m) instead of 5e-6 x |amplitude|."""
-    a = np.array(amps_hz_per_m, dtype=np.float64)
-    if a.size and np.any(a != 0):
-        peak = float(np.max(np.abs(a)))
-        a6 = float(f"{peak:.6g}")
-        near = np.abs(a) >= min(a6, peak) * (1 - 1e-12)  # the peak vertices, and any above the rounded peak
-        a[near] = np.sign(a[near]) * a6
-    return a
 
 
 def _ext(pp, channel, times, amps, opts):
@@ -355,8 +345,6 @@ def build(spec: BaseSpec, warn: bool = True):
     """Build the pypulseq ``Sequence`` of a spec.  Warns (:class:`SpecLimitWarning`) when the ideal
     waveforms exceed the spec's system limits; raises :class:`InputError` when the spec is infeasible
     (TE too short, TR too short, pieces that do not fit)."""
-    from dtoc.seq.read import quiet
-
     with quiet():
         if isinstance(spec, GreSpec):
             seq = _build_gre(spec)
@@ -365,9 +353,6 @@ def build(spec: BaseSpec, warn: bool = True):
         else:
             raise InputError(f"unknown spec type {type(spec).__name__}")
     if warn:
-        from dtoc.seq.check import check_ir_limits
-        from dtoc.seq.read import from_pypulseq
-
         viol = check_ir_limits(from_pypulseq(seq), spec.system)
         if viol:
             worst = max(viol, key=lambda v: v.value / v.limit)
@@ -385,8 +370,6 @@ def build_ir(spec: BaseSpec, **kwargs):
 
     The IR is read back from the written bytes, so it is exactly what the golden ``.seq`` holds.
     """
-    from dtoc.seq.read import from_pypulseq, read_pypulseq
-
     kwargs.pop("require_signature", None)  # built in memory: always signed
     data = seq_bytes(build(spec, warn=False))
     fd, tmp = tempfile.mkstemp(suffix=".seq")
@@ -399,17 +382,6 @@ def build_ir(spec: BaseSpec, **kwargs):
     ir = from_pypulseq(seq, **kwargs)
     ir.meta["spec_name"] = spec.name
     return ir
-
-
-def seq_bytes(seq) -> bytes:
-    """The signed Pulseq 1.5 text of a Sequence (pypulseq ``write``), as bytes."""
-    from dtoc.seq.read import quiet
-
-    with tempfile.TemporaryDirectory() as d:
-        p = Path(d) / "out.seq"
-        with quiet():
-            seq.write(str(p), create_signature=True)
-        return p.read_bytes()
 
 
 def build_to_file(spec: BaseSpec, out: str | Path, force: bool = False) -> Path:

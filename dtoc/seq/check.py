@@ -28,8 +28,10 @@ from pydantic import ValidationError
 from dtoc.constants import AXES
 from dtoc.errors import InputError
 from dtoc.seq.ir import SequenceIR
+from dtoc.seq.pulseq import quiet
+from dtoc.seq.read import from_pypulseq, grad_vertices, read_pypulseq
 from dtoc.seq.seqtext import INTEGER_COLUMNS, parse_seq_text
-from dtoc.seq.system import SystemSpec
+from dtoc.seq.system import SystemSpec, format_validation_error
 
 _RTOL = 1e-6  # relative tolerance on limits (file precision: 6 significant digits)
 _TTOL = 1e-9  # s, timing tolerance
@@ -164,8 +166,6 @@ def system_from_definitions(defs: dict) -> SystemSpec | None:
     try:
         return SystemSpec(**kw)
     except ValidationError as e:
-        from dtoc.seq.system import format_validation_error
-
         raise InputError(
             f"the limits recorded in the file's definitions are invalid ({format_validation_error(e)}); "
             "give them with --gmax/--smax or --system"
@@ -236,8 +236,6 @@ def _text_rules(st, system: SystemSpec, out: list[Violation]) -> None:
 
 
 def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) -> None:
-    from dtoc.seq.read import _grad_vertices, quiet
-
     r = float(seq.grad_raster_time)
     keys = list(seq.block_events.keys())
     tol = system.continuity_tol_hz_per_m
@@ -264,7 +262,7 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
             gr = getattr(blk, ch, None)
             if gr is None:
                 continue
-            tv, vv = _grad_vertices(gr, r)
+            tv, vv = grad_vertices(gr, r)
             if not _on_raster(gr.delay, r):
                 out.append(
                     Violation(
@@ -494,8 +492,6 @@ def check_file(path: str | Path, system: SystemSpec | None = None) -> CheckResul
         InputError: only when the file cannot be opened or parsed at all (missing, binary, truncated
             structure); every other problem is a :class:`Violation`.
     """
-    from dtoc.seq.read import from_pypulseq, read_pypulseq
-
     st = parse_seq_text(path)
     source = "given"
     if system is None:

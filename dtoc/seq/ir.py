@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from dtoc.errors import InputError
+from dtoc.seq.geometry import EncodingGeometry, encoding_geometry
 from dtoc.seq.kspace import kspace_at
 
 
@@ -99,6 +101,8 @@ class SequenceIR:
         readout_axis / phase_axis: physical axis index (0, 1, 2) of readout / phase encoding, when known.
         source: the pypulseq Sequence this was read from or built as (the writer copies RF, ADC,
             labels and definitions from it); None for synthetic IRs.
+        source_grad_mT_per_m: (3, 2N+1) the demanded gradient of ``source`` as read (the writer rewrites
+            only the blocks whose gradient differs from it); None for synthetic IRs.
         meta: free-form extra facts (spec name, echo spacing, ...), JSON-serialisable.
     """
 
@@ -115,6 +119,7 @@ class SequenceIR:
     readout_axis: int | None = None
     phase_axis: int | None = None
     source: Any = None
+    source_grad_mT_per_m: np.ndarray | None = None
     meta: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
@@ -187,6 +192,25 @@ class SequenceIR:
         if self.fov_m is None:
             return None
         return np.array([2 * np.pi / f if f else np.inf for f in self.fov_m])
+
+    @property
+    def geometry(self) -> EncodingGeometry | None:
+        """The Cartesian encoding geometry (matrix by readout/phase axis, FOV, voxel, dk; docs/conventions.md),
+        or None when the sequence declares no FOV / matrix."""
+        return encoding_geometry(self.fov_m, self.matrix, self.readout_axis, self.phase_axis)
+
+    @property
+    def phase_image_dim(self) -> int:
+        """Dimension of a (ny, nx) image along which this sequence phase-encodes (-2 rows when unknown)."""
+        geo = self.geometry
+        return geo.phase_image_dim if geo is not None else -2
+
+    def require_geometry(self, what: str) -> EncodingGeometry:
+        """:attr:`geometry`, or an InputError naming ``what`` needs it."""
+        geo = self.geometry
+        if geo is None:
+            raise InputError(f"{what}: the sequence declares no FOV/matrix (a Cartesian grid is needed)")
+        return geo
 
     # ---- edits -------------------------------------------------------------------------------
     def with_grad(self, grad_mT_per_m: np.ndarray) -> SequenceIR:

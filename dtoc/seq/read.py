@@ -28,10 +28,8 @@ Default ``free_mask`` (what an optimizer may change), documented in docs/sequenc
 from __future__ import annotations
 
 import contextlib
-import io
 import os
 import tempfile
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -39,18 +37,10 @@ import numpy as np
 from dtoc.constants import AXES, mT_per_m_from_hz_per_m
 from dtoc.errors import InputError
 from dtoc.seq.ir import ADCEvent, RFEvent, SequenceIR
+from dtoc.seq.pulseq import quiet
 from dtoc.seq.seqtext import parse_seq_text, verify_signature
 
 _TIME_TOL = 1e-9  # s: times closer than this to a grid point are on it
-
-
-@contextlib.contextmanager
-def quiet():
-    """Silence pypulseq's prints and warnings (it prints to stdout on read/write)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        with contextlib.redirect_stdout(io.StringIO()):
-            yield
 
 
 def read_pypulseq(path: str | Path, require_signature: bool = True):
@@ -111,33 +101,8 @@ def read_seq(
     return ir
 
 
-def load_sequence(path_or_spec, **kwargs) -> SequenceIR:
-    """A base sequence from a ``.seq`` file, a spec ``.yaml``/``.yml`` file or a spec object.
-
-    This is what every command that takes a base sequence (simulate, predict, optimize) calls.
-    Keyword arguments go to :func:`read_seq` / :func:`from_pypulseq`.
-    """
-    from dtoc.seq.spec import BaseSpec
-
-    if isinstance(path_or_spec, BaseSpec):
-        from dtoc.seq.build import build_ir
-
-        return build_ir(path_or_spec, **kwargs)
-    p = Path(path_or_spec)
-    if p.suffix.lower() in (".yaml", ".yml"):
-        from dtoc.seq.build import build_ir
-        from dtoc.seq.spec import load_spec
-
-        ir = build_ir(load_spec(p), **kwargs)
-        ir.meta["spec_path"] = str(p)
-        return ir
-    if p.suffix.lower() != ".seq" and p.exists():
-        raise InputError(f"{p}: expected a .seq file or a spec .yaml")
-    return read_seq(p, **kwargs)
-
-
 # --------------------------------------------------------------------------------------------------
-def _grad_vertices(grad, raster_s: float) -> tuple[np.ndarray, np.ndarray]:
+def grad_vertices(grad, raster_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (times relative to block start [s], values [Hz/m]) of one pypulseq gradient event."""
     if grad.type == "trap":
         d, r, f, fa, a = grad.delay, grad.rise_time, grad.flat_time, grad.fall_time, grad.amplitude
@@ -208,7 +173,7 @@ def from_pypulseq(
             gr = getattr(blk, ch, None)
             if gr is None:
                 continue
-            tv, vv = _grad_vertices(gr, raster)
+            tv, vv = grad_vertices(gr, raster)
             pos = tv / dtf
             if np.any(np.abs(pos - np.round(pos)) > _TIME_TOL / dtf):
                 off_grid.append(f"block {key} {AXES[a]}")
@@ -269,6 +234,7 @@ def from_pypulseq(
         adc=adc_events,
         definitions=defs,
         source=seq,
+        source_grad_mT_per_m=np.array(g, dtype=np.float64),
     )
     _apply_metadata(ir)
     ir.free_mask = default_free_mask(

@@ -19,7 +19,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
 from dtoc.errors import InputError
-from dtoc.seq.system import SystemSpec
+from dtoc.seq.system import SystemSpec, format_validation_error
 
 
 class BaseSpec(BaseModel):
@@ -154,3 +154,29 @@ def load_spec(path: str | Path) -> BaseSpec:
 
 
 __all__ = ["BaseSpec", "GreSpec", "EpiSpec", "SystemSpec", "load_spec", "parse_spec"]
+
+
+def load_system(path: str | Path) -> SystemSpec:
+    """Read a :class:`SystemSpec` from YAML: a mapping of its fields (unknown keys are errors), a
+    mapping ``{system: {...}}``, or a sequence spec (its ``system`` block)."""
+    import yaml
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: system spec not found")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise InputError(f"{p}: not valid YAML ({type(e).__name__})") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise InputError(f"{p}: expected a mapping of SystemSpec fields")
+    if "kind" in data:  # a sequence spec: use the system it is designed for
+        return parse_spec(data, str(p)).system
+    if "system" in data and isinstance(data["system"], dict) and len(data) == 1:
+        data = data["system"]
+    try:
+        return SystemSpec(**data)
+    except ValidationError as e:
+        raise InputError(f"{p}: {format_validation_error(e)}") from None

@@ -9,12 +9,9 @@ scanner that needs it.  Units are in the field names.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from dtoc.constants import GAMMA_HZ_PER_T
-from dtoc.errors import InputError
 
 
 class SystemSpec(BaseModel):
@@ -80,34 +77,6 @@ class SystemSpec(BaseModel):
             adc_dead_time=self.adc_dead_time_s,
             gamma=GAMMA_HZ_PER_T,
         )
-
-
-def load_system(path: str | Path) -> SystemSpec:
-    """Read a :class:`SystemSpec` from YAML: a mapping of its fields (unknown keys are errors), a
-    mapping ``{system: {...}}``, or a sequence spec (its ``system`` block)."""
-    import yaml
-
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: system spec not found")
-    try:
-        data = yaml.safe_load(p.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise InputError(f"{p}: not valid YAML ({type(e).__name__})") from None
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise InputError(f"{p}: expected a mapping of SystemSpec fields")
-    if "kind" in data:  # a sequence spec: use the system it is designed for
-        from dtoc.seq.spec import parse_spec
-
-        return parse_spec(data, str(p)).system
-    if "system" in data and isinstance(data["system"], dict) and len(data) == 1:
-        data = data["system"]
-    try:
-        return SystemSpec(**data)
-    except ValidationError as e:
-        raise InputError(f"{p}: {format_validation_error(e)}") from None
 
 
 def format_validation_error(e: ValidationError) -> str:

@@ -22,7 +22,6 @@ what an extended trapezoid plays); otherwise :class:`dtoc.errors.DtocError` is r
 from __future__ import annotations
 
 import copy
-import weakref
 from pathlib import Path
 
 import numpy as np
@@ -30,29 +29,27 @@ import numpy as np
 from dtoc.constants import AXES, hz_per_m_from_mT_per_m
 from dtoc.errors import DtocError
 from dtoc.seq.ir import SequenceIR
+from dtoc.seq.pulseq import quiet, representable_amplitudes, seq_bytes
+from dtoc.seq.system import SystemSpec
 
-_ORIG_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 #: a block/axis counts as changed when any fine sample moved by more than this, mT/m
 CHANGE_TOL_MT_PER_M = 1e-9
-
-
-def _original_grad(src) -> np.ndarray:
-    from dtoc.seq.read import from_pypulseq
-
-    g = _ORIG_CACHE.get(src)
-    if g is None:
-        g = from_pypulseq(src).grad_mT_per_m
-        _ORIG_CACHE[src] = g
-    return g
 
 
 def _round6(x: np.ndarray) -> np.ndarray:
     return np.array([float(f"{v:.6g}") for v in np.ravel(x)]).reshape(np.shape(x))
 
 
+def _original_grad(ir: SequenceIR) -> np.ndarray:
+    """The demanded gradient of ``ir.source`` as it was read (kept on the IR by the reader)."""
+    if ir.source_grad_mT_per_m is None:
+        raise DtocError("this IR has no source gradient to compare with (read it from a .seq or build it from a spec)")
+    return ir.source_grad_mT_per_m
+
+
 def changed_blocks(ir: SequenceIR) -> dict[int, list[int]]:
     """{block index: [axes]} whose played gradient differs from ``ir.source``."""
-    orig = _original_grad(ir.source)
+    orig = _original_grad(ir)
     if orig.shape != ir.grad_mT_per_m.shape:
         raise DtocError(f"IR gradient grid {ir.grad_mT_per_m.shape} does not match its source sequence {orig.shape}")
     m_edges = np.round(np.asarray(ir.block_edges_s) / ir.dt_fine_s).astype(np.int64)
@@ -69,9 +66,6 @@ def to_pypulseq(ir: SequenceIR):
     """A pypulseq ``Sequence``: ``ir.source`` with every changed gradient replaced (module doc)."""
     import pypulseq as pp
 
-    from dtoc.seq.read import quiet
-    from dtoc.seq.system import SystemSpec
-
     src = ir.source
     if src is None:
         raise DtocError("this IR has no source sequence to write into (read it from a .seq or build it from a spec)")
@@ -81,7 +75,7 @@ def to_pypulseq(ir: SequenceIR):
     seq = copy.deepcopy(src)
     if not changes:
         return seq
-    orig = _original_grad(src)
+    orig = _original_grad(ir)
     r = ir.raster_s
     opts = SystemSpec(
         grad_raster_s=r,
@@ -125,8 +119,6 @@ def to_pypulseq(ir: SequenceIR):
             if np.all(np.abs(hz) < 1e-9):
                 setattr(blk, ch, None)
                 continue
-            from dtoc.seq.build import representable_amplitudes
-
             amps = representable_amplitudes(hz)
             times = np.arange(len(hz)) * r
             with quiet():
@@ -151,8 +143,6 @@ def to_pypulseq(ir: SequenceIR):
 
 def seq_bytes_of(ir: SequenceIR) -> bytes:
     """The signed Pulseq 1.5 text of :func:`to_pypulseq` (ir)."""
-    from dtoc.seq.build import seq_bytes
-
     return seq_bytes(to_pypulseq(ir))
 
 

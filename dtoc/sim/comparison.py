@@ -18,8 +18,10 @@ import torch
 
 from dtoc.errors import InputError
 from dtoc.sim import metrics
+from dtoc.sim.imager import Imager
 from dtoc.sim.phantom import Phantom
-from dtoc.sim.recon import cartesian_grid, reconstruct
+from dtoc.sim.recon import cartesian_grid
+from dtoc.sim.twin import HardwareChain, Twin
 from dtoc.util.figures import png_bytes
 
 
@@ -63,7 +65,7 @@ def check_device(device: str) -> str:
 def compare_ideal_realized(
     ir,
     phantom: Phantom,
-    model=None,
+    model: HardwareChain | None = None,
     *,
     keep_mask=None,
     n_dummies: int = 0,
@@ -77,54 +79,48 @@ def compare_ideal_realized(
     Args:
         ir: base sequence (:class:`dtoc.seq.ir.SequenceIR`), Cartesian nominal k-space.
         phantom: tissue maps.
-        model: :class:`dtoc.hardware.HardwareModel` (None or identity: realized = ideal).
+        model: the :class:`~dtoc.sim.twin.HardwareChain` (None or identity: realized = ideal).
         keep_mask: (N_adc,) bool samples used by the reconstruction (default all).
         n_dummies: dummy repetitions before the sequence (steady-state initial Mz; 0 = equilibrium).
         config: :class:`dtoc.sim.pdg.PDGConfig`.
         dtype, device: simulation precision and device.
         step: optional progress callback, called with a short description before each stage.
     """
-    from dtoc.sim.pdg import build_graph, simulate, steady_state_mz
+    from dtoc.sim.pdg import PDGConfig
 
     note = step or (lambda _s: None)
     grid = cartesian_grid(ir, keep_mask)
     ny, nx = grid.shape
-    note("graph")
-    graph = build_graph(ir, config, phantom)
-    mz0 = None
-    if n_dummies and n_dummies > 0:
-        note(f"{n_dummies} dummy cycles")
-        mz0 = steady_state_mz(ir, phantom, int(n_dummies), config=config, dtype=dtype, device=device)
-    note("ideal simulation")
-    with torch.no_grad():
-        s0 = simulate(ir, phantom, graph=graph, config=config, initial_mz=mz0, dtype=dtype, device=device)
-    img0 = reconstruct(s0, ir, grid=grid).abs()
+    note("graph" if not n_dummies or n_dummies <= 0 else f"graph, {n_dummies} dummy cycles, ideal simulation")
+    imager = Imager(
+        ir,
+        [phantom],
+        max(int(n_dummies or 0), 0),
+        dtype=dtype,
+        device=device,
+        config=config or PDGConfig(),
+        steady_state_options={"config": config, "dtype": dtype, "device": device},
+    )
+    img0 = imager.image(imager.target_signals[0], grid=grid).abs()
+    twin = Twin(ir, model, dtype=dtype, device=device)
     k0 = ir.nominal_kspace_rad_per_m()
-    identity = model is None or getattr(model, "is_identity", False)
+    identity = twin.is_ideal
     if identity:
-        s, k = s0, k0.copy()
+        k = k0.copy()
         img = img0
     else:
-        note("hardware model")
+        note("hardware model, realized simulation")
         with torch.no_grad():
-            g = torch.as_tensor(ir.grad_mT_per_m, dtype=dtype, device=device)
-            G, b0 = model(g, ir.dt_fine_s)
-            note("realized simulation")
-            s = simulate(ir, phantom, G, b0, graph=graph, config=config, initial_mz=mz0, dtype=dtype, device=device)
-        img = reconstruct(s, ir, grid=grid).abs()
-        k = ir.kspace_rad_per_m(G.detach().to("cpu", torch.float64)).numpy()
+            r = twin.forward(moments=False)
+            s = imager.signal(r.realized_grad_mT_per_m, r.b0_uT, 0)
+        img = imager.image(s, grid=grid).abs()
+        # k figures in float64 whatever the simulation precision
+        k = ir.kspace_rad_per_m(r.realized_grad_mT_per_m.detach().to("cpu", torch.float64)).numpy()
     note("metrics")
     dk = np.array([2 * np.pi / grid.fov_m[0], 2 * np.pi / grid.fov_m[1], np.inf])
     used = grid.flat_index >= 0
-    m: dict[str, Any] = {"nrmse": float(metrics.nrmse(img, img0))}
+    m: dict[str, Any] = metrics.image_metrics(img, img0, epi=ir.kind == "epi", phase_dim=ir.phase_image_dim)
     m.update(metrics.kspace_errors(k, k0, dk, mask=used))
-    if ir.kind == "epi":
-        phase_dim = -1 if ir.phase_axis == 0 else -2
-        m["ghost_ratio"] = float(metrics.ghost_ratio(img, img0, phase_dim=phase_dim))
-        m["ghost_ratio_ideal"] = float(metrics.ghost_ratio(img0, img0, phase_dim=phase_dim))
-    else:
-        m["ghost_ratio"] = None
-        m["ghost_ratio_ideal"] = None
     m["kept_samples"] = int(used.sum())
     m["n_adc_samples"] = int(used.size)
     m["matrix"] = [nx, ny]

@@ -20,7 +20,8 @@ def nrmse(image, ideal) -> torch.Tensor:
 
     Magnitude images, no rescaling (both from the same reconstruction of the same phantom), the
     2-norm over all pixels (and leading batch dims).  0 when ``image`` equals ``ideal``; 1 for an
-    empty image.  Returned as a fraction (multiply by 100 for %).
+    empty image (an all-zero ``ideal`` is guarded by a 1e-30 floor on the
+    denominator).  Returned as a fraction (multiply by 100 for %).
 
     Args:
         image: (..., ny, nx) realized image, complex or magnitude.
@@ -28,7 +29,7 @@ def nrmse(image, ideal) -> torch.Tensor:
     """
     a = _t(image).abs()
     b = _t(ideal).abs().to(a.dtype)
-    return torch.linalg.vector_norm(a - b) / torch.linalg.vector_norm(b)
+    return torch.linalg.vector_norm(a - b) / torch.linalg.vector_norm(b).clamp_min(1e-30)
 
 
 def object_mask(ideal, threshold: float = 0.1) -> np.ndarray:
@@ -80,6 +81,17 @@ def ghost_ratio(image, ideal, *, phase_dim: int = -2, threshold: float = 0.1) ->
     return (p * g).sum() / (p * o).sum()
 
 
+def image_metrics(image, ideal, *, epi: bool, phase_dim: int = -2) -> dict:
+    """The image figures every report prints: ``nrmse``, and for an EPI ``ghost_ratio`` of the image and
+    ``ghost_ratio_ideal`` of the ideal image itself (its Gibbs ringing and T2* blurring along the echo
+    train: the floor no gradient correction can go below); None for the ghost keys otherwise.  Floats."""
+    out: dict = {"nrmse": float(nrmse(image, ideal)), "ghost_ratio": None, "ghost_ratio_ideal": None}
+    if epi:
+        out["ghost_ratio"] = float(ghost_ratio(image, ideal, phase_dim=phase_dim))
+        out["ghost_ratio_ideal"] = float(ghost_ratio(ideal, ideal, phase_dim=phase_dim))
+    return out
+
+
 def kspace_errors(k_rad_per_m, k0_rad_per_m, dk_rad_per_m=None, mask=None) -> dict:
     """k-space deviation of realized from nominal samples.
 
@@ -106,7 +118,10 @@ def kspace_errors(k_rad_per_m, k0_rad_per_m, dk_rad_per_m=None, mask=None) -> di
         }
     e = k - k0
     norm = np.sqrt((e**2).sum(0))
-    out = {"kspace_rmse_rad_per_m": float(np.sqrt(np.mean(norm**2))), "kspace_max_err_rad_per_m": float(norm.max())}
+    out: dict[str, float | None] = {
+        "kspace_rmse_rad_per_m": float(np.sqrt(np.mean(norm**2))),
+        "kspace_max_err_rad_per_m": float(norm.max()),
+    }
     if dk_rad_per_m is None:
         out["kspace_max_err_dk"] = None
     else:

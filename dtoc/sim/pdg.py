@@ -22,9 +22,12 @@ from __future__ import annotations
 import torch
 
 from dtoc.seq.ir import SequenceIR
+from dtoc.sim.pdg_calibrate import emission_peaks
 from dtoc.sim.pdg_config import PDGConfig
+from dtoc.sim.pdg_dummies import run_dummies
 from dtoc.sim.pdg_graph import PDGGraph
 from dtoc.sim.pdg_graph import build_graph as _build_graph
+from dtoc.sim.pdg_main import run_main_pass
 from dtoc.sim.phantom import Phantom
 
 __all__ = ["PDGConfig", "PDGGraph", "build_graph", "simulate", "steady_state_mz"]
@@ -43,7 +46,7 @@ def build_graph(ir: SequenceIR, config: PDGConfig | None = None, phantom: Phanto
     Returns:
         :class:`PDGGraph`; reuse it for every :func:`simulate` call on gradients near the nominal.
     """
-    return _build_graph(ir, config or PDGConfig(), phantom)
+    return _build_graph(ir, config or PDGConfig(), phantom, measure_emission=emission_peaks)
 
 
 def simulate(
@@ -79,11 +82,9 @@ def simulate(
         phantom of PD 1 with n voxels gives n sin(FA) right after excitation).  Differentiable
         w.r.t. ``grad_mT_per_m`` and ``b0_uT``.
     """
-    from dtoc.sim.pdg_main import run_main_pass
-
     cfg = config or PDGConfig()
     if graph is None:
-        graph = _build_graph(ir, cfg, phantom)
+        graph = build_graph(ir, cfg, phantom)
     return run_main_pass(ir, phantom, graph, cfg, grad_mT_per_m, b0_uT, initial_mz, dtype, device)
 
 
@@ -115,7 +116,5 @@ def steady_state_mz(
         (ny, nx) real tensor: voxel-mean Mz at the end of the dummy train (same units as
         ``phantom.pd``), to pass as ``initial_mz`` to :func:`simulate`.
     """
-    from dtoc.sim.pdg_main import run_dummies
-
     cfg = config or PDGConfig(min_latent_signal=1e-6, min_emitted_signal=1e-6, min_magnitude=1e-7)
     return run_dummies(ir, phantom, int(n_dummies), block_range, cfg, dtype, device, rf_spoil_rad)

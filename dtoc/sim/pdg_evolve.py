@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from dtoc.sim.pdg_graph import CONJ
 from dtoc.sim.pdg_rfsplit import _groups, _split, _split_adjoint, add_rows_
 
 
@@ -74,6 +75,7 @@ def _factor(step: Step, b: torch.Tensor | None, D: torch.Tensor | None, S: int) 
             return step.E1[None].expand(S, V)
         return torch.cat([step.E2[None].expand(step.nT, V), step.E1[None].expand(S - step.nT, V)], 0)
     # exp(-b D + log E) in place: three passes over (S, V), no concatenated E
+    assert D is not None, "a b-integral without diffusion coefficients"
     x = torch.outer(-b, D)
     x[: step.nT] -= step.dt * step.r2[None, :]
     x[step.nT :] -= step.dt * step.r1[None, :]
@@ -81,6 +83,7 @@ def _factor(step: Step, b: torch.Tensor | None, D: torch.Tensor | None, S: int) 
 
 
 def _rf(step: Step, A_end: torch.Tensor, rec: torch.Tensor) -> torch.Tensor:
+    assert step.coefs is not None, "RF split after the last interval"
     A = _split(A_end, step.coefs, step.groups, step.n_next)
     if step.eq_edges is not None:
         rows, child = step.eq_edges
@@ -98,7 +101,8 @@ def propagate(
     keeping them (streaming, forward only).
     """
     A = A0
-    Ys, saved = [], []
+    Ys: list = []
+    saved: list = []
     NI = len(steps)
     for n, st in enumerate(steps):
         Y = A.index_select(0, st.emit) if st.emit is not None else None
@@ -169,7 +173,6 @@ class _Propagate(torch.autograd.Function):
 
 def make_steps(graph, ir, vox, bounds_t, cdtype, with_signal: bool, rf_coefficients) -> tuple[list[Step], list]:
     """Per-interval :class:`Step` list and T1 recovery terms (V,) of the equilibrium state."""
-    from dtoc.sim.pdg_main import CONJ_NP
 
     dev = vox.pd.device
     steps, rec = [], []
@@ -204,7 +207,7 @@ def make_steps(graph, ir, vox, bounds_t, cdtype, with_signal: bool, rf_coefficie
             if ck not in cache:
                 at_eq = np.where(nxt.edge_parent == iv.eq_index)[0]
                 cache[ck] = (
-                    _groups(nxt.edge_kind, nxt.edge_parent, nxt.edge_child, CONJ_NP, dev),
+                    _groups(nxt.edge_kind, nxt.edge_parent, nxt.edge_child, CONJ, dev),
                     (
                         torch.as_tensor(nxt.edge_kind[at_eq], device=dev),
                         torch.as_tensor(nxt.edge_child[at_eq], device=dev),

@@ -28,7 +28,9 @@ bound), so k stays differentiable w.r.t. the gradient.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -288,17 +290,13 @@ def _bounds(ir: SequenceIR, config: PDGConfig, phantom) -> _Bounds:
         ny, nx = phantom.shape
         b.voxel_m = (phantom.fov_m[0] / nx, phantom.fov_m[1] / ny, zsize)
         b.voxel_shape = phantom.voxel_shape
-    elif ir.fov_m is not None and ir.matrix is not None and len(ir.matrix) >= 2:
-        ro = ir.readout_axis if ir.readout_axis is not None else 0
-        pe = ir.phase_axis if ir.phase_axis is not None else 1
-        vox = [None, None, zsize]
-        vox[ro] = ir.fov_m[ro] / ir.matrix[0]
-        vox[pe] = ir.fov_m[pe] / ir.matrix[1]
-        b.voxel_m = tuple(vox)
+    elif ir.geometry is not None:
+        vx, vy, vz = ir.geometry.voxel_m
+        b.voxel_m = (vx, vy, zsize if vz is None else vz)
     return b
 
 
-def _unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``np.unique(a, axis=0, return_inverse=True)`` for a 2-D int64 array, by one ``np.lexsort`` over the
     columns (same lexicographic row order and inverse; ~5x faster than sorting the rows as records)."""
     if a.shape[0] == 0:
@@ -321,11 +319,21 @@ def _nominal_integrals(ir: SequenceIR, times: np.ndarray) -> np.ndarray:
     return (GAMMA_RAD_PER_S_PER_MT * out).T
 
 
-def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_readout: bool = False) -> PDGGraph:
+def build_graph(
+    ir: SequenceIR,
+    config: PDGConfig,
+    phantom=None,
+    *,
+    final_z_readout: bool = False,
+    measure_emission: Callable | None = None,
+) -> PDGGraph:
     """Build the PDG of ``ir`` (see :func:`dtoc.sim.pdg.build_graph`).
 
     ``final_z_readout`` (used by the dummy-cycle steady state): longitudinal states at the end of the
     sequence count as observed (with the voxel envelope), so pruning keeps what shapes the final Mz.
+    ``measure_emission(ir, phantom, graph, config) -> {interval: peaks}``: the measured emission of the
+    first graph's emitters (:func:`dtoc.sim.pdg_calibrate.emission_peaks`), used for a second prune when
+    ``config.calibrate_emission`` (None: no calibration).
     """
     cfg = config
     bnd = _bounds(ir, cfg, phantom)
@@ -364,7 +372,7 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
         return np.concatenate([is_z[:, None].astype(np.int64), np.round(k / qk).astype(np.int64), tk[:, None]], axis=1)
 
     # --- forward pass --------------------------------------------------------------------------
-    raw = []  # per interval dict of arrays
+    raw: list[dict[str, Any]] = []  # per interval dict of arrays
     is_z = np.array([True])
     k = np.zeros((1, 3))
     tau = np.zeros(1)
@@ -372,8 +380,8 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
     amp = np.ones((1, P), dtype=np.complex128)
     mag = np.ones(1)
     eq = 0
-    e_child = e_par = e_kind = e_cand = np.zeros(0, dtype=np.int64)
-    e_cand = np.zeros(0)
+    e_child = e_par = e_kind = np.zeros(0, dtype=np.int64)
+    e_cand: np.ndarray = np.zeros(0)
     for n in range(NI):
         raw.append(
             dict(is_z=is_z, k=k, tau=tau, mag=mag, eq=eq, e_child=e_child, e_par=e_par, e_kind=e_kind, e_cand=e_cand)
@@ -406,7 +414,7 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
         cz = Z_CHILD[kind]
         kk = keys(cz, ck, ct)
         eq_key = keys(np.array([True]), np.zeros((1, 3)), np.zeros(1))
-        uniq, inv = _unique_rows(np.concatenate([kk, eq_key]))
+        uniq, inv = unique_rows(np.concatenate([kk, eq_key]))
         inv = inv.ravel()
         inv_e, eq_new = inv[:-1], int(inv[-1])
         nU = uniq.shape[0]
@@ -502,10 +510,15 @@ def build_graph(ir: SequenceIR, config: PDGConfig, phantom=None, *, final_z_read
         )
 
     graph = graph_of(intervals)
-    if cfg.calibrate_emission and phantom is not None and not final_z_readout and adc_t.size and graph.n_emitting_total:
-        from dtoc.sim.pdg_main import emission_peaks  # the main pass imports this module
-
-        peaks = emission_peaks(ir, phantom, graph, cfg)
+    if (
+        measure_emission is not None
+        and cfg.calibrate_emission
+        and phantom is not None
+        and not final_z_readout
+        and adc_t.size
+        and graph.n_emitting_total
+    ):
+        peaks = measure_emission(ir, phantom, graph, cfg)
         tot = float(np.sum(phantom.pd)) or 1.0
         emit_c = []
         for n, R in enumerate(raw):
@@ -527,7 +540,7 @@ def _latent(ctx, emit_b) -> list:
     emission ``emit_b`` or, through the RF-splitting edges, that of any descendant), per unit amplitude."""
     raw, ir, rf_order, bnd, dt_int = ctx["raw"], ctx["ir"], ctx["rf_order"], ctx["bnd"], ctx["dt_int"]
     NI = len(raw)
-    latent = [None] * NI
+    latent: list[Any] = [None] * NI
     for n in range(NI - 1, -1, -1):
         R = raw[n]
         L = emit_b[n].copy()
@@ -554,7 +567,8 @@ def _prune(ctx, emit_b, latent, restrict=None) -> tuple[list, list]:
     NI = len(raw)
     intervals: list[IntervalGraph] = []
     keeps = []
-    prev_keep = prev_newi = None
+    prev_keep: Any = None
+    prev_newi: Any = None
     for n in range(NI):
         R = raw[n]
         S = R["is_z"].size

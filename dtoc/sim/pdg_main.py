@@ -14,15 +14,15 @@ import torch
 from dtoc.errors import InputError
 from dtoc.seq.ir import SequenceIR
 from dtoc.sim.pdg_config import PDGConfig
+from dtoc.sim.pdg_evolve import make_steps, propagate, run_propagation
 from dtoc.sim.pdg_graph import CONJ, PDGGraph, build_graph
 from dtoc.sim.pdg_moments import compute_moments
-from dtoc.sim.pdg_rfsplit import rf_split
-from dtoc.sim.pdg_signal import VoxelData, emit_signal
+from dtoc.sim.pdg_rfsplit import rf_coefficients, rf_split
+from dtoc.sim.pdg_signal import VoxelData, emit_signal, signal_method
+from dtoc.sim.pdg_signal_batch import EmitItem, emit_signal_batched
 
-CONJ_NP = np.asarray(CONJ, dtype=bool)  # per edge kind: the child takes the conjugate of the parent
 
-
-def _complex_dtype(dtype):
+def complex_dtype(dtype):
     if dtype == torch.float32:
         return torch.complex64
     if dtype == torch.float64:
@@ -30,44 +30,7 @@ def _complex_dtype(dtype):
     raise InputError(f"simulate: dtype must be torch.float32 or torch.float64, got {dtype}")
 
 
-def rf_coefficients(
-    flip_rad: float, phase_rad: float, b1: torch.Tensor, cdtype, cache: dict | None = None
-) -> torch.Tensor:
-    """(6, V) complex edge coefficients of one RF pulse per voxel (kinds of the pdg_graph table).
-
-    ``cache``: optional dict; the phase-free rows (trigonometry of the B1-scaled flip, (6, V)) are
-    kept there per flip angle and each pulse only multiplies them by its 6 phase factors (RF spoiling
-    gives every pulse its own phase, not its own flip).
-    """
-    if cache is not None:
-        key = ("rf_base", float(flip_rad))
-        base = cache.get(key)
-        if base is None:
-            base = cache[key] = rf_coefficients(flip_rad, 0.0, b1, cdtype)
-        e1 = complex(np.cos(phase_rad), np.sin(phase_rad))
-        e2 = complex(np.cos(2 * phase_rad), np.sin(2 * phase_rad))
-        ph = torch.tensor([1.0, e2, e1.conjugate(), e1, e1, 1.0], dtype=cdtype, device=base.device)
-        return base * ph[:, None]
-    a = flip_rad * b1
-    s = torch.sin(a)
-    c = torch.cos(a)
-    s2 = torch.sin(0.5 * a) ** 2
-    c2 = torch.cos(0.5 * a) ** 2
-    e1 = complex(np.cos(phase_rad), np.sin(phase_rad))
-    e2 = complex(np.cos(2 * phase_rad), np.sin(2 * phase_rad))
-    em1 = e1.conjugate()
-    rows = [
-        c2.to(cdtype),
-        e2 * s2.to(cdtype),
-        (-1j * em1) * s.to(cdtype),
-        (-0.5j * e1) * s.to(cdtype),
-        (-0.5j * e1) * s.to(cdtype),
-        c.to(cdtype),
-    ]
-    return torch.stack(rows)
-
-
-def _prepare(
+def prepare(
     ir: SequenceIR,
     phantom,
     graph: PDGGraph | None,
@@ -152,7 +115,7 @@ def _apply_rf(nxt, A_end, rec, eq_prev, K_end, coefs):
     """
     dev = A_end.device
     kind, par, child = nxt.edge_kind, nxt.edge_parent, nxt.edge_child
-    A_new = rf_split(A_end, coefs, kind, par, child, CONJ_NP, nxt.n_states)  # fresh tensor: in place below is safe
+    A_new = rf_split(A_end, coefs, kind, par, child, CONJ, nxt.n_states)  # fresh tensor: in place below is safe
     at_eq = np.where(par == eq_prev)[0]
     if at_eq.size:  # rec is real: conjugation does not change it
         cf = coefs.index_select(0, torch.as_tensor(kind[at_eq], device=dev))
@@ -276,14 +239,12 @@ def _emit_view(iv):
     return sub
 
 
-def _loop(
+def main_loop(
     ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_signal: bool, final_state: bool, probe=None
 ):
     """Main loop: k recursion (autograd, (S, 4) per interval), amplitudes by :mod:`dtoc.sim.pdg_evolve`
     (one autograd node with a hand-written adjoint), then the signal of every emitting interval."""
-    from dtoc.sim.pdg_evolve import make_steps, propagate, run_propagation
-
-    cdtype = _complex_dtype(dtype)
+    cdtype = complex_dtype(dtype)
     tis = _tissue_classes(vox, cfg)
     steps, rec = make_steps(graph, ir, tis, bounds_t, cdtype, with_signal, rf_coefficients)
     NI = len(graph.intervals)
@@ -324,7 +285,7 @@ def _loop(
     return batcher.finish(), None, None
 
 
-class _Tissues:
+class TissueClasses:
     """The voxels' distinct (T1, T2, D, B1, initial Mz / PD) tuples: the amplitudes depend on nothing else.
 
     Relaxation, diffusion and the RF split act per voxel only through T1, T2, D and B1, and the
@@ -376,8 +337,8 @@ class _Tissues:
         return A.index_select(1, self.inv) * self.scale.to(A.dtype)[None, :]
 
 
-def _tissue_classes(vox, cfg) -> _Tissues:
-    return _Tissues(vox, cfg.compress_tissues, cfg.tissue_quantum)
+def _tissue_classes(vox, cfg) -> TissueClasses:
+    return TissueClasses(vox, cfg.compress_tissues, cfg.tissue_quantum)
 
 
 _BATCH_ELEMS = 2**21
@@ -432,9 +393,7 @@ class _SignalBatcher:
         iv, vox, cfg = self.graph.intervals[n], self.vox, self.cfg
         Kj = self.Kjs[n]
         T = iv.adc_stop - iv.adc_start
-        method = cfg.signal_method
-        if method == "auto":
-            method = "separable" if (T >= 256 and iv.emit.size <= 8) else "gemm"
+        method = signal_method(cfg, T, iv.emit.size)
         if method != "gemm" or vox.n_coils * T * vox.n > self.budget:
             self.pieces.append(
                 (
@@ -448,13 +407,11 @@ class _SignalBatcher:
         if items and used + cost > self.batch_elems:
             self._flush(items)
             items, used = [], 0
-        items.append((n, _emit_view(iv), Y, Kj))  # Y per tissue tuple: expanded to voxels once per batch
+        items.append(EmitItem(n, _emit_view(iv), Y, Kj))  # Y per tissue tuple: expanded to voxels once per batch
         self.pending[T] = (items, used + cost)
 
     def _flush(self, items) -> None:
-        from dtoc.sim.pdg_signal_batch import emit_signal_batched
-
-        for (n, ivv, _, _), s in zip(
+        for (_n, ivv, _, _), s in zip(
             items,
             emit_signal_batched(
                 items, self.mom, self.vox, self.graph, self.bounds_t, self.cfg, self.expand, probe=self.probe
@@ -470,60 +427,12 @@ class _SignalBatcher:
         return self.pieces
 
 
-def _loop_autograd(ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_signal: bool, final_state: bool):
-    """Reference main loop under generic autograd (the path before :mod:`dtoc.sim.pdg_evolve`); same results."""
-    cdtype = _complex_dtype(dtype)
-    iv0 = graph.intervals[0]
-    A = torch.zeros((iv0.n_states, vox.n), dtype=cdtype, device=device)
-    A = A.index_add(0, torch.tensor([iv0.eq_index], device=device), vox.mz0.to(cdtype)[None, :])
-    K = torch.zeros((iv0.n_states, 4), dtype=torch.float64, device=device)
-    pieces = []
-    coef_cache: dict = {}
-    NI = len(graph.intervals)
-    # autograd memory estimate: ~8 saved (S, V) tensors per interval
-    est = 8 * vox.n * (16 if cdtype == torch.complex128 else 8) * sum(iv.n_states for iv in graph.intervals)
-    ckpt = torch.is_grad_enabled() and est > cfg.checkpoint_bytes
-    if ckpt:
-        from torch.utils.checkpoint import checkpoint
-    for n, iv in enumerate(graph.intervals):
-        if with_signal and iv.emit.size and iv.adc_stop > iv.adc_start:
-            pieces.append((iv.adc_start, emit_signal(iv, A, K, mom, n, vox, graph, bounds_t, cfg)))
-        if n == NI - 1 and not final_state:
-            break
-        dt = float(bounds_t[n + 1] - bounds_t[n])
-        nT = int((~iv.is_z).sum())
-        if iv.is_z[:nT].any():
-            raise RuntimeError("PDG graph states must be ordered transverse first")
-        tr_t = torch.as_tensor(~iv.is_z, device=device)
-        if n == NI - 1:
-            A, K, rec = _evolve(iv, A, K, mom, n, vox, dt, tr_t)
-            eq = torch.tensor([iv.eq_index], device=device)
-            A = A.index_add(0, eq, rec.to(A.dtype)[None, :])
-            break
-        rf = ir.rf[graph.rf_order[n]]
-        key = (rf.flip_angle_rad, rf.phase_rad)
-        coefs = coef_cache.get(key)
-        if coefs is None:
-            coefs = coef_cache[key] = rf_coefficients(rf.flip_angle_rad, rf.phase_rad, vox.b1, cdtype)
-        if ckpt:
-            # keep only the interval's input amplitudes; relaxation and RF split are recomputed in backward
-            def step(A_, K_, iv=iv, n=n, dt=dt, tr_t=tr_t, coefs=coefs):
-                A2, K2, rec2 = _evolve(iv, A_, K_, mom, n, vox, dt, tr_t)
-                return _apply_rf(graph.intervals[n + 1], A2, rec2, iv.eq_index, K2, coefs)
-
-            A, K = checkpoint(step, A, K, use_reentrant=False)
-            continue
-        A, K, rec = _evolve(iv, A, K, mom, n, vox, dt, tr_t)
-        A, K = _apply_rf(graph.intervals[n + 1], A, rec, iv.eq_index, K, coefs)
-    return pieces, A, K
-
-
 def run_main_pass(ir, phantom, graph, cfg, grad, b0_uT, initial_mz, dtype, device):
     """Signal (n_coils, N_adc) complex in IR ADC order (see :func:`dtoc.sim.pdg.simulate`)."""
-    graph, vox, mom, bounds_t = _prepare(ir, phantom, graph, cfg, grad, b0_uT, initial_mz, dtype, device)
-    cdtype = _complex_dtype(dtype)
+    graph, vox, mom, bounds_t = prepare(ir, phantom, graph, cfg, grad, b0_uT, initial_mz, dtype, device)
+    cdtype = complex_dtype(dtype)
     N = graph.adc_times_s.size
-    pieces, _, _ = _loop(ir, graph, vox, mom, bounds_t, cfg, dtype, device, True, False)
+    pieces, _, _ = main_loop(ir, graph, vox, mom, bounds_t, cfg, dtype, device, True, False)
     sig = torch.zeros((vox.n_coils, N), dtype=cdtype, device=device)
     for start, s in pieces:
         idx = torch.arange(start, start + s.shape[1], device=device)
@@ -535,122 +444,3 @@ def run_main_pass(ir, phantom, graph, cfg, grad, b0_uT, initial_mz, dtype, devic
         inv[graph.adc_order] = np.arange(N)
         sig = sig.index_select(1, torch.as_tensor(inv, device=device))
     return sig
-
-
-def emission_peaks(ir, phantom, graph, cfg) -> dict:
-    """Peak |signal| (max over the interval's ADC samples and the coils; units of the simulated signal,
-    PD x voxels) of every emitting state, for the intervals evaluated by the batched 'gemm' path:
-    {interval n: (J_n,) array in ``graph.intervals[n].emit`` order}.  One forward pass, float32, no
-    autograd, the IR's demanded gradient, equilibrium Mz (= PD).  States evaluated exactly (strong
-    diffusion) are reported as +inf.  Used by :func:`dtoc.sim.pdg_graph.build_graph` for
-    ``PDGConfig.calibrate_emission``."""
-    import dataclasses
-
-    cfg = dataclasses.replace(cfg, calibrate_emission=False)
-    probe: dict = {}
-    with torch.no_grad():
-        g, vox, mom, bounds_t = _prepare(ir, phantom, graph, cfg, None, None, None, torch.float32, "cpu")
-        _loop(ir, g, vox, mom, bounds_t, cfg, torch.float32, "cpu", True, False, probe=probe)
-    return probe
-
-
-# ------------------------------------------------------------------------------------------------
-# Dummy cycles
-# ------------------------------------------------------------------------------------------------
-def detect_rf_spoiling(ir: SequenceIR) -> float:
-    """Quadratic RF-spoiling increment (rad) of the excitations of ``ir``; 0 when the phases are not quadratic.
-
-    RF spoiling sets phi_j = phi_0 + c j (j + 1) / 2: the second difference of consecutive excitation
-    phases is the constant c (e.g. 117 deg).
-    """
-    p = np.array([r.phase_rad for r in sorted(ir.rf, key=lambda r: r.t_center_s) if r.use == "excitation"])
-    if p.size < 3:
-        return 0.0
-    d2 = np.angle(np.exp(1j * (p[2:] - 2 * p[1:-1] + p[:-2])))
-    if np.all(np.abs(np.angle(np.exp(1j * (d2 - d2[0])))) < 1e-3) and abs(d2[0]) > 1e-6:  # file phases are rounded
-        return float(d2[0])
-    return 0.0
-
-
-def _dummy_train(ir: SequenceIR, n: int, block_range, rf_spoil_rad: float = 0.0) -> SequenceIR:
-    """IR of ``n`` repetitions (block ranges) played back to back, without ADC.
-
-    With ``rf_spoil_rad`` = c, the RF phases of repetition d are shifted by q(d) - q(d mod n_template)
-    (cycled base repetitions) or q(d) (a single block range), q(j) = c j (j+1)/2, so that quadratic RF
-    spoiling continues through the whole train instead of restarting.
-    """
-    from dataclasses import replace as _replace
-
-    from dtoc.seq.ir import SequenceIR as _IR
-
-    edges = ir.block_edges_s
-    nb = len(edges) - 1
-    if block_range is not None:
-        b0, b1 = int(block_range[0]), int(block_range[1])
-        if not (0 <= b0 < b1 <= nb):
-            raise InputError(f"steady_state_mz: block_range {block_range} outside 0..{nb}")
-        reps = [(b0, b1)]
-    else:
-        exc = sorted({r.block for r in ir.rf if r.use == "excitation"} or {r.block for r in ir.rf})
-        if not exc:
-            raise InputError("steady_state_mz: the sequence has no RF pulse")
-        reps = [(exc[i], exc[i + 1] if i + 1 < len(exc) else nb) for i in range(len(exc))]
-    dtf = ir.dt_fine_s
-    segs, rfs, bedges = [], [], [0.0]
-    t_off = 0.0
-    for d in range(n):
-        b0, b1 = reps[d % len(reps)]
-        m0 = int(round(edges[b0] / dtf))
-        m1 = int(round(edges[b1] / dtf))
-        segs.append(ir.grad_mT_per_m[:, m0:m1])
-        shift = t_off - m0 * dtf
-        q = lambda j: rf_spoil_rad * j * (j + 1) / 2.0  # noqa: E731
-        dphi = q(d) - (q(d % len(reps)) if block_range is None else 0.0)
-        for r in ir.rf:
-            if b0 <= r.block < b1:
-                rfs.append(
-                    _replace(
-                        r,
-                        block=len(bedges) - 1 + (r.block - b0),
-                        t_start_s=r.t_start_s + shift,
-                        t_center_s=r.t_center_s + shift,
-                        phase_rad=float(np.angle(np.exp(1j * (r.phase_rad + dphi)))),
-                    )
-                )
-        for b in range(b0 + 1, b1 + 1):
-            bedges.append(edges[b] + shift)
-        t_off += (m1 - m0) * dtf
-    last = reps[(n - 1) % len(reps)][1]
-    g = np.concatenate(
-        segs + [ir.grad_mT_per_m[:, int(round(edges[last] / dtf)) : int(round(edges[last] / dtf)) + 1]], axis=1
-    )
-    return _IR(
-        raster_s=ir.raster_s,
-        grad_mT_per_m=g,
-        block_edges_s=np.array(bedges),
-        rf=rfs,
-        adc=[],
-        fov_m=ir.fov_m,
-        matrix=ir.matrix,
-        kind=ir.kind,
-        readout_axis=ir.readout_axis,
-        phase_axis=ir.phase_axis,
-    )
-
-
-def run_dummies(ir, phantom, n_dummies, block_range, cfg, dtype, device, rf_spoil_rad=None):
-    """Voxel-mean Mz (ny, nx) after ``n_dummies`` repetitions (see :func:`dtoc.sim.pdg.steady_state_mz`)."""
-    if n_dummies <= 0:
-        return torch.as_tensor(phantom.pd, dtype=dtype, device=device)
-    if rf_spoil_rad is None:
-        rf_spoil_rad = detect_rf_spoiling(ir)
-    train = _dummy_train(ir, n_dummies, block_range, rf_spoil_rad)
-    with torch.no_grad():
-        graph, vox, mom, bounds_t = _prepare(train, phantom, None, cfg, None, None, None, dtype, device, final_z=True)
-        _, A, K = _loop(train, graph, vox, mom, bounds_t, cfg, dtype, device, False, True)
-        last = graph.intervals[-1]
-        zi = np.where(last.is_z)[0]
-        mz = vox.observe_mz(A[zi], K[zi], last.tau_s[zi])
-    out = torch.zeros(phantom.shape, dtype=dtype, device=device).reshape(-1)
-    out[vox.index] = mz.real.to(dtype)
-    return out.reshape(phantom.shape)

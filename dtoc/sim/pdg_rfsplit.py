@@ -92,7 +92,7 @@ def _scaled_gather(X, rows, coefs, ranges, is_conj):
 def _split(A, coefs, groups, n_out):
     out = torch.zeros((n_out, A.shape[1]), dtype=A.dtype, device=A.device)
     cc = coefs.conj()
-    for is_conj, kind, par, child, ranges in groups:
+    for is_conj, _kind, par, child, ranges in groups:
         # c conj(x) = conj(conj(c) x)
         add_rows_(out, child, _scaled_gather(A, par, cc if is_conj else coefs, ranges, is_conj))
     return out
@@ -101,7 +101,7 @@ def _split(A, coefs, groups, n_out):
 def _split_adjoint(G, coefs, groups, n_in):
     out = torch.zeros((n_in, G.shape[1]), dtype=G.dtype, device=G.device)
     cc = coefs.conj()
-    for is_conj, kind, par, child, ranges in groups:
+    for is_conj, _kind, par, child, ranges in groups:
         # y = c x: grad_x = conj(c) g;  y = c conj(x): grad_x = conj(conj(c) g)
         add_rows_(out, par, _scaled_gather(G, child, cc, ranges, is_conj))
     return out
@@ -127,3 +127,40 @@ def rf_split(A, coefs, kind, parent, child, conj_np, n_out):
     if coefs.requires_grad:
         return _split_generic(A, coefs, groups, n_out)  # generic autograd (RF parameters differentiated)
     return _RFSplit.apply(A, coefs, groups, n_out)
+
+
+def rf_coefficients(
+    flip_rad: float, phase_rad: float, b1: torch.Tensor, cdtype, cache: dict | None = None
+) -> torch.Tensor:
+    """(6, V) complex edge coefficients of one RF pulse per voxel (kinds of the pdg_graph table).
+
+    ``cache``: optional dict; the phase-free rows (trigonometry of the B1-scaled flip, (6, V)) are
+    kept there per flip angle and each pulse only multiplies them by its 6 phase factors (RF spoiling
+    gives every pulse its own phase, not its own flip).
+    """
+    if cache is not None:
+        key = ("rf_base", float(flip_rad))
+        base = cache.get(key)
+        if base is None:
+            base = cache[key] = rf_coefficients(flip_rad, 0.0, b1, cdtype)
+        e1 = complex(np.cos(phase_rad), np.sin(phase_rad))
+        e2 = complex(np.cos(2 * phase_rad), np.sin(2 * phase_rad))
+        ph = torch.tensor([1.0, e2, e1.conjugate(), e1, e1, 1.0], dtype=cdtype, device=base.device)
+        return base * ph[:, None]
+    a = flip_rad * b1
+    s = torch.sin(a)
+    c = torch.cos(a)
+    s2 = torch.sin(0.5 * a) ** 2
+    c2 = torch.cos(0.5 * a) ** 2
+    e1 = complex(np.cos(phase_rad), np.sin(phase_rad))
+    e2 = complex(np.cos(2 * phase_rad), np.sin(2 * phase_rad))
+    em1 = e1.conjugate()
+    rows = [
+        c2.to(cdtype),
+        e2 * s2.to(cdtype),
+        (-1j * em1) * s.to(cdtype),
+        (-0.5j * e1) * s.to(cdtype),
+        (-0.5j * e1) * s.to(cdtype),
+        c.to(cdtype),
+    ]
+    return torch.stack(rows)

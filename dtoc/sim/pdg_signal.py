@@ -7,8 +7,10 @@ For an emitting transverse state j of interval n (start t_n) and an ADC sample a
 
 with k_j(t) = k_j(t_n) + gamma * integral_{t_n}^t G (exact PWL), b_j(t) = integral_{t_n}^t |k_j|^2,
 vox the voxel-shape factor (box: product of sinc(k_a d_a / 2)), C_c the coil sensitivity.  Two
-evaluations: 'direct' (exact exponentials of every (state, sample, voxel) triple, chunked) and
-'separable' (:mod:`dtoc.sim.pdg_separable`).
+evaluations, one strategy each, chosen in one place (:func:`signal_method`): 'direct' (exact
+exponentials of every (state, sample, voxel) triple, chunked: the reference), 'gemm' (one shared kernel
+per interval, :func:`emit_signal_gemm`; batched across intervals by :mod:`dtoc.sim.pdg_signal_batch`)
+and 'separable' (the same with the spatial phase factored per axis, for long readouts of few states).
 """
 
 from __future__ import annotations
@@ -200,22 +202,26 @@ def _diffusion_b(Kj, mom, n, lo, hi, dtt_t):
     return (u * u).sum(1)[:, None] * dtt_t[None, :] + 2.0 * u @ dJ1.T + dJ2[None, :]
 
 
-def emit_signal(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -> torch.Tensor:
-    """(C, T) signal of the emitting states of interval ``n`` at its ADC samples (before ADC phase)."""
+SIGNAL_METHODS = ("gemm", "separable", "direct")
+
+
+def signal_method(cfg, n_samples: int, n_emitting: int) -> str:
+    """The signal evaluation of one interval: ``cfg.signal_method``, or for 'auto' 'separable' on long
+    readouts of few states (single-shot EPI: no T x V exponentials) and 'gemm' (one shared kernel) else."""
     method = cfg.signal_method
     if method == "auto":
-        # long readouts of few states (single-shot EPI): no T x V exponentials; else one shared kernel
-        n_t = iv.adc_stop - iv.adc_start
-        method = "separable" if (n_t >= 256 and iv.emit.size <= 8) else "gemm"
-    if method == "gemm":
-        return emit_signal_gemm(iv, A, K, mom, n, vox, graph, bounds_t, cfg)
-    if method == "separable":
-        return emit_signal_gemm(iv, A, K, mom, n, vox, graph, bounds_t, cfg, separable=True)
-    if method != "direct":
-        raise InputError(
-            f"PDGConfig.signal_method {cfg.signal_method!r}: expected 'auto', 'gemm', 'direct' or 'separable'"
-        )
-    return emit_signal_direct(iv, A, K, mom, n, vox, graph, bounds_t, cfg)
+        return "separable" if (n_samples >= 256 and n_emitting <= 8) else "gemm"
+    if method not in SIGNAL_METHODS:
+        raise InputError(f"PDGConfig.signal_method {method!r}: expected 'auto', {', '.join(map(repr, SIGNAL_METHODS))}")
+    return method
+
+
+def emit_signal(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -> torch.Tensor:
+    """(C, T) signal of the emitting states of interval ``n`` at its ADC samples (before ADC phase)."""
+    method = signal_method(cfg, iv.adc_stop - iv.adc_start, iv.emit.size)
+    if method == "direct":
+        return emit_signal_direct(iv, A, K, mom, n, vox, graph, bounds_t, cfg)
+    return emit_signal_gemm(iv, A, K, mom, n, vox, graph, bounds_t, cfg, separable=method == "separable")
 
 
 def emit_signal_direct(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -> torch.Tensor:
@@ -297,10 +303,9 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
         allp, allm = t_mask_plus.all(1), (~t_mask_plus).all(1)
         groups = [m for m in (allp, allm, ~(allp | allm)) if m.any()]
         if len(groups) > 1:
-            out = None
-            for m in groups:
-                sg = emit_signal_gemm(_subset(iv, m), A, K, mom, n, vox, graph, bounds_t, cfg, separable)
-                out = sg if out is None else out + sg
+            out = emit_signal_gemm(_subset(iv, groups[0]), A, K, mom, n, vox, graph, bounds_t, cfg, separable)
+            for m in groups[1:]:
+                out = out + emit_signal_gemm(_subset(iv, m), A, K, mom, n, vox, graph, bounds_t, cfg, separable)
             return out
     vf = voxel_factor(Kj[:, None, :] + mt[None, :, :], vox)  # (J, T) complex
     # diffusion: b_j(t) = b_j(t_mid) + delta_j(t)
@@ -320,7 +325,7 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
                 return s_far
             return s_far + emit_signal_gemm(_subset(iv, ~far), A, K, mom, n, vox, graph, bounds_t, cfg, separable)
         # per-state Taylor order: the term of order r is a matrix product over the states that need it
-        orders = np.array([_taylor_order(float(x), cfg.taylor_tol) for x in xs], dtype=np.int64)
+        orders = np.array([taylor_order(float(x), cfg.taylor_tol) for x in xs], dtype=np.int64)
         rows = [torch.as_tensor(np.where(orders >= r)[0], device=dev) for r in range(1, int(orders.max(initial=0)) + 1)]
         dif = (bm[:, 0].to(rdt), delta.to(rdt), rows, max(float(vox.d.max()), 1e-300))
     # per-state voxel weights C_j(v) (without the T2' part, which depends on the kernel class)
@@ -394,7 +399,7 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
                 Gs = torch.split(G, [Co * c for c in counts], 0)
             else:  # one kernel, one product per Taylor term (no concatenated copy of the weights)
                 KernT = _kernel(mt_r, dtr, rate, vox, _time_key(dtt, sgn if use_t2d else 0.0)).T
-                Gs = [m @ KernT for m in mats]
+                Gs = tuple(m @ KernT for m in mats)
         s = Gs[0].reshape(Co, J, T)
         if dif is not None and dif[2]:
             ndl = (-dif[3] * dif[1]).to(cdt)  # (J, T): -Dmax delta, |.| <= _DIFF_TAYLOR_MAX
@@ -413,7 +418,7 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
 _DIFF_TAYLOR_MAX = 0.5  # largest D * |b(t) - b(t_mid)| expanded in a Taylor series (else exact per state)
 
 
-def _taylor_order(x: float, tol: float) -> int:
+def taylor_order(x: float, tol: float) -> int:
     """Smallest order R with x^(R+1) / (R+1)! <= tol (remainder of the Taylor series of exp(-x) for x >= 0)."""
     if x <= tol:
         return 0

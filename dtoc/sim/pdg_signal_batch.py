@@ -25,6 +25,9 @@ tests/test_sim_perf_equivalence.py).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
 import numpy as np
 import torch
 
@@ -33,8 +36,8 @@ from dtoc.sim.pdg_rfsplit import add_rows_, take_rows
 from dtoc.sim.pdg_signal import _DIFF_TAYLOR_MAX, _cis, _decay_phase, _time_factor, _time_key, voxel_factor
 
 
-def _taylor_orders(xs: np.ndarray, tol: float) -> np.ndarray:
-    """Vectorised :func:`dtoc.sim.pdg_signal._taylor_order`: smallest R with x^(R+1) / (R+1)! <= tol (at most 30)."""
+def taylor_orders(xs: np.ndarray, tol: float) -> np.ndarray:
+    """Vectorised :func:`dtoc.sim.pdg_signal.taylor_order`: smallest R with x^(R+1) / (R+1)! <= tol (at most 30)."""
     xs = np.asarray(xs, dtype=np.float64)
     if xs.size == 0:
         return np.zeros(0, dtype=np.int64)
@@ -78,17 +81,93 @@ def _class_rows(cls, far, orders, own_np):
             yield c, signs, in_c[np.lexsort((-orders[in_c], own_np[in_c]))]
 
 
+@dataclass
+class TaylorBlock:
+    """The rows of one Taylor order r of one plan step (diffusion expansion exp(-D delta) ~ sum_r (-D delta)^r / r!).
+
+    Attributes:
+        pos_t: positions of the rows within the step (long tensor).
+        rows_t: the same rows as indices into the batch's emitting states.
+        dr: (V,) (D / Dmax)^r (None for r = 0).
+        sizes: number of consecutive rows per interval block.
+        ivs: interval (batch item) of each block.
+        fact: r!.
+        mask: class-2 sign mask of the rows (None: all rows count).
+        kix: kernel row of each block (set once the kernels in use are known).
+    """
+
+    pos_t: torch.Tensor
+    rows_t: torch.Tensor
+    dr: torch.Tensor | None
+    sizes: list[int]
+    ivs: list[int]
+    fact: float
+    mask: torch.Tensor | None
+    kix: list[int] = field(default_factory=list)
+
+
+@dataclass
+class PlanStep:
+    """The states of one kernel class and sign: their rows, T2'-per-tau factors and Taylor orders."""
+
+    rows: torch.Tensor
+    sgn: float
+    Pt: torch.Tensor
+    orders: list[TaylorBlock]
+
+
+@dataclass
+class GemmPlan:
+    """What :class:`_BatchedGemm` needs besides its tensors: voxel constants, kernels in use, the steps."""
+
+    vox: Any
+    Co: int
+    tfs: dict
+    used: dict
+    steps: list[PlanStep]
+
+
+class EmitItem(NamedTuple):
+    """One interval of a batch: index ``n``, emitting view ``iv`` of its graph interval (emit = 0..J-1),
+    emitting amplitudes ``Y`` (J, V) complex (or per tissue tuple, (J, U)) and their k ``Kj`` (J, 4) float64."""
+
+    n: int
+    iv: Any
+    Y: torch.Tensor
+    Kj: torch.Tensor
+
+
+@dataclass
+class _Batch:
+    """The constants of one batch of intervals, shared by its evaluation steps."""
+
+    items: list[EmitItem]
+    G: int  # intervals in the batch
+    Co: int  # coils
+    T: int  # ADC samples per interval
+    rdt: torch.dtype
+    cdt: torch.dtype
+    dev: torch.device
+    own: torch.Tensor  # (J,) interval of each emitting state
+    own_np: np.ndarray
+    mom: Any
+    vox: Any
+    graph: Any
+    bounds_t: np.ndarray
+    cfg: Any
+
+
 def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, probe: dict | None = None) -> list:
     """Signals of several intervals with the same number T of ADC samples.
 
     Args:
-        items: list of (n, iv_view, Y, Kj): interval index, emitting view of its graph (emit = 0..J-1,
-            tau_s of the emitting states), emitting amplitudes (J, V) complex, their k (J, 4) float64.
+        items: list of :class:`EmitItem` (n, iv_view, Y, Kj): interval index, emitting view of its graph
+            (emit = 0..J-1, tau_s of the emitting states), emitting amplitudes (J, V) complex, their k (J, 4) float64.
         mom, vox, graph, bounds_t, cfg: as for :func:`dtoc.sim.pdg_signal.emit_signal_gemm`.
         expand: optional map (R, U) -> (R, V) applied once to the concatenated amplitudes (the items'
             Y are then per-tissue-tuple rows (J, U); one gather for the batch instead of one per interval).
         probe: optional dict; receives {interval n: (J,) peak |signal| of each emitting state} (the
-            exactly evaluated far states: +inf); see :func:`dtoc.sim.pdg_main.emission_peaks`.
+            exactly evaluated far states: +inf); see :func:`dtoc.sim.pdg_calibrate.emission_peaks`.
     Returns:
         list of (C, T) complex signals, one per item (before the ADC phase).
     """
@@ -97,20 +176,21 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
     Co = vox.n_coils
     V = vox.n
     G = len(items)
-    ns = [it[0] for it in items]
-    lo = [it[1].adc_start for it in items]
-    T = items[0][1].adc_stop - lo[0]
-    cdt = items[0][2].dtype
-    Js = [it[2].shape[0] for it in items]
+    ns = [it.n for it in items]
+    lo = [it.iv.adc_start for it in items]
+    T = items[0].iv.adc_stop - lo[0]
+    cdt = items[0].Y.dtype
+    Js = [it.Y.shape[0] for it in items]
     own_np = np.repeat(np.arange(G), Js)
     J = int(own_np.size)
-    Y = torch.cat([it[2] for it in items], 0) if G > 1 else items[0][2]
+    Y = torch.cat([it.Y for it in items], 0) if G > 1 else items[0].Y
     if expand is not None:
         Y = expand(Y)
     Ys = torch.split(Y, Js, 0) if G > 1 else (Y,)  # per-item voxel amplitudes (the far states' exact path)
-    Kj = torch.cat([it[3] for it in items], 0) if G > 1 else items[0][3]
-    tau = np.concatenate([it[1].tau_s for it in items])
+    Kj = torch.cat([it.Kj for it in items], 0) if G > 1 else items[0].Kj
+    tau = np.concatenate([it.iv.tau_s for it in items])
     own = torch.as_tensor(own_np, device=dev)
+    batch = _Batch(items, G, Co, T, rdt, cdt, dev, own, own_np, mom, vox, graph, bounds_t, cfg)
     nb = torch.as_tensor(np.asarray(ns), device=dev)
     sel_adc = torch.as_tensor(np.stack([np.arange(a, a + T) for a in lo]).reshape(-1), device=dev)
     mt = (
@@ -130,7 +210,8 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
     # diffusion: b_j(t) = b_j(t_mid) + delta_j(t)
     orders = np.zeros(J, dtype=np.int64)
     far = np.zeros(J, dtype=bool)
-    bm = ndl = None
+    bm: Any = None
+    ndl: Any = None
     Dmax = max(float(vox.d.max()), 1e-300) if vox.has_diffusion else 1.0
     if vox.has_diffusion and T:
         dtt_t = torch.as_tensor(dtt, dtype=torch.float64, device=dev)
@@ -146,13 +227,13 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
         delta = b - bm[:, None]
         xs = Dmax * delta.detach().abs().amax(1).cpu().numpy()
         far = xs > _DIFF_TAYLOR_MAX
-        orders = _taylor_orders(xs, cfg.taylor_tol)
+        orders = taylor_orders(xs, cfg.taylor_tol)
         orders[far] = -1
         ndl = (-Dmax * delta).to(rdt)  # (J, T) real, |.| <= _DIFF_TAYLOR_MAX for the expanded states
 
     if getattr(cfg, "fused_signal_adjoint", False):
-        out = _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np, Dmax, vox, G, Co, T, rdt)
-        return _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg, probe)
+        out = _fused_products(batch, Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, Dmax)
+        return _finish(batch, out, vf, Ys, far, probe)
 
     # weights common to both kernel classes: A exp(-i k.r) exp(-D b_mid)
     W = Y * vox.spatial_phase(Kj[:, 0].to(rdt), Kj[:, 1].to(rdt))
@@ -187,7 +268,7 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
             if sgn not in kern_cache:
                 kern_cache[sgn] = kernel(sgn)
             Kern = kern_cache[sgn]
-            s_c = None
+            s_c: torch.Tensor | None = None
             dn = vox.d / Dmax
             dr = None
             for r in range(int(orders[in_c].max(initial=0)) + 1):
@@ -211,21 +292,21 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
                         np.prod(np.arange(1, r + 1))
                     )
                     Gr = Gr * w[:, None, :]
-                if r == 0:
+                if s_c is None:  # r == 0
                     s_c = Gr
                 else:
                     s_c = s_c.index_add(0, torch.as_tensor(pos, device=dev), Gr)
+            assert s_c is not None
             if c == 2:
                 m = plus[in_c] if sgn > 0 else ~plus[in_c]
                 s_c = s_c * torch.as_tensor(m, device=dev).to(rdt)[:, None, :]
             out = out.index_add(0, rows_c, s_c)
-    return _finish(out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg, probe)
+    return _finish(batch, out, vf, Ys, far, probe)
 
 
-def _finish(
-    out, vf, own, items, Ys, far, own_np, G, Co, T, cdt, dev, mom, vox, graph, bounds_t, cfg, probe=None
-) -> list:
+def _finish(b: _Batch, out, vf, Ys, far, probe=None) -> list:
     """Voxel factor, sum of the states per interval, exact evaluation of the far (strong-diffusion) states."""
+    items, own, own_np, G, Co, T = b.items, b.own, b.own_np, b.G, b.Co, b.T
     out = out * vf[:, None, :]
     if probe is not None:
         peak = (
@@ -233,8 +314,8 @@ def _finish(
         )
         peak[far] = np.inf
         for g, it in enumerate(items):
-            probe[it[0]] = peak[own_np == g]
-    sig = torch.zeros((G, Co, T), dtype=cdt, device=dev).index_add(0, own, out)
+            probe[it.n] = peak[own_np == g]
+    sig = torch.zeros((G, Co, T), dtype=b.cdt, device=b.dev).index_add(0, own, out)
     res = list(sig.unbind(0))
     if far.any():
         import copy
@@ -244,12 +325,13 @@ def _finish(
             if f.any():
                 sub = copy.copy(ivv)
                 sub.emit = ivv.emit[f]
-                res[g] = res[g] + _sig.emit_signal_direct(sub, Ys[g], Kg, mom, n, vox, graph, bounds_t, cfg)
+                res[g] = res[g] + _sig.emit_signal_direct(sub, Ys[g], Kg, b.mom, n, b.vox, b.graph, b.bounds_t, b.cfg)
     return res
 
 
-def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np, Dmax, vox, G, Co, T, rdt):
+def _fused_products(b: _Batch, Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, Dmax):
     """(J, Co, T) products of the expanded states through :class:`_BatchedGemm` (same terms and order as the generic path)."""
+    own_np, vox, Co, rdt = b.own_np, b.vox, b.Co, b.rdt
     dev = Y.device
     empty = torch.zeros(0, dtype=rdt, device=dev)
     utau, tinv = np.unique(tau, return_inverse=True)
@@ -261,7 +343,7 @@ def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np
         tl, shared = _time_factors(dtt, dtr, sgn, vox)
         tfs[sgn] = tl[0].T[:, None, :] if shared else torch.stack(tl, 0).permute(2, 0, 1)  # (V, 1|G, T)
     dn = vox.d / Dmax
-    steps = []
+    steps: list[PlanStep] = []
     for c, signs, in_c in _class_rows(cls, far, orders, own_np):
         rows_c = torch.as_tensor(in_c, device=dev)
         for sgn in signs:
@@ -272,7 +354,7 @@ def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np
             mask_c = None
             if c == 2:
                 mask_c = torch.as_tensor(plus[in_c] if sgn > 0 else ~plus[in_c], device=dev).to(rdt)
-            ords = []
+            ords: list[TaylorBlock] = []
             dr = None
             for r in range(int(orders[in_c].max(initial=0)) + 1):
                 pos = np.where(orders[in_c] >= r)[0]
@@ -286,7 +368,7 @@ def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np
                 ends = np.concatenate([cuts, [ow.size]]).astype(np.int64)
                 pos_t = torch.as_tensor(pos, device=dev)
                 ords.append(
-                    dict(
+                    TaylorBlock(
                         pos_t=pos_t,
                         rows_t=torch.as_tensor(in_c[pos], device=dev),
                         dr=dr,
@@ -296,15 +378,15 @@ def _fused_products(Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, own_np
                         mask=None if mask_c is None else (mask_c if r == 0 else mask_c.index_select(0, pos_t)),
                     )
                 )
-            steps.append(dict(rows=rows_c, sgn=sgn, Pt=Pt_rows, orders=ords))
+            steps.append(PlanStep(rows=rows_c, sgn=sgn, Pt=Pt_rows, orders=ords))
     # kernels only for the intervals with states of each sign; block interval -> kernel row
-    used = {sg: sorted({g for st in steps if st["sgn"] == sg for rr in st["orders"] for g in rr["ivs"]}) for sg in tfs}
+    used = {sg: sorted({g for st in steps if st.sgn == sg for rr in st.orders for g in rr.ivs}) for sg in tfs}
     used = {sg: u for sg, u in used.items() if u}
     for st in steps:
-        row = {g: i for i, g in enumerate(used[st["sgn"]])}
-        for rr in st["orders"]:
-            rr["kix"] = [row[g] for g in rr["ivs"]]
-    plan = dict(vox=vox, Co=Co, tfs={sg: tfs[sg] for sg in used}, used=used, steps=steps)
+        row = {g: i for i, g in enumerate(used[st.sgn])}
+        for rr in st.orders:
+            rr.kix = [row[g] for g in rr.ivs]
+    plan = GemmPlan(vox=vox, Co=Co, tfs={sg: tfs[sg] for sg in used}, used=used, steps=steps)
     bm_r = empty if bm is None else bm.to(rdt)
     ndl_r = empty if ndl is None else ndl
     return _BatchedGemm.apply(
@@ -318,7 +400,7 @@ class _BatchedGemm(torch.autograd.Function):
     Inputs (differentiable): Y (J, V) complex amplitudes; kx, ky (J,) rad/m (state k); bm (J,) s/m^2
     (b at the window centre; empty: no diffusion); mtx, mty (G, T) rad/m (in-interval k of the
     samples); ndl (J, T) real (-Dmax delta_j(t), the Taylor variable; empty: no diffusion).
-    ``plan`` (not differentiable) holds the voxel constants and the row bookkeeping.
+    ``plan`` (:class:`GemmPlan`, not differentiable) holds the voxel constants and the row bookkeeping.
     Output: (J, Co, T) complex, sum over voxels of W_j(v) Kern_n(t, v) exp(-D(v) delta_j(t)) per class,
     exactly as the generic path (same terms, same order of the products).
 
@@ -336,13 +418,13 @@ class _BatchedGemm(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, Y, kx, ky, bm, mtx, mty, ndl, plan):
-        vox = plan["vox"]
+        vox = plan.vox
         E = vox.spatial_phase(kx, ky)
         if bm.numel():
             E = E * torch.exp(-bm[:, None] * vox.d[None, :])
         W = Y * E
         G, T = mtx.shape
-        Co = plan["Co"]
+        Co = plan.Co
         # kernels in voxel-major layout KT (V, nK * Co * T) = exp(-i (mx x + my y)) tf (coil): the
         # per-axis factors are gathered by voxel rows (no transposed copy); interval k's kernel is the
         # column block [k Co T, (k + 1) Co T), a strided (V, Co T) operand of the products
@@ -351,9 +433,9 @@ class _BatchedGemm(torch.autograd.Function):
             * take_rows(_cis(-vox.yg[:, None] * mty.reshape(1, -1)), vox.iy_t())
         ).reshape(-1, G, T)
         Ks = {}
-        signs = list(plan["tfs"])
+        signs = list(plan.tfs)
         for i, sgn in enumerate(signs):
-            u, tfT = plan["used"][sgn], plan["tfs"][sgn]  # tfT (V, 1 or G, T)
+            u, tfT = plan.used[sgn], plan.tfs[sgn]  # tfT (V, 1 or G, T)
             if len(u) == G:
                 K = SPT.mul_(tfT) if (i == len(signs) - 1 and vox.coil is None) else SPT * tfT
             else:
@@ -366,25 +448,25 @@ class _BatchedGemm(torch.autograd.Function):
         CT = Co * T
         out = torch.zeros((J, Co, T), dtype=W.dtype, device=W.device)
         raws = []
-        for st in plan["steps"]:
-            C = take_rows(W, st["rows"]) * st["Pt"]
-            K = Ks[st["sgn"]]
+        for st in plan.steps:
+            C = take_rows(W, st.rows) * st.Pt
+            K = Ks[st.sgn]
             s_c = None
-            for r, rr in enumerate(st["orders"]):
-                Cr = C if r == 0 else take_rows(C, rr["pos_t"]) * rr["dr"][None, :]
-                blocks = torch.split(Cr, rr["sizes"], 0)
-                Gr = torch.cat([blk @ K[:, g * CT : (g + 1) * CT] for blk, g in zip(blocks, rr["kix"])], 0).reshape(
+            for r, rr in enumerate(st.orders):
+                Cr = C if r == 0 else take_rows(C, rr.pos_t) * rr.dr[None, :]
+                blocks = torch.split(Cr, rr.sizes, 0)
+                Gr = torch.cat([blk @ K[:, g * CT : (g + 1) * CT] for blk, g in zip(blocks, rr.kix)], 0).reshape(
                     -1, Co, T
                 )
-                w = rr["mask"]
+                w = rr.mask
                 if r > 0:
                     raws.append(Gr)
-                    wr = ndl.index_select(0, rr["rows_t"]) ** r / rr["fact"]
+                    wr = ndl.index_select(0, rr.rows_t) ** r / rr.fact
                     w = wr if w is None else w * wr
                 if w is not None:
                     Gr = Gr * w[:, None, :]
-                s_c = Gr if r == 0 else add_rows_(s_c, rr["pos_t"], Gr)  # s_c: a fresh product, not saved
-            add_rows_(out, st["rows"], s_c)
+                s_c = Gr if r == 0 else add_rows_(s_c, rr.pos_t, Gr)  # s_c: a fresh product, not saved
+            add_rows_(out, st.rows, s_c)
         ctx.plan, ctx.Ks, ctx.GT = plan, Ks, (G, T)
         ctx.save_for_backward(W, E, ndl, *raws)
         return out
@@ -395,8 +477,8 @@ class _BatchedGemm(torch.autograd.Function):
         # conjugated copies of the (G, Co*T, V) kernels or the (J, V) weights
         plan, Ks = ctx.plan, ctx.Ks
         W, E, ndl, *raws = ctx.saved_tensors
-        vox = plan["vox"]
-        Co = plan["Co"]
+        vox = plan.vox
+        Co = plan.Co
         J, V = W.shape
         G, T = ctx.GT
         need_y, need_kx, need_ky, need_bm, need_mx, need_my, need_ndl = ctx.needs_input_grad[:7]
@@ -407,35 +489,33 @@ class _BatchedGemm(torch.autograd.Function):
         gKcs = {s: torch.zeros_like(K) for s, K in Ks.items()} if need_k else {}  # conj(G_K), voxel-major
         gndl = torch.zeros_like(ndl) if need_ndl else None
         ri = 0
-        for st in plan["steps"]:
-            C = take_rows(W, st["rows"]) * st["Pt"]
-            K = Ks[st["sgn"]]
-            gKc = gKcs.get(st["sgn"])
-            g_c = take_rows(goutc, st["rows"])  # conj(G_out) of the step's rows
+        for st in plan.steps:
+            C = take_rows(W, st.rows) * st.Pt
+            K = Ks[st.sgn]
+            gKc = gKcs.get(st.sgn)
+            g_c = take_rows(goutc, st.rows)  # conj(G_out) of the step's rows
             gCc = torch.empty_like(C)  # every row written by the order-0 products
-            for r, rr in enumerate(st["orders"]):
-                g_r = g_c if r == 0 else take_rows(g_c, rr["pos_t"])
-                w = rr["mask"]
+            for r, rr in enumerate(st.orders):
+                g_r = g_c if r == 0 else take_rows(g_c, rr.pos_t)
+                w = rr.mask
                 if r > 0:
                     raw = raws[ri]
                     ri += 1
-                    nd = ndl.index_select(0, rr["rows_t"])
+                    nd = ndl.index_select(0, rr.rows_t)
                     if need_ndl:
-                        dw = (r * nd ** (r - 1)) / rr["fact"]
+                        dw = (r * nd ** (r - 1)) / rr.fact
                         if w is not None:
                             dw = dw * w
-                        gndl.index_add_(
-                            0, rr["rows_t"], (g_r * raw).real.sum(1) * dw
-                        )  # Re(conj(G) raw) = Re(G conj(raw))
-                    wr = nd**r / rr["fact"]
+                        gndl.index_add_(0, rr.rows_t, (g_r * raw).real.sum(1) * dw)  # Re(conj(G) raw) = Re(G conj(raw))
+                    wr = nd**r / rr.fact
                     w = wr if w is None else w * wr
                 if w is not None:
                     g_r = g_r * w[:, None, :]
                 gz = g_r.reshape(g_r.shape[0], Co * T)
-                Cr = C if r == 0 else take_rows(C, rr["pos_t"]) * rr["dr"][None, :]
+                Cr = C if r == 0 else take_rows(C, rr.pos_t) * rr.dr[None, :]
                 a = 0
                 if r == 0:
-                    for n_b, g in zip(rr["sizes"], rr["kix"]):
+                    for n_b, g in zip(rr.sizes, rr.kix):
                         b = gz[a : a + n_b]
                         torch.mm(b, K[:, g * CT : (g + 1) * CT].T, out=gCc[a : a + n_b])
                         if gKc is not None:
@@ -443,14 +523,14 @@ class _BatchedGemm(torch.autograd.Function):
                         a += n_b
                 else:
                     parts = []
-                    for n_b, g in zip(rr["sizes"], rr["kix"]):
+                    for n_b, g in zip(rr.sizes, rr.kix):
                         b = gz[a : a + n_b]
                         parts.append(b @ K[:, g * CT : (g + 1) * CT].T)
                         if gKc is not None:
                             gKc[:, g * CT : (g + 1) * CT].addmm_(Cr[a : a + n_b].T, b)
                         a += n_b
-                    add_rows_(gCc, rr["pos_t"], torch.cat(parts, 0) * rr["dr"][None, :])
-            add_rows_(gWc, st["rows"], gCc * st["Pt"])
+                    add_rows_(gCc, rr.pos_t, torch.cat(parts, 0) * rr.dr[None, :])
+            add_rows_(gWc, st.rows, gCc * st.Pt)
         gY = (gWc * E).conj() if need_y else None
         gkx = gky = gbm = None
         if need_kx or need_ky or need_bm:
@@ -467,7 +547,7 @@ class _BatchedGemm(torch.autograd.Function):
             for s_, K in sorted(Ks.items(), key=lambda kv: -kv[1].shape[1]):  # full kernels first
                 q = gKcs[s_].mul_(K).reshape(V, -1, Co, T)
                 q = q[:, :, 0] if Co == 1 else q.sum(2)
-                u = plan["used"][s_]
+                u = plan.used[s_]
                 if len(u) == G:
                     Q = q if Q is None else Q.add_(q)
                 else:

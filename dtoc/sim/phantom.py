@@ -114,10 +114,11 @@ def tissue_params(field_T: float) -> dict[str, tuple[float, float, float, float,
         return TISSUE_PARAMS[f]
     lo, hi = TISSUE_PARAMS[3.0], TISSUE_PARAMS[7.0]
     w = min(max((f - 3.0) / 4.0, -0.5), 1.5)  # modest extrapolation only
-    out = {}
+    out: dict[str, tuple[float, float, float, float, float]] = {}
     for name in lo:
         a, b = lo[name], hi[name]
-        out[name] = (a[0], *(float(math.exp((1 - w) * math.log(a[i]) + w * math.log(b[i]))) for i in (1, 2, 3)), a[4])
+        t1, t2, t2d = (float(math.exp((1 - w) * math.log(a[i]) + w * math.log(b[i]))) for i in (1, 2, 3))
+        out[name] = (a[0], t1, t2, t2d, a[4])
     return out
 
 
@@ -143,7 +144,7 @@ def _star(u, v, cx, cy, a, b, rot_rad=0.0, harmonics=()):
     return rho
 
 
-def _label_map(u: np.ndarray, v: np.ndarray, seed: int, lesion: bool) -> np.ndarray:
+def label_map(u: np.ndarray, v: np.ndarray, seed: int, lesion: bool) -> np.ndarray:
     """Tissue labels (indices into TISSUES) at normalised coordinates u, v in [-1, 1] (FOV edge = +-1)."""
     rng = np.random.default_rng(seed)
     # cortex folding: a few random high-order harmonics (deterministic for a given seed)
@@ -289,7 +290,7 @@ def brain_phantom(
     ux = ((np.arange(nx)[:, None] - nx / 2 + sub[None, :]) * 2.0 / nx).ravel()
     uy = ((np.arange(ny)[:, None] - ny / 2 + sub[None, :]) * 2.0 / ny).ravel()
     vv, uu = np.meshgrid(uy, ux, indexing="ij")
-    lab = _label_map(uu, vv, seed, lesion)
+    lab = label_map(uu, vv, seed, lesion)
     if not scalp:
         lab[(lab == TISSUES.index("fat")) | (lab == TISSUES.index("skull"))] = TISSUES.index("background")
     fractions = {}
@@ -563,3 +564,22 @@ def resolve_phantom(
             raise InputError("phantom: field of view unknown; give a .npz phantom with fov_m")
         return brain_phantom(matrix, field_T=field_T, fov_m=fov_m, b0=b0, b1=b1, seed=seed, scalp=name == "brain")
     return load_phantom(spec)
+
+
+def phantom_for(
+    ir, spec=None, *, size: int | None = None, field_T: float = 3.0, b0: bool = False, b1: bool = False
+) -> Phantom:
+    """The phantom of a spec (:func:`resolve_phantom`) on the image grid of sequence ``ir``.
+
+    Built-in phantoms are made at the sequence's in-plane matrix (``size`` overrides it: N x N) and FOV
+    (:attr:`dtoc.seq.ir.SequenceIR.geometry`); a ``.npz`` phantom is read as it is.
+    """
+    geo = ir.geometry
+    if is_builtin_spec("brain" if spec is None else spec) and geo is None:
+        raise InputError("sequence has no matrix/FOV definitions: cannot build the phantom")
+    matrix = fov = None
+    if geo is not None:
+        nx, ny = geo.matrix_xy
+        matrix = (size or ny, size or nx)
+        fov = geo.fov_xy_m
+    return resolve_phantom(spec, matrix=matrix, fov_m=fov, field_T=field_T, b0=b0, b1=b1)

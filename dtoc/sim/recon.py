@@ -53,6 +53,8 @@ class CartesianGrid:
 
 
 def _infer_matrix_fov(ir, matrix, fov_m):
+    """(ny, nx) and (fov_x, fov_y): the explicit arguments, else the IR's encoding geometry."""
+    geo = ir.geometry
     if fov_m is None:
         if ir.fov_m is None:
             raise InputError("reconstruction: the sequence has no FOV; pass fov_m")
@@ -62,16 +64,13 @@ def _infer_matrix_fov(ir, matrix, fov_m):
     if fov.size != 2 or not np.all(np.isfinite(fov)) or np.any(fov <= 0):
         raise InputError(f"reconstruction: fov_m {fov_m!r}: expected positive (fov_x, fov_y) in m")
     if matrix is None:
-        m = ir.matrix
-        if m is None or len(m) < 2:
+        if geo is None:
             raise InputError("reconstruction: the sequence has no matrix size; pass matrix=(nx, ny)")
-        ro = ir.readout_axis if ir.readout_axis is not None else 0
-        ph = ir.phase_axis if ir.phase_axis is not None else 1
-        n = [0, 0]
-        if {ro, ph} != {0, 1}:
-            raise InputError(f"reconstruction: readout/phase axes {ro}/{ph} are not the x-y plane")
-        n[ro], n[ph] = int(m[0]), int(m[1])
-        matrix = (n[0], n[1])
+        if not geo.in_plane:
+            raise InputError(
+                f"reconstruction: readout/phase axes {geo.readout_axis}/{geo.phase_axis} are not the x-y plane"
+            )
+        matrix = geo.matrix_xy
     nx, ny = (int(matrix[0]), int(matrix[1])) if np.size(matrix) == 2 else (int(matrix), int(matrix))
     return (ny, nx), (float(fov[0]), float(fov[1]))
 

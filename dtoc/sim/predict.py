@@ -24,13 +24,17 @@ from dtoc.seq.ir import SequenceIR
 from dtoc.util.figures import png_bytes
 
 
-def realize(ir: SequenceIR, model: HardwareModel, device: str | torch.device = "cpu",
-            dtype: torch.dtype = torch.float64) -> tuple[np.ndarray, np.ndarray]:
+def realize(
+    ir: SequenceIR, model: HardwareModel, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float64
+) -> tuple[np.ndarray, np.ndarray]:
     """Realized gradient (3, M) mT/m and B0 (M,) uT of the IR's demanded gradient on its fine grid."""
-    g = torch.as_tensor(ir.grad_mT_per_m, dtype=dtype, device=device)
-    model = model.to(device)
+    from dtoc.sim.twin import Twin
+
     with torch.no_grad():
-        G, b0 = model(g, ir.dt_fine_s)
+        G, b0 = Twin(ir, model.to(device), dtype=dtype, device=device).realize(
+            torch.as_tensor(ir.grad_mT_per_m, dtype=dtype, device=device)
+        )
+    b0 = torch.zeros(G.shape[-1], dtype=G.dtype, device=G.device) if b0 is None else b0
     return G.double().cpu().numpy(), b0.double().cpu().numpy()
 
 
@@ -47,8 +51,14 @@ def predict(ir: SequenceIR, model: HardwareModel, device: str = "cpu") -> dict[s
     """
     G, b0 = realize(ir, model, device)
     g = ir.grad_mT_per_m
-    out: dict[str, Any] = {"dt_s": ir.dt_fine_s, "duration_s": ir.duration_s, "n_adc_samples": ir.n_adc_samples,
-                           "fov_m": list(ir.fov_m) if ir.fov_m else None, "grad_error": {}, "k_error": {}}
+    out: dict[str, Any] = {
+        "dt_s": ir.dt_fine_s,
+        "duration_s": ir.duration_s,
+        "n_adc_samples": ir.n_adc_samples,
+        "fov_m": list(ir.fov_m) if ir.fov_m else None,
+        "grad_error": {},
+        "k_error": {},
+    }
     for a, name in enumerate(AXES):
         mx, rms = _stats(G[a] - g[a])
         out["grad_error"][name] = {"max_mT_per_m": mx, "rms_mT_per_m": rms}
@@ -78,7 +88,7 @@ def predict(ir: SequenceIR, model: HardwareModel, device: str = "cpu") -> dict[s
     return out
 
 
-def _is_epi(ir: SequenceIR) -> bool:
+def is_epi(ir: SequenceIR) -> bool:
     """An echo train: the IR says ``kind == 'epi'``, or (kind unknown) the readout gradient at the centres
     of consecutive ADC events alternates in sign (a GRE's repeated readouts do not)."""
     if ir.kind is not None:
@@ -89,29 +99,38 @@ def _is_epi(ir: SequenceIR) -> bool:
 
 
 def _epi_offsets(ir: SequenceIR, k: np.ndarray, k0: np.ndarray) -> dict[str, Any] | None:
-    if len(ir.adc) < 2 or ir.readout_axis is None or not _is_epi(ir):
+    if len(ir.adc) < 2 or ir.readout_axis is None or not is_epi(ir):
         return None
     dk = ir.dk_rad_per_m
     ro, pe = ir.readout_axis, ir.phase_axis
     bounds = np.cumsum([0] + [a.num_samples for a in ir.adc])
-    res: dict[str, Any] = {"n_lines": len(ir.adc), "readout_axis": AXES[ro], "phase_axis": AXES[pe] if pe is not None else None}
+    res: dict[str, Any] = {
+        "n_lines": len(ir.adc),
+        "readout_axis": AXES[ro],
+        "phase_axis": AXES[pe] if pe is not None else None,
+    }
     for key, ax in (("readout", ro), ("phase", pe)):
         if ax is None:
             continue
-        line = np.array([np.mean(k[ax, bounds[i]:bounds[i + 1]] - k0[ax, bounds[i]:bounds[i + 1]]) for i in range(len(ir.adc))])
+        line = np.array(
+            [np.mean(k[ax, bounds[i] : bounds[i + 1]] - k0[ax, bounds[i] : bounds[i + 1]]) for i in range(len(ir.adc))]
+        )
         even, odd = line[0::2], line[1::2]
         d = float(np.mean(odd) - np.mean(even))
         scale = dk[ax] if dk is not None and np.isfinite(dk[ax]) else None
         res[key] = {
-            "even_mean_rad_per_m": float(np.mean(even)), "odd_mean_rad_per_m": float(np.mean(odd)),
-            "odd_minus_even_rad_per_m": d, "odd_minus_even_dk": None if scale is None else d / scale,
-            "even_spread_rad_per_m": float(np.ptp(even)), "odd_spread_rad_per_m": float(np.ptp(odd)),
+            "even_mean_rad_per_m": float(np.mean(even)),
+            "odd_mean_rad_per_m": float(np.mean(odd)),
+            "odd_minus_even_rad_per_m": d,
+            "odd_minus_even_dk": None if scale is None else d / scale,
+            "even_spread_rad_per_m": float(np.ptp(even)),
+            "odd_spread_rad_per_m": float(np.ptp(odd)),
             "line_offsets_rad_per_m": line.tolist(),
         }
     return res
 
 
-def _zoom_window_ms(ir: SequenceIR) -> tuple[float, float]:
+def zoom_window_ms(ir: SequenceIR) -> tuple[float, float]:
     """A window showing the waveform detail: three ADC events around the middle one (EPI: the k = 0
     line and its neighbours), else the first 2 ms after the first ADC start."""
     if ir.adc:
@@ -147,14 +166,19 @@ def plot_prediction(ir: SequenceIR, res: dict[str, Any], path, title: str = "", 
     used = [a for a in range(3) if np.any(g[a]) or np.any(G[a])] or [0, 1, 2]
     fig, axs = plt.subplots(2, 2, figsize=(13, 8))
     ax_full, ax_zoom, ax_err, ax_k = axs[0, 0], axs[0, 1], axs[1, 0], axs[1, 1]
-    lo, hi = _zoom_window_ms(ir)
+    lo, hi = zoom_window_ms(ir)
     zsel = (t_ms >= lo) & (t_ms <= hi)
     for a in used:
         for ax, sel in ((ax_full, slice(None)), (ax_zoom, zsel)):
             ax.plot(t_ms[sel], g[a, sel], color=cols[a], lw=0.9, ls="--", label=f"g{AXES[a]} demanded")
             ax.plot(t_ms[sel], G[a, sel], color=cols[a], lw=0.9, alpha=0.8, label=f"G{AXES[a]} realized")
-        ax_err.plot(t_ms, G[a] - g[a], color=cols[a], lw=0.7,
-                    label=f"G{AXES[a]} - g{AXES[a]} (max {res['grad_error'][AXES[a]]['max_mT_per_m']:.3g})")
+        ax_err.plot(
+            t_ms,
+            G[a] - g[a],
+            color=cols[a],
+            lw=0.7,
+            label=f"G{AXES[a]} - g{AXES[a]} (max {res['grad_error'][AXES[a]]['max_mT_per_m']:.3g})",
+        )
     ax_full.axvspan(lo, hi, color="0.85", zorder=0)
     for ev in ir.adc:
         t0 = ev.t_start_s * 1e3
@@ -186,11 +210,17 @@ def plot_prediction(ir: SequenceIR, res: dict[str, Any], path, title: str = "", 
         ro = epi.get("readout")
         if ro and dk is not None and ir.readout_axis is not None:
             bounds = np.cumsum([0] + [ev.num_samples for ev in ir.adc])
-            tm = np.array([ta[bounds[i]:bounds[i + 1]].mean() for i in range(len(ir.adc))])
+            tm = np.array([ta[bounds[i] : bounds[i + 1]].mean() for i in range(len(ir.adc))])
             lm = np.asarray(ro["line_offsets_rad_per_m"]) / dk[ir.readout_axis]
             ax_k.plot(tm[0::2], lm[0::2], "v", ms=4, color="k", label="readout line mean, even lines")
-            ax_k.plot(tm[1::2], lm[1::2], "^", ms=4, color="0.5",
-                      label=f"odd lines (odd - even {ro['odd_minus_even_dk']:.3g} dk)")
+            ax_k.plot(
+                tm[1::2],
+                lm[1::2],
+                "^",
+                ms=4,
+                color="0.5",
+                label=f"odd lines (odd - even {ro['odd_minus_even_dk']:.3g} dk)",
+            )
         ax_k.set_xlabel("ADC sample time (ms)")
         ax_k.set_ylabel("k - k nominal (dk = 2 pi / FOV)")
         ax_k.set_title("k-space error at the ADC samples", fontsize=9)

@@ -1,0 +1,3 @@
+"""The package version, written once (pyproject.toml reads the same string)."""
+
+__version__ = "0.1.0"
