@@ -24,6 +24,5 @@ def emission_peaks(ir, phantom, graph, cfg) -> dict:
     cfg = dataclasses.replace(cfg, calibrate_emission=False)
     probe: dict = {}
     with torch.no_grad():
-        g, vox, mom, bounds_t = prepare(ir, phantom, graph, cfg, None, None, None, torch.float32, "cpu")
-        main_loop(ir, g, vox, mom, bounds_t, cfg, torch.float32, "cpu", True, False, probe=probe)
+        main_loop(prepare(ir, phantom, graph, cfg, None, None, None, torch.float32, "cpu"), True, False, probe=probe)
     return probe

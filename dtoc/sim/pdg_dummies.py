@@ -103,8 +103,9 @@ def run_dummies(ir, phantom, n_dummies, block_range, cfg, dtype, device, rf_spoi
         rf_spoil_rad = detect_rf_spoiling(ir)
     train = _dummy_train(ir, n_dummies, block_range, rf_spoil_rad)
     with torch.no_grad():
-        graph, vox, mom, bounds_t = prepare(train, phantom, None, cfg, None, None, None, dtype, device, final_z=True)
-        _, A, K = main_loop(train, graph, vox, mom, bounds_t, cfg, dtype, device, False, True)
+        p = prepare(train, phantom, None, cfg, None, None, None, dtype, device, final_z=True)
+        graph, vox = p.graph, p.vox
+        _, A, K = main_loop(p, False, True)
         last = graph.intervals[-1]
         zi = np.where(last.is_z)[0]
         mz = vox.observe_mz(A[zi], K[zi], last.tau_s[zi])

@@ -8,6 +8,8 @@ applied only when a state is observed (ADC sample, or the final Mz of a dummy tr
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
@@ -15,14 +17,14 @@ from dtoc.errors import InputError
 from dtoc.seq.ir import SequenceIR
 from dtoc.sim.pdg_config import PDGConfig
 from dtoc.sim.pdg_evolve import make_steps, propagate, run_propagation
-from dtoc.sim.pdg_graph import CONJ, PDGGraph, build_graph
-from dtoc.sim.pdg_moments import compute_moments
+from dtoc.sim.pdg_graph import CONJ, IntervalGraph, PDGGraph, build_graph
+from dtoc.sim.pdg_moments import Moments, compute_moments
 from dtoc.sim.pdg_rfsplit import rf_coefficients, rf_split
 from dtoc.sim.pdg_signal import VoxelData, emit_signal, signal_method
 from dtoc.sim.pdg_signal_batch import EmitItem, emit_signal_batched
 
 
-def complex_dtype(dtype):
+def complex_dtype(dtype: torch.dtype) -> torch.dtype:
     if dtype == torch.float32:
         return torch.complex64
     if dtype == torch.float64:
@@ -30,18 +32,40 @@ def complex_dtype(dtype):
     raise InputError(f"simulate: dtype must be torch.float32 or torch.float64, got {dtype}")
 
 
+@dataclass(frozen=True)
+class MainPass:
+    """Everything the main pass of one simulation works on, validated by :func:`prepare`.
+
+    Attributes:
+        ir: the sequence; graph: its PDG; vox: the phantom's voxels (:class:`VoxelData`);
+        mom: realized gradient moments at interval bounds and ADC samples (:class:`Moments`);
+        bounds_t: (NI + 1,) interval boundaries, s; cfg: simulator settings; dtype, device: precision, device.
+    """
+
+    ir: SequenceIR
+    graph: PDGGraph
+    vox: VoxelData
+    mom: Moments
+    bounds_t: np.ndarray
+    cfg: PDGConfig
+    dtype: torch.dtype
+    device: torch.device | str
+
+
 def prepare(
     ir: SequenceIR,
     phantom,
     graph: PDGGraph | None,
     cfg: PDGConfig,
-    grad,
-    b0_uT,
-    initial_mz,
-    dtype,
-    device,
-    final_z=False,
-):
+    grad: torch.Tensor | np.ndarray | None,
+    b0_uT: torch.Tensor | None,
+    initial_mz: torch.Tensor | None,
+    dtype: torch.dtype,
+    device: torch.device | str,
+    final_z: bool = False,
+) -> MainPass:
+    """Validate the inputs of one simulation and compute the realized moments (see :class:`MainPass`);
+    builds the graph when ``graph`` is None (``final_z``: with the final Mz observed, for dummy trains)."""
     if phantom is None:
         raise InputError("simulate: a phantom is required")
     if graph is None:
@@ -72,10 +96,19 @@ def prepare(
             raise InputError(f"simulate: b0_uT has {b0_uT.numel()} samples, expected {ir.n_fine} (2N+1)")
     bounds_t = np.array([iv.t_start_s for iv in graph.intervals] + [graph.intervals[-1].t_end_s])
     mom = compute_moments(grad, b0_uT, ir.dt_fine_s, bounds_t, graph.adc_times_s, vox.has_diffusion)
-    return graph, vox, mom, bounds_t
+    return MainPass(ir, graph, vox, mom, bounds_t, cfg, dtype, device)
 
 
-def _evolve(iv, A, K, mom, n, vox, dt, tr_t):
+def _evolve(
+    iv: IntervalGraph,
+    A: torch.Tensor,
+    K: torch.Tensor,
+    mom: Moments,
+    n: int,
+    vox: VoxelData,
+    dt: float,
+    tr_t: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Free evolution over interval n: relaxation, diffusion, dephasing of transverse states.
 
     Returns the amplitudes at the interval end *without* the T1 recovery of the equilibrium state,
@@ -104,7 +137,14 @@ def _evolve(iv, A, K, mom, n, vox, dt, tr_t):
     return A_end, K_end, rec
 
 
-def _apply_rf(nxt, A_end, rec, eq_prev, K_end, coefs):
+def _apply_rf(
+    nxt: IntervalGraph,
+    A_end: torch.Tensor,
+    rec: torch.Tensor,
+    eq_prev: int,
+    K_end: torch.Tensor,
+    coefs: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Split the states at an RF pulse into the next interval's states.
 
     One gather, one multiply by the per-edge coefficient rows and one scatter-add for the plain
@@ -129,12 +169,21 @@ def _apply_rf(nxt, A_end, rec, eq_prev, K_end, coefs):
     return A_new, K_new
 
 
-def _k_and_b(iv, K, mom, n, vox, dt, tr_t):
+def _k_and_b(
+    iv: IntervalGraph,
+    K: torch.Tensor,
+    mom: Moments,
+    n: int,
+    vox: VoxelData,
+    dt: float,
+    tr_t: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
     """k at the interval end (S, 4) and the diffusion b-integral of every state over interval n (S,) (None without diffusion)."""
     dM = (mom.I_bound[n + 1] - mom.I_bound[n]).to(K.dtype)
     K_end = K + tr_t[:, None].to(K.dtype) * dM[None, :]
     if not vox.has_diffusion:
         return K_end, None
+    assert mom.J1_bound is not None and mom.J2_bound is not None  # computed when the phantom diffuses
     b = _b_integral(
         K[:, :3],
         mom.I_bound[n][:3][None, :],
@@ -160,7 +209,7 @@ def _b_integral(k3, I_start, dJ1, dJ2, dt, tr):
 _K_PATH_MAX_ELEMS = 2 * 10**7  # largest (all states x intervals) path matrix; longer graphs use the recursion
 
 
-def _k_path_matrix(graph):
+def _k_path_matrix(graph: PDGGraph):
     """(sum_n S_n, NI) matrix C with K_n[s] = sum_m C[s, m] dM_m (numpy, cached on the graph), or None if too large.
 
     A state's k at the start of interval n is the signed sum of the interval moment increments
@@ -186,7 +235,9 @@ def _k_path_matrix(graph):
     return cache["kpath"]
 
 
-def _k_and_b_all(graph, C, mom, vox, bounds_t, final_state):
+def _k_and_b_all(
+    graph: PDGGraph, C, mom: Moments, vox: VoxelData, bounds_t: np.ndarray, final_state: bool
+) -> tuple[list, list, torch.Tensor | None]:
     """Vectorised k recursion: start-of-interval k (list of (S_n, 4)), diffusion b-integrals (list, None where
     unused) and, with ``final_state``, the k at the end of the last interval; same values as :func:`_k_and_b`."""
     ivs = graph.intervals
@@ -202,6 +253,7 @@ def _k_and_b_all(graph, C, mom, vox, bounds_t, final_state):
         K_fin = Ks[-1] + tr[:, None].to(dM.dtype) * dM[-1][None, :]
     if not vox.has_diffusion:
         return Ks, [None] * NI, K_fin
+    assert mom.J1_bound is not None and mom.J2_bound is not None  # computed when the phantom diffuses
     own = torch.as_tensor(np.repeat(np.arange(NI), sizes), device=dev)
     tr_all = torch.as_tensor(np.concatenate([~iv.is_z for iv in ivs]), device=dev)
     dt = torch.as_tensor(np.diff(np.asarray(bounds_t, dtype=np.float64)), device=dev).index_select(0, own)
@@ -213,13 +265,13 @@ def _k_and_b_all(graph, C, mom, vox, bounds_t, final_state):
         dt,
         tr_all,
     )
-    bs = list(torch.split(b.to(vox.r1.dtype), sizes, 0))
+    bs: list[torch.Tensor | None] = list(torch.split(b.to(vox.r1.dtype), sizes, 0))
     if not final_state:
         bs[-1] = None
     return Ks, bs, K_fin
 
 
-def _next_k(nxt, K_end):
+def _next_k(nxt: IntervalGraph, K_end: torch.Tensor) -> torch.Tensor:
     rep = nxt.rep_parent
     dev = K_end.device
     sgn = np.where(rep < 0, 0.0, np.where(nxt.rep_conj, -1.0, 1.0))
@@ -229,7 +281,7 @@ def _next_k(nxt, K_end):
     )
 
 
-def _emit_view(iv):
+def _emit_view(iv: IntervalGraph) -> IntervalGraph:
     """Shallow copy of ``iv`` whose states are its emitting states only (emit = 0..J-1)."""
     import copy
 
@@ -239,11 +291,23 @@ def _emit_view(iv):
     return sub
 
 
-def main_loop(
-    ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_signal: bool, final_state: bool, probe=None
-):
+def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | None = None):
     """Main loop: k recursion (autograd, (S, 4) per interval), amplitudes by :mod:`dtoc.sim.pdg_evolve`
-    (one autograd node with a hand-written adjoint), then the signal of every emitting interval."""
+    (one autograd node with a hand-written adjoint), then the signal of every emitting interval.
+
+    Returns ``(pieces, A, K)``: with ``final_state`` the final amplitudes (S, V) and k (S, 4) and no
+    pieces; else the signal pieces ``[(first ADC index, (C, T) signal)]`` and None, None.
+    """
+    ir, graph, vox, mom, bounds_t, cfg, dtype, device = (
+        p.ir,
+        p.graph,
+        p.vox,
+        p.mom,
+        p.bounds_t,
+        p.cfg,
+        p.dtype,
+        p.device,
+    )
     cdtype = complex_dtype(dtype)
     tis = _tissue_classes(vox, cfg)
     steps, rec = make_steps(graph, ir, tis, bounds_t, cdtype, with_signal, rf_coefficients)
@@ -427,13 +491,24 @@ class _SignalBatcher:
         return self.pieces
 
 
-def run_main_pass(ir, phantom, graph, cfg, grad, b0_uT, initial_mz, dtype, device):
+def run_main_pass(
+    ir: SequenceIR,
+    phantom,
+    graph: PDGGraph | None,
+    cfg: PDGConfig,
+    grad: torch.Tensor | None,
+    b0_uT: torch.Tensor | None,
+    initial_mz: torch.Tensor | None,
+    dtype: torch.dtype,
+    device: torch.device | str,
+) -> torch.Tensor:
     """Signal (n_coils, N_adc) complex in IR ADC order (see :func:`dtoc.sim.pdg.simulate`)."""
-    graph, vox, mom, bounds_t = prepare(ir, phantom, graph, cfg, grad, b0_uT, initial_mz, dtype, device)
+    p = prepare(ir, phantom, graph, cfg, grad, b0_uT, initial_mz, dtype, device)
     cdtype = complex_dtype(dtype)
-    N = graph.adc_times_s.size
-    pieces, _, _ = main_loop(ir, graph, vox, mom, bounds_t, cfg, dtype, device, True, False)
-    sig = torch.zeros((vox.n_coils, N), dtype=cdtype, device=device)
+    N = p.graph.adc_times_s.size
+    graph = p.graph
+    pieces, _, _ = main_loop(p, True, False)
+    sig = torch.zeros((p.vox.n_coils, N), dtype=cdtype, device=device)
     for start, s in pieces:
         idx = torch.arange(start, start + s.shape[1], device=device)
         sig = sig.index_add(1, idx, s)

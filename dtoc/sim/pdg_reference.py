@@ -9,16 +9,24 @@ from __future__ import annotations
 
 import torch
 
-from dtoc.sim.pdg_graph import PDGGraph
-from dtoc.sim.pdg_main import _apply_rf, _evolve, complex_dtype
+from dtoc.sim.pdg_main import MainPass, _apply_rf, _evolve, complex_dtype
 from dtoc.sim.pdg_rfsplit import rf_coefficients
 from dtoc.sim.pdg_signal import emit_signal
 
 
-def main_loop_autograd(
-    ir, graph: PDGGraph, vox, mom, bounds_t, cfg, dtype, device, with_signal: bool, final_state: bool
-):
-    """Reference main loop under generic autograd (the path before :mod:`dtoc.sim.pdg_evolve`); same results."""
+def main_loop_autograd(p: MainPass, with_signal: bool, final_state: bool, probe: dict | None = None):
+    """Reference main loop under generic autograd (the path before :mod:`dtoc.sim.pdg_evolve`); same results
+    as :func:`dtoc.sim.pdg_main.main_loop` (``probe`` is not supported)."""
+    ir, graph, vox, mom, bounds_t, cfg, dtype, device = (
+        p.ir,
+        p.graph,
+        p.vox,
+        p.mom,
+        p.bounds_t,
+        p.cfg,
+        p.dtype,
+        p.device,
+    )
     cdtype = complex_dtype(dtype)
     iv0 = graph.intervals[0]
     A = torch.zeros((iv0.n_states, vox.n), dtype=cdtype, device=device)
