@@ -34,7 +34,8 @@ from dtoc.seq.system import SystemSpec
 from dtoc.seq.write import write_seq
 from dtoc.sim import metrics
 from dtoc.sim.imager import Imager
-from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_output_path, sha256_file
+from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_outputs, sha256_file
+from dtoc.version import __version__
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -180,6 +181,18 @@ def load_checkpoint(path, n_edges: int) -> dict:
     return out
 
 
+def check_run_paths(base, out, manifest_path, png_path, force, girf, model, config_path, resume, checkpoint) -> None:
+    """Refuse, before any work, outputs that exist (without ``force``), coincide, or resolve to an input (any
+    ``force``); the checkpoint may be the file resumed from, never the base, a model or another output."""
+    inputs = {"BASE": base, "--girf": girf, "--model": model, "--config": config_path}
+    check_outputs(
+        {"-o": out, "--json": manifest_path, "--png": png_path},
+        {**inputs, "--resume": resume, "--checkpoint": checkpoint},
+        force,
+    )
+    check_outputs({"--checkpoint": checkpoint}, inputs, True)
+
+
 # ---------------------------------------------------------------------------------------------------
 # main entry
 # ---------------------------------------------------------------------------------------------------
@@ -193,8 +206,8 @@ class RunOutputs:
 def _versions() -> dict:
     import importlib.metadata as md
 
-    out: dict[str, str | None] = {"python": platform.python_version()}
-    for pkg in ("dtoc", "torch", "numpy", "scipy", "pypulseq", "pydantic"):
+    out: dict[str, str | None] = {"python": platform.python_version(), "dtoc": __version__}
+    for pkg in ("torch", "numpy", "scipy", "pypulseq", "pydantic"):
         try:
             out[pkg] = md.version(pkg)
         except md.PackageNotFoundError:
@@ -242,9 +255,18 @@ def optimize_sequence(
     from dtoc.optimize.config import load_config
     from dtoc.seq.load import load_sequence
 
-    for p in (out, manifest_path, png_path):
-        if p is not None:
-            check_output_path(p, force)
+    check_run_paths(
+        base if isinstance(base, (str, os.PathLike)) else None,
+        out,
+        manifest_path,
+        png_path,
+        force,
+        girf,
+        model,
+        config_path,
+        resume,
+        checkpoint_path,
+    )
     if isinstance(base, (str, os.PathLike)):
         bp = Path(base)
         if not bp.exists():
