@@ -106,7 +106,7 @@ def test_implausible_measurement_units_rejected(tmp_path, kw, match):
         (["girf", "import", "{g}", "-o", "{o}"], "already a .npz"),
         (["girf", "import", "{d}", "-o", "{o}"], "is a directory"),
         (["predict", "{s}", "--device", "foo"], "--device 'foo' is not a torch device"),
-        (["predict", "{s}", "--girf", "{g}", "--png", "{g}"], "output exists"),
+        (["predict", "{s}", "--girf", "{g}", "--png", "{g}"], "would overwrite the --girf input"),
     ],
 )
 def test_cli_bad_option_values(capsys, tmp_path, repo_root, argv, match):

@@ -126,10 +126,10 @@ def import_cmd(
     GIRF_X/Y/Z.mat (freq in kHz); prints DC gain, -3 dB bandwidth (kHz) and group delay (us) per term.
     """
     from dtoc.hardware.girf_import import import_girf
-    from dtoc.util.atomic import check_output_path
+    from dtoc.util.atomic import check_outputs
 
     _finite("--shift-us", shift_us)
-    check_output_path(out, force)
+    check_outputs({"-o": out}, {f"FILES[{i}]": p for i, p in enumerate(files)}, force)
     gd = import_girf(files, include_b0=b0, shift_s=shift_us * 1e-6, as_published=as_published)
     _emit_girf(gd, out, force, as_json)
 
@@ -165,13 +165,13 @@ def fit_cmd(
     from dtoc.errors import InputError
     from dtoc.hardware.measurement import load_measurement
     from dtoc.identify.girf_fit import fit_girf
-    from dtoc.util.atomic import check_output_path
+    from dtoc.util.atomic import check_outputs
 
     _finite("--reg", reg, positive=True)
     _finite("--fmax-khz", fmax_khz, positive=True)
     _finite("--tmin-ms", tmin_ms)
     _finite("--tmax-ms", tmax_ms)
-    check_output_path(out, force)
+    check_outputs({"-o": out}, {"measurement": measured}, force)
     m = load_measurement(measured)
     tw = None
     if tmin_ms is not None or tmax_ms is not None:
@@ -201,11 +201,9 @@ def show_cmd(
     from dtoc.hardware.girf_analysis import girf_summary
     from dtoc.hardware.girf_io import load_girf
     from dtoc.hardware.girf_plot import plot_girf
+    from dtoc.util.atomic import check_outputs
 
-    if png is not None:
-        from dtoc.util.atomic import check_output_path
-
-        check_output_path(png, force)
+    check_outputs({"--png": png}, {"GIRF": girf}, force)
     gd = load_girf(girf)
     rows = girf_summary(gd)
     if png is not None:
@@ -243,10 +241,9 @@ def predict_cmd(
     from dtoc.sim.predict import plot_prediction, predict
 
     _check_device(device)
-    if png is not None:
-        from dtoc.util.atomic import check_output_path
+    from dtoc.util.atomic import check_outputs
 
-        check_output_path(png, force)
+    check_outputs({"--png": png}, {"SEQ": seq, "--girf": girf, "--model": model}, force)
     m = resolve_model(girf=girf, model=model)
     ir = load_sequence(seq)
     res = predict(ir, m, device=device)

@@ -42,15 +42,12 @@ def optimize_cmd(
     """Digital-twin optimization: write a pre-compensated .seq that stays within the hardware limits."""
     from dtoc.errors import InputError
     from dtoc.optimize.config import load_config
-    from dtoc.optimize.run import optimize_sequence
+    from dtoc.optimize.run import check_run_paths, optimize_sequence
     from dtoc.seq.load import load_sequence
-    from dtoc.util.atomic import check_output_path
 
     if method is not None and method not in ("dto", "adam-paper", "warmstart", "preemphasis"):
         raise InputError(f"--method {method!r}: expected dto, adam-paper, warmstart or preemphasis")
-    for p in (out, json_out, png):
-        if p is not None:
-            check_output_path(p, force)
+    check_run_paths(base, out, json_out, png, force, girf, model, config, resume, checkpoint)
     if not base.exists():
         raise InputError(f"{base}: base sequence not found")
     ir = load_sequence(base)

@@ -31,9 +31,11 @@ def build_cmd(
     from dtoc.errors import InputError
     from dtoc.seq.build import SpecLimitWarning, build_to_file
     from dtoc.seq.spec import load_spec
+    from dtoc.util.atomic import check_outputs
 
     if out.suffix.lower() != ".seq":
         raise InputError(f"{out}: the output must be a .seq file (Pulseq interpreters expect the .seq extension)")
+    check_outputs({"-o": out}, {"SPEC": spec}, force)
     s = load_spec(spec)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", SpecLimitWarning)

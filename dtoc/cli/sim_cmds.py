@@ -50,15 +50,18 @@ def simulate_cmd(
 
     from dtoc.sim.comparison import check_device, compare_ideal_realized, plot_comparison, torch_dtype
     from dtoc.sim.phantom import phantom_for
-    from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_output_path, sha256_file
+    from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_outputs, sha256_file
     from dtoc.version import __version__
 
     err = Console(stderr=True)
     tdtype = torch_dtype(dtype)
     dev = check_device(device)
-    for out in (png_out, None if json_out in (None, "-") else Path(json_out)):
-        if out is not None:
-            check_output_path(out, force)
+    phantom_file = phantom if phantom and phantom.endswith(".npz") else None
+    check_outputs(
+        {"--png": png_out, "--json": json_out},
+        {"SEQ": seq, "--girf": girf, "--model": model, "--phantom": phantom_file},
+        force,
+    )
     from dtoc.hardware.model import resolve_model
     from dtoc.seq.load import load_sequence
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from dtoc.identify.data import from_measurement
 from dtoc.identify.search import IdentifyResult, identify
-from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_output_path
+from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_outputs
 
 #: Plausible peak slew rate of the demanded test waveforms, T/m/s.  Outside it ``dt`` is almost surely in the
 #: wrong unit (ms or us instead of s: a factor 1e3 either way), which the sample count alone cannot reveal.
@@ -53,30 +53,6 @@ def load_identify_measurement(path: str | os.PathLike):
             f"(plausible {lo:g} to {hi:g}): is 'dt' in s (not ms or us) and 'g' in mT/m?"
         )
     return meas
-
-
-def check_outputs(outputs: dict, inputs: dict, force: bool) -> None:
-    """Refuse, before any work, outputs that exist (without ``force``), that lack a folder, that name the
-    same file twice, or that would overwrite an input (even with ``force``: a measurement is not
-    reproducible).  ``outputs``/``inputs``: {option name: path or None}.
-
-    Raises:
-        InputError naming the option(s).
-    """
-    from dtoc.errors import InputError
-
-    seen: dict[str, str] = {}
-    ins = {os.path.realpath(v): k for k, v in inputs.items() if v is not None}
-    for opt, p in outputs.items():
-        if p is None:
-            continue
-        real = os.path.realpath(p)
-        if real in ins:
-            raise InputError(f"{p}: {opt} would overwrite the {ins[real]} input; choose another output path")
-        if real in seen:
-            raise InputError(f"{p}: given for both {seen[real]} and {opt}; each output needs its own path")
-        seen[real] = opt
-        check_output_path(p, force)
 
 
 def run_identify(

@@ -29,6 +29,29 @@ def check_output_path(path: str | os.PathLike, force: bool) -> Path:
     return p
 
 
+def check_outputs(outputs: dict, inputs: dict, force: bool) -> None:
+    """Refuse, before any work, outputs that exist (without ``force``), that lack a folder, that name the
+    same file twice, or that resolve to an input (even with ``force``: an input is never destroyed).
+
+    ``outputs`` / ``inputs``: {option name: path or None}; an output ``"-"`` is standard output (skipped).
+
+    Raises:
+        InputError naming the option(s).
+    """
+    seen: dict[str, str] = {}
+    ins = {os.path.realpath(v): k for k, v in inputs.items() if v is not None and str(v) != "-"}
+    for opt, p in outputs.items():
+        if p is None or str(p) == "-":
+            continue
+        real = os.path.realpath(p)
+        if real in ins:
+            raise InputError(f"{p}: {opt} would overwrite the {ins[real]} input; choose another output path")
+        if real in seen:
+            raise InputError(f"{p}: given for both {seen[real]} and {opt}; each output needs its own path")
+        seen[real] = opt
+        check_output_path(p, force)
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes, force: bool = False) -> Path:
     """Write ``data`` to ``path`` atomically; refuse to overwrite unless ``force``."""
     p = check_output_path(path, force)
