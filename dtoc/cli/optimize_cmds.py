@@ -158,7 +158,13 @@ def _print_summary(m: dict) -> None:
     t.add_row("samples_discarded", "0", str(m["samples_discarded"]))
     _console().print(t)
     out = m.get("output", {})
-    _console().print(f"wrote {out.get('path')} (limits verified: 0 violations) in {m['run_time_s']:.1f} s")
+    lim = m["limits"]
+    src = lim.get("source", {})
+    _console().print(
+        f"wrote {out.get('path')} in {m['run_time_s']:.1f} s; limits verified, 0 violations at "
+        f"gmax {lim['gmax_mT_per_m']:g} mT/m ({src.get('gmax_mT_per_m', '?')}), "
+        f"smax {lim['smax_T_per_m_per_s']:g} T/m/s ({src.get('smax_T_per_m_per_s', '?')})"
+    )
 
 
 def register(app: typer.Typer) -> None:

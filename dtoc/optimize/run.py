@@ -41,8 +41,10 @@ from dtoc.version import __version__
 # ---------------------------------------------------------------------------------------------------
 # set-up helpers
 # ---------------------------------------------------------------------------------------------------
-def system_limits(ir, cfg: OptimizeConfig) -> Limits:
-    """Hard limits: config values, else the sequence's recorded system limits, else SystemSpec defaults."""
+def limits_and_sources(ir, cfg: OptimizeConfig) -> tuple[Limits, dict[str, str]]:
+    """Hard limits and where each came from: the config (``--gmax`` / ``--smax``), else the sequence's
+    definitions ``MaxGrad_mT_per_m`` / ``MaxSlew_T_per_m_per_s``.  Never assumed: a limit given by neither
+    is a one-line InputError (pypulseq and Pulseq MATLAB files carry no limits)."""
     d = ir.definitions or {}
 
     def num(key):
@@ -50,14 +52,35 @@ def system_limits(ir, cfg: OptimizeConfig) -> Limits:
         if isinstance(v, (list, tuple)):
             v = v[0] if v else None
         try:
-            return float(v)
+            x = float(v)
         except (TypeError, ValueError):
             return None
+        if not (math.isfinite(x) and x > 0):
+            raise InputError(f"the sequence's definition {key} = {v!r} is not a positive number")
+        return x
 
-    sdef = SystemSpec()
-    g = cfg.gmax_mT_per_m or num("MaxGrad_mT_per_m") or sdef.max_grad_mT_per_m
-    s = cfg.smax_T_per_m_per_s or num("MaxSlew_T_per_m_per_s") or sdef.max_slew_T_per_m_per_s
-    return Limits(g, s, amp_margin=cfg.amp_margin, slew_margin=cfg.slew_margin)
+    values, sources = {}, {}
+    for name, given, key, opt in (
+        ("gmax_mT_per_m", cfg.gmax_mT_per_m, "MaxGrad_mT_per_m", "--gmax"),
+        ("smax_T_per_m_per_s", cfg.smax_T_per_m_per_s, "MaxSlew_T_per_m_per_s", "--smax"),
+    ):
+        if given:
+            values[name], sources[name] = float(given), opt
+        elif (x := num(key)) is not None:
+            values[name], sources[name] = x, f"file definition {key}"
+        else:
+            raise InputError(
+                f"no {opt.lstrip('-')} limit: the sequence defines no {key}; give {opt} (limits are never assumed)"
+            )
+    lim = Limits(
+        values["gmax_mT_per_m"], values["smax_T_per_m_per_s"], amp_margin=cfg.amp_margin, slew_margin=cfg.slew_margin
+    )
+    return lim, sources
+
+
+def system_limits(ir, cfg: OptimizeConfig) -> Limits:
+    """The hard limits of :func:`limits_and_sources`."""
+    return limits_and_sources(ir, cfg)[0]
 
 
 def free_edges(ir) -> np.ndarray:
@@ -286,7 +309,7 @@ def optimize_sequence(
         hardware = resolve_model(girf=girf, model=model)
     if hasattr(hardware, "frozen"):
         hardware = hardware.frozen()  # the model is fixed here: no parameter gradients, cached GIRF spectra
-    limits = system_limits(ir, cfg)
+    limits, limit_sources = limits_and_sources(ir, cfg)
     free = free_edges(ir)
     if not free.any():
         raise InputError("sequence has no optimizable gradient samples (free_mask is empty)")
@@ -393,6 +416,7 @@ def optimize_sequence(
             "smax_T_per_m_per_s": limits.smax_T_per_m_per_s,
             "amp_margin": limits.amp_margin,
             "slew_margin": limits.slew_margin,
+            "source": limit_sources,
         },
         "sequence": {
             "kind": ir.kind,
