@@ -129,3 +129,27 @@ def test_cli_build_force_and_overlimit_warning(tmp_path, capsys):
     assert code == 2 and "exists; pass --force" in err
     code, err = _run(capsys, "build", spec, "-o", str(out), "--force")
     assert code in (0, None)
+
+
+@pytest.mark.parametrize("name", ["a\n[BLOCKS]", "two words", "x\r", "tab\there", "ünï"])
+def test_spec_name_that_would_inject_text_into_the_seq_is_refused(tmp_path, name):
+    """The spec name is written into [DEFINITIONS]: a newline would start a section of its own."""
+    import yaml
+
+    from dtoc.seq.build import build_to_file
+    from dtoc.seq.spec import load_spec
+
+    spec = yaml.safe_load((Path(__file__).resolve().parents[1] / "sequences" / "epi_small.yaml").read_text())
+    spec["name"] = name
+    p = tmp_path / "s.yaml"
+    p.write_text(yaml.safe_dump(spec))
+    with pytest.raises(InputError, match="name"):
+        build_to_file(load_spec(p), tmp_path / "o.seq")
+    assert not (tmp_path / "o.seq").exists()
+
+
+def test_identify_example_help_is_a_usage_line(capsys):
+    from dtoc.identify.example import main
+
+    assert main(["--help"]) == 0 and "usage:" in capsys.readouterr().out
+    assert main([]) == 2

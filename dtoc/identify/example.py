@@ -82,6 +82,9 @@ def main(argv=None) -> int:
     from dtoc.hardware.model import load_model, save_model
 
     argv = sys.argv[1:] if argv is None else argv
+    if len(argv) not in (2, 3) or any(a in ("-h", "--help") for a in argv):
+        sys.stdout.write("usage: python -m dtoc.identify.example GIRF.npz OUT_DIR [BASE_EPI.yaml]\n")
+        return 0 if any(a in ("-h", "--help") for a in argv) else 2
     girf, out = Path(argv[0]).resolve(), Path(argv[1])
     out.mkdir(parents=True, exist_ok=True)
     meas = build_measurement(girf, out)

@@ -27,7 +27,13 @@ class BaseSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    name: str = Field(..., min_length=1, description="written as the 'Name' definition")
+    name: str = Field(
+        ...,
+        min_length=1,
+        max_length=128,
+        pattern=r"^[A-Za-z0-9._+-]+$",
+        description="written as the 'Name' definition: letters, digits, . _ + - (no spaces or control characters)",
+    )
     fov_mm: float = Field(..., gt=0, le=1000, description="in-plane field of view (readout = phase), mm")
     matrix: int = Field(..., ge=2, le=1024, description="image matrix (readout = phase lines)")
     slice_thickness_mm: float = Field(5.0, gt=0, description="slice thickness, mm (FOV z in the definitions)")
