@@ -112,6 +112,7 @@ def optimize_sequence(
     force: bool = False,
     phantom: Phantom | str | None = None,
     device: str = "cpu",
+    ideal: bool = False,
 ) -> RunOutputs:
     """Pre-compensate ``base`` for a hardware model within the hard limits (``dtoc optimize``).
 
@@ -132,6 +133,7 @@ def optimize_sequence(
         force=force,
         phantom=phantom,
         device=device,
+        ideal=ideal,
     )
 
 

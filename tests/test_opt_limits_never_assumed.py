@@ -89,3 +89,19 @@ def test_file_definitions_are_named_as_the_source(capsys, tmp_path):
     )
     assert code == 0, err
     assert "gmax 72 mT/m (file definition MaxGrad_mT_per_m)" in " ".join(err.split())
+
+
+def test_hardware_is_never_silently_ideal(capsys, tmp_path):
+    epi = REPO / "sequences" / "epi_small.seq"
+    code, _, err = run_cli(capsys, "optimize", epi, "-o", tmp_path / "o.seq")
+    assert code == 2 and "no hardware model" in err and "--ideal" in err
+    code, _, err = run_cli(
+        capsys, "optimize", epi, "--ideal", "--girf", REPO / "girf" / "example_7T.npz", "-o", tmp_path / "o.seq"
+    )
+    assert code == 2 and "not both" in err
+    assert not (tmp_path / "o.seq").exists()
+    code, _, err = run_cli(
+        capsys, "optimize", epi, "--ideal", "-o", tmp_path / "o.seq", "--warm-iters", "5", "--iters", "0"
+    )
+    assert code == 0, err
+    assert (tmp_path / "o.seq").exists()

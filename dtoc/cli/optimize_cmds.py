@@ -14,6 +14,7 @@ def optimize_cmd(
     out: Path = typer.Option(..., "-o", "--out", help="pre-compensated .seq to write"),
     girf: Path | None = typer.Option(None, "--girf", help="GIRF .npz (hardware model = this GIRF)"),
     model: Path | None = typer.Option(None, "--model", help="hardware model JSON"),
+    ideal: bool = typer.Option(False, "--ideal", help="optimize for ideal hardware (no --girf / --model)"),
     config: Path | None = typer.Option(None, "--config", help="optimizer config YAML (OptimizeConfig fields)"),
     json_out: Path | None = typer.Option(None, "--json", help="write the run manifest JSON here"),
     png: Path | None = typer.Option(None, "--png", help="write the PNG report here"),
@@ -42,12 +43,13 @@ def optimize_cmd(
     """Digital-twin optimization: write a pre-compensated .seq that stays within the hardware limits."""
     from dtoc.errors import InputError
     from dtoc.optimize.config import load_config
-    from dtoc.optimize.run import check_run_paths, optimize_sequence
+    from dtoc.optimize.run import check_run_paths, optimize_sequence, require_hardware
     from dtoc.seq.load import load_sequence
 
     if method is not None and method not in ("dto", "adam-paper", "warmstart", "preemphasis"):
         raise InputError(f"--method {method!r}: expected dto, adam-paper, warmstart or preemphasis")
     check_run_paths(base, out, json_out, png, force, girf, model, config, resume, checkpoint)
+    require_hardware(girf, model, ideal)
     if not base.exists():
         raise InputError(f"{base}: base sequence not found")
     ir = load_sequence(base)
@@ -84,6 +86,7 @@ def optimize_cmd(
             phantom=phantom,
             progress=progress,
             base_path=base,
+            ideal=ideal,
         )
     )
     m = res.manifest

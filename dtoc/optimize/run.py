@@ -204,6 +204,14 @@ def load_checkpoint(path, n_edges: int) -> dict:
     return out
 
 
+def require_hardware(girf, model, ideal: bool) -> None:
+    """A hardware model is never silently ideal: --girf or --model, or an explicit --ideal (not both)."""
+    if ideal and (girf is not None or model is not None):
+        raise InputError("give --ideal or a hardware model (--girf / --model), not both")
+    if not ideal and girf is None and model is None:
+        raise InputError("no hardware model: give --girf or --model, or --ideal to optimize for ideal hardware")
+
+
 def check_run_paths(base, out, manifest_path, png_path, force, girf, model, config_path, resume, checkpoint) -> None:
     """Refuse, before any work, outputs that exist (without ``force``), coincide, or resolve to an input (any
     ``force``); the checkpoint may be the file resumed from, never the base, a model or another output."""
@@ -257,6 +265,7 @@ def optimize_sequence(
     hardware=None,
     with_image: bool | None = None,
     base_path=None,
+    ideal: bool = False,
 ) -> RunOutputs:
     """Run `dtoc optimize` (see the module doc).
 
@@ -271,6 +280,7 @@ def optimize_sequence(
         phantom: a :class:`~dtoc.sim.phantom.Phantom` or a phantom spec (see :func:`make_phantoms`);
             None = the built-in head 'brain'.
         with_image: simulate images (default: when the image weight is > 0 or for reporting).
+        ideal: optimize for ideal hardware (required when neither ``girf``, ``model`` nor ``hardware`` is given).
     Returns:
         :class:`RunOutputs` (manifest dict, output IR, arrays for plots).
     """
@@ -306,6 +316,7 @@ def optimize_sequence(
     if hardware is None:
         from dtoc.hardware.model import resolve_model
 
+        require_hardware(girf, model, ideal)
         hardware = resolve_model(girf=girf, model=model)
     if hasattr(hardware, "frozen"):
         hardware = hardware.frozen()  # the model is fixed here: no parameter gradients, cached GIRF spectra
