@@ -39,6 +39,7 @@ def optimize_cmd(
     threads: int | None = typer.Option(None, "--threads", help="torch threads (fixed for reproducibility)"),
     device: str = typer.Option("cpu", "--device", help="torch device (cpu, cuda, ...)"),
     as_json: bool = typer.Option(False, "--print-json", help="print the manifest summary as JSON on stdout"),
+    quiet: bool = typer.Option(False, "-q", "--quiet", help="no progress on stderr"),
 ):
     """Digital-twin optimization: write a pre-compensated .seq that stays within the hardware limits."""
     from dtoc.errors import InputError
@@ -70,6 +71,7 @@ def optimize_cmd(
     cfg = load_config(ir.kind, config, overrides)
     ir.meta.setdefault("spec_path", str(base) if base.suffix.lower() in (".yaml", ".yml") else None)
     res = _run_with_progress(
+        quiet,
         lambda progress: optimize_sequence(
             ir,
             out=out,
@@ -87,7 +89,7 @@ def optimize_cmd(
             progress=progress,
             base_path=base,
             ideal=ideal,
-        )
+        ),
     )
     m = res.manifest
     if as_json:
@@ -99,34 +101,17 @@ def optimize_cmd(
         sys.stderr.write(f"dtoc: interrupted: wrote the best-so-far; resume with --resume {m.get('checkpoint')}\n")
 
 
-def _run_with_progress(fn):
-    """Run ``fn(progress)`` with a rich progress bar on stderr, started lazily at the first report
-    (so that an early error prints nothing but its one line)."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+def _run_with_progress(quiet: bool, fn):
+    """Run ``fn(progress)`` reporting on stderr (:class:`dtoc.cli.progress.ProgressReporter`: a bar with ETA
+    on a terminal, plain lines otherwise; nothing before the first report, so an early error prints only
+    its one line)."""
+    from dtoc.cli.progress import ProgressReporter
 
-    prog = Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total}"),
-        TextColumn("loss {task.fields[loss]:.4g}"),
-        TimeElapsedColumn(),
-        console=_console(),
-        transient=True,
-    )
-    tasks: dict = {}
-
-    def progress(stage, it, total, loss):
-        if not tasks:
-            prog.start()
-        if stage not in tasks:
-            tasks[stage] = prog.add_task(stage, total=total, loss=float("nan"))
-        prog.update(tasks[stage], completed=it, loss=loss)
-
+    rep = ProgressReporter("dtoc optimize", quiet=quiet)
     try:
-        return fn(progress)
+        return fn(rep.update)
     finally:
-        if tasks:
-            prog.stop()
+        rep.close()
 
 
 def _console():

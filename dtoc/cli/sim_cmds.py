@@ -43,6 +43,7 @@ def simulate_cmd(
     device: str = typer.Option("cpu", "--device", help="cpu or cuda."),
     dtype: str = typer.Option("float64", "--dtype", help="float32 or float64."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing outputs."),
+    quiet: bool = typer.Option(False, "-q", "--quiet", help="No progress on stderr."),
 ):
     """Simulate ideal versus realized images of SEQ on a phantom; NRMSE, EPI ghost ratio, k-space error."""
     from rich.console import Console
@@ -62,18 +63,18 @@ def simulate_cmd(
         {"SEQ": seq, "--girf": girf, "--model": model, "--phantom": phantom_file},
         force,
     )
+    from dtoc.cli.progress import ProgressReporter
     from dtoc.hardware.model import resolve_model
     from dtoc.seq.load import load_sequence
 
-    with err.status("reading sequence and hardware model"):
-        ir = load_sequence(seq)
-        hw = resolve_model(girf=girf, model=model)
+    rep = ProgressReporter("dtoc simulate", quiet=quiet)
+    ir = load_sequence(seq)
+    hw = resolve_model(girf=girf, model=model)
     ir.require_geometry(f"{seq}: simulate")
     ph = phantom_for(ir, phantom, field_T=field_T, b0=b0_map, b1=b1_map)
-    with err.status("simulating") as status:
-        res = compare_ideal_realized(
-            ir, ph, hw, n_dummies=dummies, dtype=tdtype, device=dev, step=lambda s: status.update(f"simulating: {s}")
-        )
+    res = compare_ideal_realized(
+        ir, ph, hw, n_dummies=dummies, dtype=tdtype, device=dev, step=lambda s: rep.step(f"simulating: {s}")
+    )
     m = res.metrics
     report = {
         "dtoc_version": __version__,
