@@ -14,6 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from dtoc.constants import DEFAULT_B0_T
 from dtoc.seq.ir import SequenceIR
 
 if TYPE_CHECKING:
@@ -67,7 +68,7 @@ def simulate(
     model: HardwareChain | None = None,
     *,
     phantom: Phantom | str | None = None,
-    field_T: float = 3.0,
+    field_T: float = DEFAULT_B0_T,
     n_dummies: int = 0,
     device: str = "cpu",
 ) -> ComparisonResult:

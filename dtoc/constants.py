@@ -18,6 +18,11 @@ DEFAULT_RF_RASTER_S: float = 1e-6
 #: Default ADC raster, s.
 DEFAULT_ADC_RASTER_S: float = 100e-9
 
+#: Field strength, T, of the built-in phantoms' tissue values (T1, T2, T2*) when neither ``--b0`` nor a
+#: config gives one: the same for every command and the library (docs/cli.md).  Not a safety default:
+#: it changes the simulated object's contrast, never a limit, the orientation or the hardware model.
+DEFAULT_B0_T: float = 3.0
+
 #: Axis names in the order used by every (3, ...) array.
 AXES = ("x", "y", "z")
 

@@ -131,7 +131,7 @@ def test_fit_reports_supported_band_and_is_cwd_independent(capsys, tmp_path, mon
     # slow triangles carry no energy at high f: the notes must say where the data stop supporting H;
     # the output records the input's name and hash, not the path typed, so it is byte-identical from any cwd
     m = _meas(tmp_path, "m.npz")
-    code, out, err = _run(capsys, "girf", "fit", m, "-o", tmp_path / "a.npz", "--json")
+    code, out, err = _run(capsys, "girf", "fit", m, "-o", tmp_path / "a.npz", "--json", "-")
     assert code == 0, err
     res = _strict_json(out)
     note = [n for n in res["notes"] if n.startswith("data support the fit up to")]
@@ -188,7 +188,7 @@ def test_show_png_and_predict_png(capsys, tmp_path, repo_root):
     q = plot_prediction(ir, res, tmp_path / "p.png", title="gre")
     assert q.stat().st_size > 20_000
     code, out, err = _run(
-        capsys, "predict", repo_root / "sequences" / "gre_small.seq", "--girf", tmp_path / "g.npz", "--json"
+        capsys, "predict", repo_root / "sequences" / "gre_small.seq", "--girf", tmp_path / "g.npz", "--json", "-"
     )
     assert code == 0 and _strict_json(out)["epi"] is None
 

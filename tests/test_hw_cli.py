@@ -42,7 +42,7 @@ def _synthetic_ir():
 
 def test_girf_show_json_and_png(capsys, repo_root, tmp_path):
     code, out, err = _run(
-        capsys, "girf", "show", repo_root / "girf" / "example_7T.npz", "--json", "--png", tmp_path / "g.png"
+        capsys, "girf", "show", repo_root / "girf" / "example_7T.npz", "--json", "-", "--png", tmp_path / "g.png"
     )
     assert code == 0, err
     rows = {r["term"]: r for r in json.loads(out)["terms"]}
@@ -70,7 +70,7 @@ def test_girf_fit_cli_and_determinism(capsys, repo_root, tmp_path):
         G, b0 = eff(torch.as_tensor(g), torch.zeros(6, N, dtype=torch.float64), dt)
     save_npz(tmp_path / "meas.npz", {"dt": np.float64(dt), "g": g, "G": G.numpy(), "b0": b0.numpy()})
     args = ["girf", "fit", tmp_path / "meas.npz", "--fmax-khz", "40", "--tmin-ms", "-2", "--tmax-ms", "8"]
-    code, out, err = _run(capsys, *args, "-o", tmp_path / "a.npz", "--json")
+    code, out, err = _run(capsys, *args, "-o", tmp_path / "a.npz", "--json", "-")
     assert code == 0, err
     rows = {r["term"]: r for r in json.loads(out)["terms"]}
     assert rows["y->y"]["dc_gain"] == pytest.approx(1.0, abs=1e-3)
@@ -94,6 +94,7 @@ def test_predict_on_synthetic_epi(capsys, repo_root, tmp_path, monkeypatch):
         "--girf",
         repo_root / "girf" / "example_7T.npz",
         "--json",
+        "-",
         "--png",
         tmp_path / "p.png",
     )
@@ -106,7 +107,7 @@ def test_predict_on_synthetic_epi(capsys, repo_root, tmp_path, monkeypatch):
     ro = res["epi"]["readout"]
     assert ro["odd_minus_even_dk"] != 0 and len(ro["line_offsets_rad_per_m"]) == 8
     # ideal hardware: exactly zero errors
-    code, out, _ = _run(capsys, "predict", "x.seq", "--json")
+    code, out, _ = _run(capsys, "predict", "x.seq", "--json", "-")
     res = json.loads(out)
     assert res["k_error"]["x"]["max_rad_per_m"] == 0.0 and res["b0_phase_max_rad"] == 0.0
 

@@ -27,7 +27,7 @@ def test_check_rejects_non_finite_or_non_positive_limits(capsys, small_seq, opt,
 
 def test_check_names_where_the_limits_come_from(capsys, small_seq):
     # defect: a file-recorded limit overridden by --gmax was reported as "given + command line"
-    code, out, err = _run(capsys, "check", small_seq, "--gmax", "5", "--json")
+    code, out, err = _run(capsys, "check", small_seq, "--gmax", "5", "--json", "-")
     res = json.loads(out)
     assert code == 1 and res["limits_source"] == "file definitions + --gmax 5"
     assert res["system"]["max_grad_mT_per_m"] == 5.0 and res["system"]["max_slew_T_per_m_per_s"] == 180.0
@@ -46,13 +46,13 @@ def test_diff_rejects_bad_tolerances(capsys, small_seq, opt, val):
 def test_diff_counts_every_difference(capsys, repo_root):
     # defect: n_differences was capped at the 50 listed rows
     a, b = repo_root / "sequences" / "epi_esp081.seq", repo_root / "sequences" / "epi_esp073.seq"
-    code, out, _ = _run(capsys, "diff", a, b, "--json")
+    code, out, _ = _run(capsys, "diff", a, b, "--json", "-")
     res = json.loads(out)
     assert code == 1 and res["n_listed"] == 50 and res["n_differences"] > 50
     # 63 transition blocks are 80 us longer, plus definitions and gradients
     assert sum(d["what"] == "block_duration" for d in res["differences"]) >= 40
-    code, _, err = _run(capsys, "diff", a, b)
-    assert f"{res['n_differences']} difference(s), first 50 listed" in err
+    code, out, err = _run(capsys, "diff", a, b)
+    assert f"{res['n_differences']} difference(s), first 50 listed" in out  # the table is on stdout
 
 
 def test_build_input_and_output_messages(capsys, repo_root, tmp_path):
@@ -92,7 +92,7 @@ def test_bad_recorded_limits(capsys, tmp_path, repo_root, value):
     f = _edited(tmp_path, repo_root, "MaxGrad_mT_per_m 72", f"MaxGrad_mT_per_m {value}")
     code, _, err = _run(capsys, "check", f)
     _one_line_error(code, err, "limits recorded in the file's definitions are invalid")
-    code, out, err = _run(capsys, "check", f, "--gmax", "72", "--smax", "180", "--json")
+    code, out, err = _run(capsys, "check", f, "--gmax", "72", "--smax", "180", "--json", "-")
     res = json.loads(out)
     assert code == 1 and {v["rule"] for v in res["violations"]} == {"signature"}
     assert res["limits_source"] == "defaults + --gmax 72 --smax 180"

@@ -259,23 +259,25 @@ def test_cli_check_exit_codes_and_json(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         run(["check", str(SMALL)])
     assert e.value.code == 0
+    assert "OK: no violations" in capsys.readouterr().out  # the table is on stdout
     with pytest.raises(SystemExit) as e:
-        run(["check", str(SEQ / "epi_esp073.seq"), "--json"])
+        run(["check", str(SEQ / "epi_esp073.seq"), "--json", "-"])
     assert e.value.code == 1
     d = json.loads(capsys.readouterr().out)
     assert d["ok"] is False and d["n_violations"] == 63 and d["violations"][0]["rule"] == "slew_rate"
     with pytest.raises(SystemExit) as e:
         run(["check", str(SMALL), "--gmax", "5"])
     assert e.value.code == 1
+    capsys.readouterr()
     sysf = tmp_path / "sys.yaml"
     sysf.write_text("max_slew_T_per_m_per_s: 100\n")
     with pytest.raises(SystemExit) as e:
-        run(["check", str(SMALL), "--system", str(sysf), "--json"])
+        run(["check", str(SMALL), "--system", str(sysf), "--json", "-"])
     assert e.value.code == 1
     assert json.loads(capsys.readouterr().out)["limits_source"].startswith("--system")
     with pytest.raises(SystemExit) as e:  # a sequence spec as --system: its design system
         run(["check", str(SEQ / "epi_esp073.seq"), "--system", str(SEQ / "epi_esp073.yaml")])
-    assert e.value.code == 1 and "208.8" in capsys.readouterr().err
+    assert e.value.code == 1 and "208.8" in capsys.readouterr().out
     sysf.write_text("max_slew: 100\n")
     with pytest.raises(SystemExit) as e:
         run(["check", str(SMALL), "--system", str(sysf)])

@@ -60,8 +60,9 @@ def test_cli_diff(capsys, tmp_path):
     with pytest.raises(SystemExit) as e:
         run(["diff", str(SMALL), str(SMALL)])
     assert e.value.code in (0, None)
+    assert "same" in capsys.readouterr().out
     with pytest.raises(SystemExit) as e:
-        run(["diff", str(SMALL), str(REPO / "sequences" / "gre_small.seq"), "--json"])
+        run(["diff", str(SMALL), str(REPO / "sequences" / "gre_small.seq"), "--json", "-"])
     assert e.value.code == 1
     d = json.loads(capsys.readouterr().out)
     assert d["same"] is False and d["n_differences"] > 0

@@ -6,22 +6,15 @@ stderr (rich) or JSON on stdout (``--json``).
 
 from __future__ import annotations
 
-import json
-import sys
 from pathlib import Path
 
 import typer
 
+from dtoc.cli.output import Output, json_option, note, strict_json
+
 girf_app = typer.Typer(
     help="GIRF files: import published ones, fit from measurements, show figures.", no_args_is_help=True
 )
-
-
-def _console():
-    from rich.console import Console
-
-    con = Console(stderr=True)
-    return con if con.is_terminal else Console(stderr=True, width=160)
 
 
 def _finite(name: str, v: float | None, positive: bool = False) -> None:
@@ -34,22 +27,6 @@ def _finite(name: str, v: float | None, positive: bool = False) -> None:
         return
     if not math.isfinite(v) or (positive and v <= 0):
         raise InputError(f"{name} must be a finite number{' > 0' if positive else ''}, got {v}")
-
-
-def _json(obj) -> str:
-    """Strict JSON (NaN/inf become null, so every consumer can parse it)."""
-    import math
-
-    def clean(x):
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        if isinstance(x, dict):
-            return {k: clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        return x
-
-    return json.dumps(clean(obj), indent=2, allow_nan=False) + "\n"
 
 
 def _check_device(device: str) -> None:
@@ -91,19 +68,20 @@ def _summary_table(rows, title):
     return t
 
 
-def _emit_girf(gd, out: Path, force: bool, as_json: bool):
+def _emit_girf(gd, out: Path, force: bool, json_out: str | None):
     from dtoc.hardware.girf_analysis import girf_summary
     from dtoc.hardware.girf_io import save_girf
+    from dtoc.util.atomic import outputs_together
 
-    p = save_girf(gd, out, force=force)
     rows = girf_summary(gd)
-    if as_json:
-        sys.stdout.write(_json({"output": str(p), "notes": gd.notes, "terms": rows}))
-    else:
-        _console().print(_summary_table(rows, f"{p}"))
-        for n in gd.notes:
-            sys.stderr.write(f"note: {n}\n")
-        sys.stderr.write(f"wrote {p}\n")
+    outp = Output(json_out)
+    with outputs_together():
+        p = save_girf(gd, out, force=force)
+        outp.write_json(strict_json({"output": str(p), "notes": gd.notes, "terms": rows}), force)
+    outp.console().print(_summary_table(rows, f"{p}"))
+    for n in gd.notes:
+        note(f"note: {n}")
+    note(f"wrote {p}")
 
 
 @girf_app.command("import")
@@ -118,7 +96,7 @@ def import_cmd(
         False, "--as-published", help="keep a GMTF's declared ADC/gradient convention shift (default: undo it)"
     ),
     force: bool = typer.Option(False, "--force", help="overwrite an existing output"),
-    as_json: bool = typer.Option(False, "--json", help="print figures as JSON on stdout"),
+    json_out: str | None = json_option("the figures"),
 ):
     """Convert a published GIRF (MATLAB v5 or v7.3) into the dtoc GIRF .npz (conventions: docs/hardware.md).
 
@@ -129,9 +107,9 @@ def import_cmd(
     from dtoc.util.atomic import check_outputs
 
     _finite("--shift-us", shift_us)
-    check_outputs({"-o": out}, {f"FILES[{i}]": p for i, p in enumerate(files)}, force)
+    check_outputs({"-o": out, "--json": json_out}, {f"FILES[{i}]": p for i, p in enumerate(files)}, force)
     gd = import_girf(files, include_b0=b0, shift_s=shift_us * 1e-6, as_published=as_published)
-    _emit_girf(gd, out, force, as_json)
+    _emit_girf(gd, out, force, json_out)
 
 
 @girf_app.command("fit")
@@ -154,7 +132,7 @@ def fit_cmd(
     ),
     no_b0: bool = typer.Option(False, "--no-b0", help="do not fit the B0 row even when b0 was measured"),
     force: bool = typer.Option(False, "--force", help="overwrite an existing output"),
-    as_json: bool = typer.Option(False, "--json", help="print figures as JSON on stdout"),
+    json_out: str | None = json_option("the figures"),
 ):
     """Estimate a 3x3 GIRF (+ B0 row) from measured input/output pairs by regularised least squares.
 
@@ -171,7 +149,7 @@ def fit_cmd(
     _finite("--fmax-khz", fmax_khz, positive=True)
     _finite("--tmin-ms", tmin_ms)
     _finite("--tmax-ms", tmax_ms)
-    check_outputs({"-o": out}, {"measurement": measured}, force)
+    check_outputs({"-o": out, "--json": json_out}, {"measurement": measured}, force)
     m = load_measurement(measured)
     tw = None
     if tmin_ms is not None or tmax_ms is not None:
@@ -181,7 +159,7 @@ def fit_cmd(
     if fmax_khz is not None and fmax_khz <= 0:
         raise InputError("--fmax-khz must be > 0")
     gd = fit_girf(m, reg=reg, fmax_hz=None if fmax_khz is None else fmax_khz * 1e3, time_window_s=tw, fit_b0=not no_b0)
-    _emit_girf(gd, out, force, as_json)
+    _emit_girf(gd, out, force, json_out)
 
 
 @girf_app.command("show")
@@ -190,8 +168,8 @@ def show_cmd(
     png: Path | None = typer.Option(
         None, "--png", help="write a PNG: self-term magnitude and phase, cross/B0 terms, impulse responses"
     ),
-    force: bool = typer.Option(False, "--force", help="overwrite an existing PNG"),
-    as_json: bool = typer.Option(False, "--json", help="print figures as JSON on stdout"),
+    force: bool = typer.Option(False, "--force", help="overwrite an existing PNG or --json file"),
+    json_out: str | None = json_option("the figures"),
 ):
     """Print DC gain, -3 dB bandwidth and group delay per term; optionally plot the GIRF.
 
@@ -201,32 +179,34 @@ def show_cmd(
     from dtoc.hardware.girf_analysis import girf_summary
     from dtoc.hardware.girf_io import load_girf
     from dtoc.hardware.girf_plot import plot_girf
-    from dtoc.util.atomic import check_outputs
+    from dtoc.util.atomic import check_outputs, outputs_together
 
-    check_outputs({"--png": png}, {"GIRF": girf}, force)
+    check_outputs({"--png": png, "--json": json_out}, {"GIRF": girf}, force)
     gd = load_girf(girf)
     rows = girf_summary(gd)
-    if png is not None:
-        plot_girf(gd, png, title=girf.name, force=force)
-    if as_json:
-        sys.stdout.write(_json({"file": str(girf), "notes": gd.notes, "terms": rows}))
-    else:
-        _console().print(_summary_table(rows, str(girf)))
+    outp = Output(json_out)
+    with outputs_together():
         if png is not None:
-            sys.stderr.write(f"wrote {png}\n")
+            plot_girf(gd, png, title=girf.name, force=force)
+        outp.write_json(strict_json({"file": str(girf), "notes": gd.notes, "terms": rows}), force)
+    outp.console().print(_summary_table(rows, str(girf)))
+    for n in gd.notes:
+        note(f"note: {n}")
+    if png is not None:
+        note(f"wrote {png}")
 
 
 def predict_cmd(
     seq: Path = typer.Argument(..., help="base sequence: .seq file or spec .yaml"),
     girf: Path | None = typer.Option(None, "--girf", help="GIRF .npz (shortcut for a one-effect model)"),
     model: Path | None = typer.Option(None, "--model", help="hardware model JSON (effects chain, docs/hardware.md)"),
-    as_json: bool = typer.Option(False, "--json", help="print the figures as JSON on stdout"),
+    json_out: str | None = json_option("the figures"),
     png: Path | None = typer.Option(
         None,
         "--png",
         help="write a PNG: demanded vs realized gradients (whole and zoomed), gradient error, k error in dk",
     ),
-    force: bool = typer.Option(False, "--force", help="overwrite an existing PNG"),
+    force: bool = typer.Option(False, "--force", help="overwrite an existing PNG or --json file"),
     device: str = typer.Option("cpu", "--device", help="torch device (cpu, cuda)"),
 ):
     """Realized vs demanded: gradient error, k error at ADC samples, B0 phase, EPI odd/even offsets.
@@ -241,27 +221,28 @@ def predict_cmd(
     from dtoc.sim.predict import plot_prediction, predict
 
     _check_device(device)
-    from dtoc.util.atomic import check_outputs
+    from dtoc.util.atomic import check_outputs, outputs_together
 
-    check_outputs({"--png": png}, {"SEQ": seq, "--girf": girf, "--model": model}, force)
+    check_outputs({"--png": png, "--json": json_out}, {"SEQ": seq, "--girf": girf, "--model": model}, force)
     m = resolve_model(girf=girf, model=model)
     ir = load_sequence(seq)
     res = predict(ir, m, device=device)
+    outp = Output(json_out)
+    with outputs_together():
+        if png is not None:
+            plot_prediction(ir, res, png, title=f"{seq.name} with {girf or model or 'ideal hardware'}", force=force)
+        res.pop("_arrays")
+        res["sequence"] = str(seq)
+        res["model"] = str(girf or model or "ideal")
+        outp.write_json(strict_json(res), force)
+    _print_prediction(res, outp.console())
     if png is not None:
-        plot_prediction(ir, res, png, title=f"{seq.name} with {girf or model or 'ideal hardware'}", force=force)
-    res.pop("_arrays")
-    res["sequence"] = str(seq)
-    res["model"] = str(girf or model or "ideal")
-    if as_json:
-        sys.stdout.write(_json(res))
-        return
-    _print_prediction(res)
+        note(f"wrote {png}")
 
 
-def _print_prediction(res):
+def _print_prediction(res, con):
     from rich.table import Table
 
-    con = _console()
     t = Table(title=f"{res['sequence']} with {res['model']}")
     for c in ("axis", "max |G-g| (mT/m)", "RMS (mT/m)", "max |k-k0| (rad/m)", "RMS (rad/m)", "max (dk)", "RMS (dk)"):
         t.add_column(c, justify="right")

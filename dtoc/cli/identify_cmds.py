@@ -22,7 +22,11 @@ def identify_cmd(
     girf: Path | None = typer.Option(None, "--girf", help="declared model: a GIRF .npz"),
     model: Path | None = typer.Option(None, "--model", help="declared model: a model JSON file"),
     out: Path = typer.Option(..., "-o", "--out", help="updated model JSON (declared model + effects found)"),
-    json_out: Path | None = typer.Option(None, "--json", help="write the report JSON (docs/contracts.md §3) here"),
+    json_out: str | None = typer.Option(
+        None,
+        "--json",
+        help="write the report JSON (docs/contracts.md §3) here ('-' = stdout; tables then go to stderr)",
+    ),
     png: Path | None = typer.Option(None, "--png", help="write a PNG of residuals before/after (time and frequency)"),
     force: bool = typer.Option(False, "--force", help="overwrite existing outputs"),
     max_effects: int = typer.Option(6, "--max-effects", min=0, help="cap on the number of effects added"),
@@ -64,8 +68,15 @@ def identify_cmd(
         kinds=kind_list,
         progress=progress,
     )
-    print_table(res)
-    written = [str(p) for p in (out, json_out, png) if p is not None]
+    from dtoc.cli.output import Output
+
+    outp = Output(json_out)
+    if outp.json_to_stdout:
+        from dtoc.identify.report import report_json
+
+        outp.write_json(report_json(res), force)
+    print_table(res, console=outp.console())
+    written = [str(p) for p in (out, json_out, png) if p is not None and str(p) != "-"]
     progress("wrote " + ", ".join(written))
 
 

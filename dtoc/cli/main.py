@@ -1,9 +1,10 @@
 """`dtoc` command-line entry point: a thin typer layer over the library.
 
 Each stage registers its own commands from its own module (``dtoc.cli.<stage>_cmds.register``),
-so the layers stay separate.  Every :class:`dtoc.errors.DtocError` (and any unexpected exception)
-becomes a single ``dtoc: error: ...`` line on stderr and a non-zero exit; set ``DTOC_DEBUG=1`` to see
-the traceback of an unexpected error.
+so the layers stay separate.  Every :class:`dtoc.errors.DtocError`, OS error (read-only folder, full
+disk), and any unexpected exception becomes a single ``dtoc: error: ...`` line on stderr and a non-zero
+exit (docs/cli.md: 1 check failed, 2 bad input or environment, 3 internal error, 130/143 interrupted);
+set ``DTOC_DEBUG=1`` to see the traceback of an unexpected error.
 """
 
 from __future__ import annotations
@@ -56,18 +57,54 @@ def error_exit(message: str, code: int = 2) -> None:
     raise SystemExit(code)
 
 
+def _interrupt_cause(e: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt behind an exit, if any (followed through __cause__/__context__)."""
+    cur: BaseException | None = e
+    for _ in range(10):
+        if cur is None:
+            break
+        if isinstance(cur, KeyboardInterrupt):
+            return cur
+        cur = cur.__cause__ or cur.__context__
+    return None
+
+
+def _interrupted(e: KeyboardInterrupt) -> None:
+    """One line and exit 130 (SIGINT) / 143 (SIGTERM)."""
+    from dtoc.util import interrupt
+
+    signum = getattr(e, "signum", None)
+    done = getattr(e, "outputs_complete", False)
+    what = "the outputs were complete and are written" if done else "no output written"
+    sys.stderr.write(f"dtoc: interrupted by {interrupt.signal_name(signum)}: {what}\n")
+    sys.stderr.flush()
+    raise SystemExit(interrupt.exit_code(signum)) from None
+
+
 def run(argv: list[str] | None = None) -> None:
     """Console-script entry point."""
     from dtoc.errors import DtocError
+    from dtoc.util import interrupt
 
+    interrupt.install()
     try:
         app(args=argv, standalone_mode=True)
-    except SystemExit:
-        raise
+    except SystemExit as e:
+        ki = _interrupt_cause(e)  # typer turns an interrupt into exit 130 without a word
+        if ki is None:
+            raise
+        _interrupted(ki)
     except DtocError as e:
         error_exit(str(e), e.exit_code)
-    except KeyboardInterrupt:
-        error_exit("interrupted", 130)
+    except KeyboardInterrupt as e:
+        _interrupted(e)
+    except MemoryError:
+        error_exit("out of memory: the input is larger than this machine can hold (see docs/cli.md, input bounds)", 2)
+    except RecursionError:
+        error_exit("input nested too deeply to parse", 2)
+    except OSError as e:
+        where = f"{e.filename}: " if e.filename else ""
+        error_exit(f"{where}{e.strerror or e}", 2)
     except Exception as e:  # noqa: BLE001 - last line of defence: one line, never a traceback
         if os.environ.get("DTOC_DEBUG"):
             raise

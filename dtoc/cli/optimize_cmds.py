@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 import typer
+
+from dtoc.cli.output import Output, json_option, strict_json
+from dtoc.constants import DEFAULT_B0_T
 
 
 def optimize_cmd(
@@ -16,7 +18,7 @@ def optimize_cmd(
     model: Path | None = typer.Option(None, "--model", help="hardware model JSON"),
     ideal: bool = typer.Option(False, "--ideal", help="optimize for ideal hardware (no --girf / --model)"),
     config: Path | None = typer.Option(None, "--config", help="optimizer config YAML (OptimizeConfig fields)"),
-    json_out: Path | None = typer.Option(None, "--json", help="write the run manifest JSON here"),
+    json_out: str | None = json_option("the run manifest"),
     png: Path | None = typer.Option(None, "--png", help="write the PNG report here"),
     force: bool = typer.Option(False, "--force", help="overwrite existing outputs"),
     resume: Path | None = typer.Option(None, "--resume", help="continue from a checkpoint .npz"),
@@ -35,10 +37,14 @@ def optimize_cmd(
     phantom: str | None = typer.Option(
         None, "--phantom", help="phantom: brain, brain:N, brain-noscalp[:N] (no fat/skull) or a .npz"
     ),
+    b0: float | None = typer.Option(
+        None,
+        "--b0",
+        help=f"field strength of the built-in phantom's tissue values, T (default {DEFAULT_B0_T:g}, as simulate)",
+    ),
     seed: int | None = typer.Option(None, "--seed", help="random seed"),
     threads: int | None = typer.Option(None, "--threads", help="torch threads (fixed for reproducibility)"),
     device: str = typer.Option("cpu", "--device", help="torch device (cpu, cuda, ...)"),
-    as_json: bool = typer.Option(False, "--print-json", help="print the manifest summary as JSON on stdout"),
     quiet: bool = typer.Option(False, "-q", "--quiet", help="no progress on stderr"),
 ):
     """Digital-twin optimization: write a pre-compensated .seq that stays within the hardware limits."""
@@ -64,12 +70,14 @@ def optimize_cmd(
         "lr": lr,
         "augment_rotations": augment,
         "seed": seed,
+        "b0_T": b0,
         "threads": threads,
         "discard": False if no_discard else None,
         "weights": weights or None,
     }
     cfg = load_config(ir.kind, config, overrides)
     ir.meta.setdefault("spec_path", str(base) if base.suffix.lower() in (".yaml", ".yml") else None)
+    outp = Output(json_out)
     res = _run_with_progress(
         quiet,
         lambda progress: optimize_sequence(
@@ -79,7 +87,7 @@ def optimize_cmd(
             model=model,
             config=cfg,
             config_path=config,
-            manifest_path=json_out,
+            manifest_path=None if outp.json_to_stdout else json_out,
             png_path=png,
             force=force,
             resume=resume,
@@ -92,13 +100,26 @@ def optimize_cmd(
         ),
     )
     m = res.manifest
-    if as_json:
-        keys = ("before", "after", "samples_discarded", "run_time_s", "interrupted", "output")
-        sys.stdout.write(json.dumps({k: m.get(k) for k in keys}, indent=2, default=str) + "\n")
-    else:
-        _print_summary(m)
+    if outp.json_to_stdout:
+        outp.write_json(strict_json(m), force)
+    _print_summary(m, outp.console())
     if m.get("interrupted"):
-        sys.stderr.write(f"dtoc: interrupted: wrote the best-so-far; resume with --resume {m.get('checkpoint')}\n")
+        interrupted_exit(m)
+
+
+def interrupted_exit(m: dict) -> None:
+    """After an interrupted run wrote its best-so-far: one line, exit 130 (SIGINT) or 143 (SIGTERM)."""
+    from dtoc.util.interrupt import exit_code, signal_name
+
+    out = (m.get("output") or {}).get("path")
+    where = (
+        f"wrote the best-so-far to {out} (DtocInterrupted 1; manifest interrupted: true)" if out else "no .seq output"
+    )
+    ck = m.get("checkpoint")
+    resume = f"; resume with --resume {ck}" if ck else ""
+    sys.stderr.write(f"dtoc: interrupted by {signal_name()}: {where}{resume}\n")
+    sys.stderr.flush()
+    raise SystemExit(exit_code())
 
 
 def _run_with_progress(quiet: bool, fn):
@@ -114,13 +135,7 @@ def _run_with_progress(quiet: bool, fn):
         rep.close()
 
 
-def _console():
-    from rich.console import Console
-
-    return Console(stderr=True)
-
-
-def _print_summary(m: dict) -> None:
+def _print_summary(m: dict, con) -> None:
     from rich.table import Table
 
     t = Table(title="dtoc optimize")
@@ -131,24 +146,26 @@ def _print_summary(m: dict) -> None:
     def f(v, pct=False):
         if v is None:
             return "-"
-        return f"{100 * v:.3f} %" if pct else f"{v:.4g}"
+        return f"{v:.3f} %" if pct else f"{v:.4g}"
 
     for key, pct in (
-        ("nrmse", True),
-        ("ghost_ratio", True),
-        ("ghost_ratio_excess", True),
-        ("kspace_rmse_rad_per_m", False),
-        ("kspace_max_dk", False),
+        ("nrmse_percent", True),
+        ("ghost_ratio_percent", True),
+        ("ghost_ratio_excess_percent", True),
+        ("kspace_rms_error_rad_per_m", False),
+        ("kspace_max_error_dk", False),
     ):
-        if key == "ghost_ratio_excess" and m["after"].get(key) is None:
+        if key == "ghost_ratio_excess_percent" and m["after"].get(key) is None:
             continue  # EPI only: ghost ratio above the ideal image's own (docs/optimize.md)
         t.add_row(key, f(m["before"].get(key), pct), f(m["after"].get(key), pct))
-    t.add_row("samples_discarded", "0", str(m["samples_discarded"]))
-    _console().print(t)
+    t.add_row("n_samples_discarded", "0", str(m["n_samples_discarded"]))
+    con.print(t)
     out = m.get("output", {})
     lim = m["limits"]
     src = lim.get("source", {})
-    _console().print(
+    from dtoc.cli.output import note
+
+    note(
         f"wrote {out.get('path')} in {m['run_time_s']:.1f} s; limits verified, 0 violations at "
         f"gmax {lim['gmax_mT_per_m']:g} mT/m ({src.get('gmax_mT_per_m', '?')}), "
         f"smax {lim['smax_T_per_m_per_s']:g} T/m/s ({src.get('smax_T_per_m_per_s', '?')})"

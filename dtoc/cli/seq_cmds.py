@@ -2,19 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import sys
 import warnings
 from pathlib import Path
 
 import typer
 
-
-def _console():
-    from rich.console import Console
-
-    con = Console(stderr=True)
-    return con if con.is_terminal else Console(stderr=True, width=160)
+from dtoc.cli.output import Output, json_option, note, strict_json
 
 
 def build_cmd(
@@ -57,7 +51,8 @@ def check_cmd(
     system: Path | None = typer.Option(None, "--system", help="SystemSpec YAML (limits, rasters, dead times)"),
     gmax: float | None = typer.Option(None, "--gmax", help="per-axis gradient limit, mT/m (overrides)"),
     smax: float | None = typer.Option(None, "--smax", help="per-axis slew limit, T/m/s (overrides)"),
-    as_json: bool = typer.Option(False, "--json", help="print the result as JSON on stdout"),
+    json_out: str | None = json_option("the check result"),
+    force: bool = typer.Option(False, "--force", help="overwrite an existing --json file"),
     max_rows: int = typer.Option(20, "--max-rows", help="violations shown in the table (all are in --json)"),
 ):
     """Validate a .seq before upload; exit 1 on any violation, 0 when clean.
@@ -78,6 +73,9 @@ def check_cmd(
             raise InputError(f"{name} must be a finite number > 0, got {v}")
     if max_rows < 0:
         raise InputError(f"--max-rows must be >= 0, got {max_rows}")
+    from dtoc.util.atomic import check_outputs
+
+    check_outputs({"--json": json_out}, {"SEQ": seq, "--system": system}, force)
     sysspec = load_system(system) if system else None
     base = f"--system {system}" if system else None
     if gmax is not None or smax is not None:
@@ -112,18 +110,18 @@ def check_cmd(
         res.limits_source += " + " + " ".join(
             f"{n} {v:g}" for n, v in (("--gmax", gmax), ("--smax", smax)) if v is not None
         )
-    if as_json:
-        sys.stdout.write(json.dumps(res.to_dict(), indent=2, allow_nan=False) + "\n")
-    else:
-        _print_check(res, max_rows)
+    outp = Output(json_out)
+    outp.write_json(strict_json(res.to_dict()), force)
+    _print_check(res, max_rows, outp.console())
+    for w in res.warnings:
+        note(f"dtoc: warning: {w}")
     if not res.ok:
         raise typer.Exit(1)
 
 
-def _print_check(res, max_rows: int) -> None:
+def _print_check(res, max_rows: int, con) -> None:
     from rich.table import Table
 
-    con = _console()
     s = res.system
     con.print(
         f"{res.path}: limits from {res.limits_source}: {s.max_grad_mT_per_m:g} mT/m, {s.max_slew_T_per_m_per_s:g} T/m/s"
@@ -170,7 +168,8 @@ def diff_cmd(
     b: Path = typer.Argument(..., help="second .seq"),
     rtol: float = typer.Option(1e-6, "--rtol", help="relative tolerance"),
     atol: float = typer.Option(1e-9, "--atol", help="absolute tolerance (mT/m, s, rad, Hz)"),
-    as_json: bool = typer.Option(False, "--json", help="print the result as JSON on stdout"),
+    json_out: str | None = json_option("the differences"),
+    force: bool = typer.Option(False, "--force", help="overwrite an existing --json file"),
 ):
     """Semantic comparison of two .seq files; exit 0 same, 1 different.
 
@@ -186,24 +185,26 @@ def diff_cmd(
         if not (math.isfinite(v) and v >= 0):
             raise InputError(f"{name} must be a finite number >= 0, got {v}")
 
-    res = diff_files(a, b, rtol=rtol, atol=atol)
-    if as_json:
-        sys.stdout.write(json.dumps(res.to_dict(), indent=2, allow_nan=False) + "\n")
-    else:
-        from rich.table import Table
+    from dtoc.util.atomic import check_outputs
 
-        con = _console()
-        if res.same:
-            con.print(f"[green]same[/green] within rtol {rtol:g}, atol {atol:g}")
-        else:
-            shown = len(res.differences)
-            total = res.n_differences
-            t = Table(title=f"{total} difference(s)" + (f", first {shown} listed" if total > shown else ""))
-            for c in ("what", "where", "A", "B"):
-                t.add_column(c)
-            for d in res.differences:
-                t.add_row(d["what"], d["where"], str(d["a"]), str(d["b"]))
-            con.print(t)
+    check_outputs({"--json": json_out}, {"A": a, "B": b}, force)
+    res = diff_files(a, b, rtol=rtol, atol=atol)
+    outp = Output(json_out)
+    outp.write_json(strict_json(res.to_dict()), force)
+    from rich.table import Table
+
+    con = outp.console()
+    if res.same:
+        con.print(f"[green]same[/green] within rtol {rtol:g}, atol {atol:g}")
+    else:
+        shown = len(res.differences)
+        total = res.n_differences
+        t = Table(title=f"{total} difference(s)" + (f", first {shown} listed" if total > shown else ""))
+        for c in ("what", "where", "A", "B"):
+            t.add_column(c)
+        for d in res.differences:
+            t.add_row(d["what"], d["where"], str(d["a"]), str(d["b"]))
+        con.print(t)
     if not res.same:
         raise typer.Exit(1)
 

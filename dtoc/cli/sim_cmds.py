@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import typer
+
+from dtoc.cli.output import Output, json_option, note
+from dtoc.constants import DEFAULT_B0_T
 
 
 def _round(x):
@@ -29,14 +31,17 @@ def simulate_cmd(
         help="Phantom .npz, or 'brain' / 'brain:N' / 'brain-noscalp[:N]' (built-in head; noscalp: without fat and skull; default: brain at the image matrix).",
     ),
     field_T: float = typer.Option(
-        3.0, "--field", help="Field strength of the built-in phantom's tissue values, T (3 or 7)."
+        DEFAULT_B0_T,
+        "--b0",
+        "--field",
+        help="Field strength of the built-in phantom's tissue values, T (shared default with optimize; 3 or 7 tabulated).",
     ),
     b0_map: bool = typer.Option(False, "--b0-map", help="Built-in phantom: add its smooth B0 map."),
     b1_map: bool = typer.Option(False, "--b1-map", help="Built-in phantom: add its smooth B1 map."),
     dummies: int = typer.Option(
         0, "--dummies", min=0, help="Dummy repetitions before the sequence (steady state; the paper's GRE uses 300)."
     ),
-    json_out: str | None = typer.Option(None, "--json", help="Write metrics JSON here ('-' = stdout)."),
+    json_out: str | None = json_option("the metrics"),
     png_out: Path | None = typer.Option(
         None, "--png", help="Write the figure (ideal, realized, difference, k-space) here."
     ),
@@ -46,15 +51,15 @@ def simulate_cmd(
     quiet: bool = typer.Option(False, "-q", "--quiet", help="No progress on stderr."),
 ):
     """Simulate ideal versus realized images of SEQ on a phantom; NRMSE, EPI ghost ratio, k-space error."""
-    from rich.console import Console
     from rich.table import Table
 
+    from dtoc.cli.output import strict_json
     from dtoc.sim.comparison import check_device, compare_ideal_realized, plot_comparison, torch_dtype
+    from dtoc.sim.metrics import report_figures
     from dtoc.sim.phantom import phantom_for
-    from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_outputs, sha256_file
+    from dtoc.util.atomic import atomic_write_bytes, check_outputs, outputs_together, sha256_file
     from dtoc.version import __version__
 
-    err = Console(stderr=True)
     tdtype = torch_dtype(dtype)
     dev = check_device(device)
     phantom_file = phantom if phantom and phantom.endswith(".npz") else None
@@ -97,21 +102,27 @@ def simulate_cmd(
             "field_T": field_T if not (phantom and phantom.endswith(".npz")) else None,
         },
         "simulation": {"dtype": dtype, "dummies": dummies},
-        "nrmse": m["nrmse"],
-        "ghost_ratio": m["ghost_ratio"],
-        "ghost_ratio_ideal": m["ghost_ratio_ideal"],
-        "kspace_rmse_rad_per_m": m["kspace_rmse_rad_per_m"],
-        "kspace_max_err_rad_per_m": m["kspace_max_err_rad_per_m"],
-        "kspace_max_err_dk": m["kspace_max_err_dk"],
+        **report_figures(
+            {
+                k: m[k]
+                for k in (
+                    "nrmse",
+                    "ghost_ratio",
+                    "ghost_ratio_ideal",
+                    "kspace_rmse_rad_per_m",
+                    "kspace_max_err_rad_per_m",
+                    "kspace_max_err_dk",
+                )
+            }
+        ),
     }
     report = _round(report)
-    text = json.dumps(report, indent=2, sort_keys=True) + "\n"
-    if png_out is not None:
-        atomic_write_bytes(png_out, plot_comparison(res, title=f"{Path(seq).name}: ideal vs realized"), force=force)
-    if json_out == "-":
-        typer.echo(text, nl=False)
-    elif json_out is not None:
-        atomic_write_text(json_out, text, force=force)
+    text = strict_json(report)
+    outp = Output(json_out)
+    with outputs_together():
+        if png_out is not None:
+            atomic_write_bytes(png_out, plot_comparison(res, title=f"{Path(seq).name}: ideal vs realized"), force=force)
+        outp.write_json(text, force)
     t = Table(title=f"dtoc simulate {Path(seq).name}")
     t.add_column("metric")
     t.add_column("value", justify="right")
@@ -122,7 +133,9 @@ def simulate_cmd(
     if m["kspace_max_err_dk"] is not None:
         t.add_row("k-space max error", f"{m['kspace_max_err_dk']:.4g} dk")
     t.add_row("hardware", "ideal (identity)" if res.identity_hardware else str(girf or model))
-    err.print(t)
+    outp.console().print(t)
+    if png_out is not None:
+        note(f"wrote {png_out}")
 
 
 def register(app: typer.Typer) -> None:

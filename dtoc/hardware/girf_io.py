@@ -241,7 +241,9 @@ def _validate_girf_arrays(z, path: str) -> GirfData:
     for k in ("source", "notes"):
         if k in keys:
             try:
-                text[k] = str(np.asarray(z[k]))
+                arr = np.asarray(z[k])
+                # one string, or an array of strings (one per line; older files and other writers)
+                text[k] = "\n".join(str(x) for x in arr.reshape(-1)) if arr.ndim else str(arr)
             except ValueError:
                 text[k] = None
     notes = text.get("notes").split("\n") if text.get("notes") else []

@@ -16,7 +16,7 @@ import numpy as np
 
 from dtoc.identify.data import from_measurement
 from dtoc.identify.search import IdentifyResult, identify
-from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_outputs
+from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_outputs, outputs_together
 
 #: Plausible peak slew rate of the demanded test waveforms, T/m/s.  Outside it ``dt`` is almost surely in the
 #: wrong unit (ms or us instead of s: a factor 1e3 either way), which the sample count alone cannot reveal.
@@ -89,10 +89,11 @@ def run_identify(
     text = report_json(res) if json_out is not None else None
     png = residual_png(res) if png_out is not None else None
     updated = res.updated_model()
-    if out_model is not None:
-        save_model(updated, out_model, force=force)
-    if json_out is not None:
-        atomic_write_text(json_out, text, force=force)
-    if png_out is not None:
-        atomic_write_bytes(png_out, png, force=force)
+    with outputs_together():
+        if out_model is not None:
+            save_model(updated, out_model, force=force)
+        if json_out is not None and str(json_out) != "-":
+            atomic_write_text(json_out, text, force=force)
+        if png_out is not None:
+            atomic_write_bytes(png_out, png, force=force)
     return res

@@ -12,6 +12,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from dtoc.constants import DEFAULT_B0_T
 from dtoc.errors import InputError
 
 
@@ -68,6 +69,8 @@ class OptimizeConfig(BaseModel):
         augment_every: iterations between phantom switches.
         discard: post-hoc discarding of samples whose k-space error exceeds an optimised threshold.
         phantom_size: phantom matrix (default: the sequence's matrix).
+        b0_T: field strength of the built-in phantom's tissue values, T (``--b0``; default
+            :data:`dtoc.constants.DEFAULT_B0_T`, shared with ``dtoc simulate``).
         n_dummies: dummy repetitions for the steady-state initial magnetisation (0 = none).
         seed: random seed (augmentation angles).
         threads: torch threads (fixed for reproducibility).
@@ -96,6 +99,7 @@ class OptimizeConfig(BaseModel):
     augment_every: int = Field(5, ge=1)
     discard: bool = True
     phantom_size: int | None = Field(None, ge=4)
+    b0_T: float = Field(DEFAULT_B0_T, gt=0, le=21.1)
     n_dummies: int = Field(0, ge=0)
     seed: int = 0
     threads: int = Field(1, ge=1)

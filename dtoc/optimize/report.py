@@ -87,7 +87,7 @@ def write_report_png(path, figures: dict, manifest: dict, force: bool = False):
     m = manifest
     fig.suptitle(
         f"dtoc optimize ({m['options']['method']}): gmax {m['limits']['gmax_mT_per_m']:g} mT/m, "
-        f"smax {m['limits']['smax_T_per_m_per_s']:g} T/m/s, skipped {m['samples_discarded']} samples"
+        f"smax {m['limits']['smax_T_per_m_per_s']:g} T/m/s, skipped {m['n_samples_discarded']} samples"
     )
     return atomic_write_bytes(path, png_bytes(fig, dpi=90), force=force)
 

@@ -31,10 +31,18 @@ from dtoc.optimize.twin import EdgeTwin
 from dtoc.seq.check import check_file, check_ir_limits
 from dtoc.seq.ir import SequenceIR
 from dtoc.seq.system import SystemSpec
-from dtoc.seq.write import write_seq
+from dtoc.seq.write import seq_bytes_of
 from dtoc.sim import metrics
 from dtoc.sim.imager import Imager
-from dtoc.util.atomic import atomic_write_bytes, atomic_write_text, check_outputs, sha256_file
+from dtoc.util.atomic import (
+    atomic_write_bytes,
+    atomic_write_text,
+    check_outputs,
+    outputs_together,
+    sha256_bytes,
+    sha256_file,
+)
+from dtoc.util.interrupt import deferred, fault_point
 from dtoc.version import __version__
 
 
@@ -98,13 +106,13 @@ def make_phantoms(ir, cfg: OptimizeConfig, phantom=None) -> list:
     ``phantom``: a :class:`~dtoc.sim.phantom.Phantom`; or a spec of
     :func:`~dtoc.sim.phantom.resolve_phantom` ('brain', 'brain-noscalp', 'brain:N', a ``.npz`` path);
     None = 'brain'.  Built-in phantoms are made at the sequence's matrix (``cfg.phantom_size``
-    overrides it) and FOV, with 7 T tissue values for EPI (the paper's 7 T experiment), 3 T otherwise.
+    overrides it) and FOV, with the tissue values at ``cfg.b0_T``.
     """
     from dtoc.sim.phantom import Phantom, phantom_for, rotate
 
     if not isinstance(phantom, Phantom):
         spec = "brain" if phantom is None else str(phantom)
-        phantom = phantom_for(ir, spec, size=cfg.phantom_size, field_T=7.0 if ir.kind == "epi" else 3.0)
+        phantom = phantom_for(ir, spec, size=cfg.phantom_size, field_T=cfg.b0_T)
     out = [phantom]
     if cfg.augment_rotations > 0:
         rng = np.random.default_rng(cfg.seed)
@@ -155,10 +163,6 @@ def quality(twin: EdgeTwin, imager: Imager | None, ctx, edges, keep_mask=None, p
         out["_G"] = G.cpu().numpy()
         out["_g"] = g.cpu().numpy()
     return out
-
-
-def _public(q: dict) -> dict:
-    return {k: v for k, v in q.items() if not k.startswith("_")}
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -337,133 +341,157 @@ def optimize_sequence(
         imager = Imager(ir, phantoms, n_dummies=cfg.n_dummies, dtype=dtype, device=device)
 
     before = quality(twin, imager, ctx, None, played=ir.grad_mT_per_m)
+    fault_point("setup")
     state = O.StageState(best_edges=twin.base_edges())
     stage_times = {}
     keep = np.ones(ir.n_adc_samples, dtype=bool)
     thr = math.inf
     start_it = 0
     x = None
+    resumed_from = None
     if resume is not None:
         ck = load_checkpoint(resume, projector.n_edges)
         x = projector.project(torch.as_tensor(ck["edges"], dtype=dtype))
         start_it = ck["it"] if ck["stage"] == "full" else 0
         state.history = list(ck["history"])
+        resumed_from = {"path": str(resume), "sha256": sha256_file(resume), "stage": ck["stage"], "iteration": ck["it"]}
     ckpt_target = checkpoint_path or (None if out is None else str(out) + ".ckpt.npz")
 
     def ckpt(edges, it):
         if checkpoint_path is not None:
             save_checkpoint(checkpoint_path, edges, it, "full", state.history, cfg)
 
+    def report(stage, it, n, loss):
+        fault_point({"warm": "warm_start", "full": "full_loss"}.get(stage, stage))
+        if progress is not None:
+            progress(stage, it, n, loss)
+
     extra: dict = {}
-    if cfg.method == "preemphasis":
-        from dtoc.optimize import preemphasis as PE
+    try:  # an interrupt between or inside the stages keeps the best-so-far (each stage keeps its own)
+        if cfg.method == "preemphasis":
+            from dtoc.optimize import preemphasis as PE
 
-        t0 = time.time()
-        pe = PE.run_preemphasis(ir, twin, ctx, imager, limits)
-        stage_times["preemphasis_s"] = time.time() - t0
-        x = torch.as_tensor(pe["edges"], dtype=dtype)
-        keep = pe["keep_mask"]
-        extra["preemphasis"] = pe["report"]
-    else:
-        if x is None:
-            if cfg.method in ("dto", "warmstart"):
+            t0 = time.time()
+            pe = PE.run_preemphasis(ir, twin, ctx, imager, limits)
+            stage_times["preemphasis_s"] = time.time() - t0
+            x = torch.as_tensor(pe["edges"], dtype=dtype)
+            keep = pe["keep_mask"]
+            extra["preemphasis"] = pe["report"]
+        else:
+            if x is None:
+                if cfg.method in ("dto", "warmstart"):
+                    t0 = time.time()
+                    x = O.robust_warm_start(
+                        twin,
+                        ctx,
+                        cfg.weights,
+                        cfg.warm_iters,
+                        rounds=cfg.robust_rounds,
+                        scale_dk=cfg.robust_scale_dk,
+                        state=state,
+                        progress=report,
+                    )
+                    stage_times["warm_start_s"] = time.time() - t0
+                else:
+                    x = projector.project(twin.base_edges())
+            if cfg.method in ("dto", "adam-paper") and not state.interrupted and cfg.iters > 0:
                 t0 = time.time()
-                x = O.robust_warm_start(
+                state.best_loss = math.inf
+                opt_imager = loop_imager(imager, cfg) if cfg.weights.image > 0 else None
+                stage_times["loop_imager_s"] = time.time() - t0
+                x = O.full_loss(
                     twin,
+                    opt_imager,
                     ctx,
-                    cfg.weights,
-                    cfg.warm_iters,
-                    rounds=cfg.robust_rounds,
-                    scale_dk=cfg.robust_scale_dk,
-                    state=state,
-                    progress=progress,
+                    cfg,
+                    x,
+                    state,
+                    report,
+                    start_it=start_it,
+                    paper=cfg.method == "adam-paper",
+                    checkpoint=ckpt,
                 )
-                stage_times["warm_start_s"] = time.time() - t0
-            else:
-                x = projector.project(twin.base_edges())
-        if cfg.method in ("dto", "adam-paper") and not state.interrupted and cfg.iters > 0:
-            t0 = time.time()
-            state.best_loss = math.inf
-            opt_imager = loop_imager(imager, cfg) if cfg.weights.image > 0 else None
-            stage_times["loop_imager_s"] = time.time() - t0
-            x = O.full_loss(
-                twin,
-                opt_imager,
-                ctx,
-                cfg,
-                x,
-                state,
-                progress,
-                start_it=start_it,
-                paper=cfg.method == "adam-paper",
-                checkpoint=ckpt,
-            )
-            stage_times["full_loss_s"] = time.time() - t0
-        if cfg.discard and imager is not None:
-            t0 = time.time()
-            keep, thr, _ = O.choose_discard(twin, imager, ctx, x)
-            stage_times["discard_s"] = time.time() - t0
+                stage_times["full_loss_s"] = time.time() - t0
+            if cfg.discard and imager is not None and not state.interrupted:
+                t0 = time.time()
+                keep, thr, _ = O.choose_discard(twin, imager, ctx, x)
+                stage_times["discard_s"] = time.time() - t0
+    except KeyboardInterrupt:
+        state.interrupted = True
+        if x is None:
+            x = state.best_edges.detach().clone()
+    with deferred():  # from here on a signal waits until the outputs are complete, then exits 130/143
+        fault_point("export")
 
-    # final projection (feasible by construction) and verification
-    x = projector.project(x, n_iter=60, exact=True)
-    fine = twin.export_fine(x)
-    viol = limit_violations(fine, ir.dt_fine_s, limits)
-    if viol:
-        raise LimitError(f"internal: projected waveform violates limits ({viol[0]}); nothing written")
-    ir_out = ir.with_grad(fine)
-    _check_system_limits(ir_out, limits)
-    after = quality(twin, imager, ctx, x, keep_mask=keep)
-    if state.interrupted and ckpt_target is not None:
-        done = max([h["it"] for h in state.history if h.get("stage") == "full"] or [start_it])
-        save_checkpoint(ckpt_target, x, done, "full", state.history, cfg, force=True)
-        extra["checkpoint"] = str(ckpt_target)
+        # final projection (feasible by construction) and verification
+        x = projector.project(x, n_iter=60, exact=True)
+        fine = twin.export_fine(x)
+        viol = limit_violations(fine, ir.dt_fine_s, limits)
+        if viol:
+            raise LimitError(f"internal: projected waveform violates limits ({viol[0]}); nothing written")
+        ir_out = ir.with_grad(fine)
+        _check_system_limits(ir_out, limits)
+        after = quality(twin, imager, ctx, x, keep_mask=keep)
+        if state.interrupted and ckpt_target is not None:
+            done = max([h["it"] for h in state.history if h.get("stage") == "full"] or [start_it])
+            save_checkpoint(ckpt_target, x, done, "full", state.history, cfg, force=True)
+            extra["checkpoint"] = str(ckpt_target)
+        if resumed_from is not None:
+            extra["resumed_from"] = resumed_from
 
-    manifest = {
-        "dtoc_optimize": 1,
-        "inputs": _inputs(base_path if base_path is not None else base, girf, model, config_path, resume),
-        "options": json.loads(cfg.model_dump_json()),
-        "limits": {
-            "gmax_mT_per_m": limits.gmax_mT_per_m,
-            "smax_T_per_m_per_s": limits.smax_T_per_m_per_s,
-            "amp_margin": limits.amp_margin,
-            "slew_margin": limits.slew_margin,
-            "source": limit_sources,
-        },
-        "sequence": {
-            "kind": ir.kind,
-            "n_adc_samples": ir.n_adc_samples,
-            "raster_s": ir.raster_s,
-            "n_free_variables": int(free.sum()),
-            "duration_s": ir.duration_s,
-        },
-        "versions": _versions(),
-        "device": str(device),
-        "phantom": _phantom_record(phantom),
-        "before": _public(before),
-        "after": _public(after),
-        "samples_discarded": int(np.sum(~keep)),
-        "samples_discarded_fraction": float(np.mean(~keep)),
-        "discard_threshold_dk": None if not math.isfinite(thr) else thr,
-        "discarded_sample_indices": np.flatnonzero(~keep).tolist(),
-        "exported_extremes": _extremes(fine, ir.dt_fine_s),
-        "limit_violations": 0,
-        "loss_history": state.history,
-        "interrupted": state.interrupted,
-        "stage_times_s": stage_times,
-        "run_time_s": None,
-        **extra,
-    }
+        manifest = {
+            "dtoc_optimize": 1,
+            "inputs": _inputs(base_path if base_path is not None else base, girf, model, config_path, resume),
+            "options": json.loads(cfg.model_dump_json()),
+            "limits": {
+                "gmax_mT_per_m": limits.gmax_mT_per_m,
+                "smax_T_per_m_per_s": limits.smax_T_per_m_per_s,
+                "amp_margin": limits.amp_margin,
+                "slew_margin": limits.slew_margin,
+                "source": limit_sources,
+            },
+            "sequence": {
+                "kind": ir.kind,
+                "n_adc_samples": ir.n_adc_samples,
+                "raster_s": ir.raster_s,
+                "n_free_variables": int(free.sum()),
+                "duration_s": ir.duration_s,
+            },
+            "versions": _versions(),
+            "device": str(device),
+            "phantom": _phantom_record(phantom),
+            "before": metrics.report_figures(before),
+            "after": metrics.report_figures(after),
+            "n_samples_discarded": int(np.sum(~keep)),
+            "samples_discarded_percent": 100.0 * float(np.mean(~keep)),
+            "discard_threshold_dk": None if not math.isfinite(thr) else thr,
+            "discarded_sample_indices": np.flatnonzero(~keep).tolist(),
+            "exported_extremes": _extremes(fine, ir.dt_fine_s),
+            "limit_violations": 0,
+            "loss_history": state.history,
+            "interrupted": state.interrupted,
+            "stage_times_s": stage_times,
+            "run_time_s": None,
+            **extra,
+        }
+        figures = {"before": before, "after": after, "keep": keep, "ir": ir, "imager": imager, "history": state.history}
+        with outputs_together():  # the .seq, the manifest and the PNG appear together, or none of them
+            _write_outputs(ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start)
+    return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)
+
+
+def _write_outputs(ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start) -> None:
+    """The .seq (checked after writing), the manifest and the PNG report, in one :func:`outputs_together`."""
     if out is not None:
-        manifest["output"] = _write_checked(ir_out, out, force, limits)
+        definitions = {"DtocInterrupted": 1} if manifest["interrupted"] else None
+        manifest["output"] = _write_checked(ir_out, out, force, limits, definitions)
     manifest["run_time_s"] = time.time() - t_start
-    figures = {"before": before, "after": after, "keep": keep, "ir": ir, "imager": imager, "history": state.history}
     if manifest_path is not None:
         atomic_write_text(manifest_path, json.dumps(_jsonable(manifest), indent=2, sort_keys=True) + "\n", force=force)
     if png_path is not None:
         from dtoc.optimize.report import write_report_png
 
         write_report_png(png_path, figures, manifest, force=force)
-    return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)
 
 
 def loop_imager(imager, cfg: OptimizeConfig):
@@ -497,12 +525,13 @@ def _check_system_limits(ir_out: SequenceIR, limits: Limits) -> None:
         raise LimitError(f"exported waveform fails the validator: {v[0].message}; nothing written")
 
 
-def _write_checked(ir_out: SequenceIR, out, force: bool, limits: Limits) -> dict:
-    """Write via the seq writer into a temporary file, validate it, then move it into place."""
+def _write_checked(ir_out: SequenceIR, out, force: bool, limits: Limits, definitions: dict | None = None) -> dict:
+    """Write via the seq writer into a temporary file, validate it, then move it into place.
+    ``definitions``: extra [DEFINITIONS] entries (e.g. ``DtocInterrupted 1`` on a best-so-far)."""
     outp = Path(out)
     with tempfile.TemporaryDirectory(dir=outp.parent if str(outp.parent) else ".") as d:
         tmp = Path(d) / outp.name
-        write_seq(ir_out, tmp, force=True)
+        tmp.write_bytes(seq_bytes_of(ir_out, definitions))  # a private folder: checked before it is staged
         sysspec = SystemSpec(
             max_grad_mT_per_m=limits.gmax_mT_per_m,
             max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
@@ -521,7 +550,7 @@ def _write_checked(ir_out: SequenceIR, out, force: bool, limits: Limits) -> dict
         }
         data = tmp.read_bytes()
     atomic_write_bytes(outp, data, force=force)
-    result["sha256"] = sha256_file(outp)
+    result["sha256"] = sha256_bytes(data)
     return result
 
 

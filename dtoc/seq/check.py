@@ -62,6 +62,8 @@ class CheckResult:
     system: SystemSpec
     limits_source: str
     violations: list[Violation] = field(default_factory=list)
+    #: facts that do not fail the check but a user must see (e.g. an interrupted optimize's best-so-far)
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -78,6 +80,7 @@ class CheckResult:
             "system": self.system.model_dump(mode="json"),
             "n_violations": len(self.violations),
             "violations": [v.to_dict() for v in self.violations],
+            "warnings": list(self.warnings),
         }
 
 
@@ -506,6 +509,10 @@ def check_file(path: str | Path, system: SystemSpec | None = None) -> CheckResul
         if system is None:
             system = SystemSpec()
     res = CheckResult(path=str(path), system=system, limits_source=source)
+    if st.definitions().get("DtocInterrupted", "").split()[:1] == ["1"]:
+        res.warnings.append(
+            "written by an interrupted dtoc optimize (DtocInterrupted 1): a best-so-far, not a finished result"
+        )
     _text_rules(st, system, res.violations)
     seq, _ = read_pypulseq(path, require_signature=False)
     try:

@@ -26,7 +26,6 @@ import numpy as np
 
 from dtoc.errors import InputError
 from dtoc.seq.geometry import EncodingGeometry, encoding_geometry
-from dtoc.seq.kspace import kspace_at
 
 
 @dataclass(frozen=True)
@@ -180,6 +179,8 @@ class SequenceIR:
         """
         g = self.grad_mT_per_m if grad_mT_per_m is None else grad_mT_per_m
         t = self.adc_times_s if times_s is None else times_s
+        from dtoc.seq.kspace import kspace_at  # torch: imported only where k-space is computed
+
         return kspace_at(g, self.dt_fine_s, t, [r.t_center_s for r in self.rf], [r.use for r in self.rf])
 
     def nominal_kspace_rad_per_m(self) -> np.ndarray:

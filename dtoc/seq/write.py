@@ -141,9 +141,15 @@ def to_pypulseq(ir: SequenceIR):
     return seq
 
 
-def seq_bytes_of(ir: SequenceIR) -> bytes:
-    """The signed Pulseq 1.5 text of :func:`to_pypulseq` (ir)."""
-    return seq_bytes(to_pypulseq(ir))
+def seq_bytes_of(ir: SequenceIR, definitions: dict | None = None) -> bytes:
+    """The signed Pulseq 1.5 text of :func:`to_pypulseq` (ir), with ``definitions`` added to [DEFINITIONS]
+    (names: letters and digits; values: numbers)."""
+    seq = to_pypulseq(ir)
+    for k, v in (definitions or {}).items():
+        if not str(k).isalnum() or not isinstance(v, (int, float)):
+            raise DtocError(f"definition {k!r}: names are letters/digits and values numbers")
+        seq.set_definition(str(k), v)
+    return seq_bytes(seq)
 
 
 def write_seq(ir: SequenceIR, path: str | Path, force: bool = False) -> Path:

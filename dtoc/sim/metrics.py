@@ -7,6 +7,8 @@ sense: :func:`nrmse` is the optimizer's image loss) -- use ``float(...)`` for re
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 
@@ -141,3 +143,30 @@ def kspace_within(k_rad_per_m, k0_rad_per_m, dk_rad_per_m, tol_dk: float = 0.5) 
     dk = np.asarray(dk_rad_per_m, dtype=np.float64).reshape(-1)
     fin = np.isfinite(dk) & (dk > 0)
     return np.all(np.abs(k[fin] - k0[fin]) <= tol_dk * dk[fin, None], axis=0)
+
+
+#: Internal figure name -> (report key, scale).  Internal image figures are fractions; reports give %.
+REPORT_KEYS: dict[str, tuple[str, float]] = {
+    "nrmse": ("nrmse_percent", 100.0),
+    "ghost_ratio": ("ghost_ratio_percent", 100.0),
+    "ghost_ratio_ideal": ("ghost_ratio_ideal_percent", 100.0),
+    "ghost_ratio_excess": ("ghost_ratio_excess_percent", 100.0),
+    "kspace_rmse_rad_per_m": ("kspace_rms_error_rad_per_m", 1.0),
+    "kspace_max_err_rad_per_m": ("kspace_max_error_rad_per_m", 1.0),
+    "kspace_max_err_dk": ("kspace_max_error_dk", 1.0),
+    "kspace_max_dk": ("kspace_max_error_dk", 1.0),
+    "kspace_rmse_kept_rad_per_m": ("kspace_rms_error_kept_rad_per_m", 1.0),
+    "kspace_max_kept_dk": ("kspace_max_error_kept_dk", 1.0),
+    "samples_discarded": ("n_samples_discarded", 1.0),
+}
+
+
+def report_figures(figures: dict[str, Any]) -> dict[str, Any]:
+    """Internal figures -> report keys with units (:data:`REPORT_KEYS`); private ('_') keys dropped, others kept."""
+    out: dict[str, Any] = {}
+    for k, v in figures.items():
+        if k.startswith("_"):
+            continue
+        key, scale = REPORT_KEYS.get(k, (k, 1.0))
+        out[key] = v * scale if isinstance(v, (int, float)) and not isinstance(v, bool) and scale != 1.0 else v
+    return out

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dtoc.constants import DEFAULT_B0_T
 from dtoc.errors import InputError
 
 
@@ -246,7 +247,7 @@ def _maps_from_weighted(pd, r1w, r2w, r2dw, dw):
 
 def brain_phantom(
     n,
-    field_T: float = 3.0,
+    field_T: float = DEFAULT_B0_T,
     fov_m=0.25,
     b0: bool = False,
     b1: bool = False,
@@ -567,7 +568,7 @@ def resolve_phantom(
 
 
 def phantom_for(
-    ir, spec=None, *, size: int | None = None, field_T: float = 3.0, b0: bool = False, b1: bool = False
+    ir, spec=None, *, size: int | None = None, field_T: float = DEFAULT_B0_T, b0: bool = False, b1: bool = False
 ) -> Phantom:
     """The phantom of a spec (:func:`resolve_phantom`) on the image grid of sequence ``ir``.
 
