@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from dtoc.errors import InputError
 from dtoc.hardware.girf_analysis import girf_summary, magnitude_at
 from dtoc.hardware.girf_import import import_girf
 from dtoc.hardware.girf_io import load_girf, save_girf
@@ -20,7 +21,10 @@ def _rows(gd):
 
 
 def test_kcl_2023(gdir, tmp_path):
-    gd = import_girf([gdir / "kcl_7T_terra_2023" / "7T_1pcterms.mat"])
+    # the 2023 file has no z: refused unless the user accepts an ideal z
+    with pytest.raises(InputError, match="axis z is not in the GIRF .* pass --partial"):
+        import_girf([gdir / "kcl_7T_terra_2023" / "7T_1pcterms.mat"])
+    gd = import_girf([gdir / "kcl_7T_terra_2023" / "7T_1pcterms.mat"], allow_partial=True)
     assert gd.dt_s == pytest.approx(10.0067e-6, rel=1e-4) and gd.t0_s == pytest.approx(-0.01499, rel=1e-4)
     rows = _rows(gd)
     assert rows["x->x"]["dc_gain"] == pytest.approx(1.0064, abs=1e-4)
@@ -99,7 +103,7 @@ def test_paper_epi_odd_even_offsets(gdir, repo_root):
     from dtoc.seq.load import load_sequence
     from dtoc.sim.predict import predict
 
-    gd = import_girf([gdir / "kcl_7T_terra_2023" / "7T_1pcterms.mat"])
+    gd = import_girf([gdir / "kcl_7T_terra_2023" / "7T_1pcterms.mat"], allow_partial=True)
     ir = load_sequence(seqf)
     res = predict(ir, HardwareModel([girf_effect(gd)]))
     ro = res["epi"]["readout"]

@@ -69,10 +69,15 @@ def _summary_table(rows, title):
 
 
 def _emit_girf(gd, out: Path, force: bool, json_out: str | None):
+    from dtoc.errors import InputError
     from dtoc.hardware.girf_analysis import girf_summary
-    from dtoc.hardware.girf_io import save_girf
+    from dtoc.hardware.girf_io import save_girf, validate_girf_arrays
     from dtoc.util.atomic import outputs_together
 
+    try:  # what is written must load back with dtoc's own loader
+        validate_girf_arrays(gd.arrays(), f"{out}")
+    except InputError as e:
+        raise InputError(f"the result would not load back, nothing written: {e}") from None
     rows = girf_summary(gd)
     outp = Output(json_out)
     with outputs_together():
@@ -95,6 +100,9 @@ def import_cmd(
     as_published: bool = typer.Option(
         False, "--as-published", help="keep a GMTF's declared ADC/gradient convention shift (default: undo it)"
     ),
+    partial: bool = typer.Option(
+        False, "--partial", help="accept a GIRF that lacks an axis, giving it an ideal response (refused otherwise)"
+    ),
     force: bool = typer.Option(False, "--force", help="overwrite an existing output"),
     json_out: str | None = json_option("the figures"),
 ):
@@ -108,7 +116,7 @@ def import_cmd(
 
     _finite("--shift-us", shift_us)
     check_outputs({"-o": out, "--json": json_out}, {f"FILES[{i}]": p for i, p in enumerate(files)}, force)
-    gd = import_girf(files, include_b0=b0, shift_s=shift_us * 1e-6, as_published=as_published)
+    gd = import_girf(files, include_b0=b0, shift_s=shift_us * 1e-6, as_published=as_published, allow_partial=partial)
     _emit_girf(gd, out, force, json_out)
 
 

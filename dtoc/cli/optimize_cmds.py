@@ -55,6 +55,9 @@ def optimize_cmd(
 
     if method is not None and method not in ("dto", "adam-paper", "warmstart", "preemphasis"):
         raise InputError(f"--method {method!r}: expected dto, adam-paper, warmstart or preemphasis")
+    from dtoc.sim.comparison import check_device
+
+    check_device(device)
     check_run_paths(base, out, json_out, png, force, girf, model, config, resume, checkpoint)
     require_hardware(girf, model, ideal)
     if not base.exists():
@@ -103,6 +106,8 @@ def optimize_cmd(
     if outp.json_to_stdout:
         outp.write_json(strict_json(m), force)
     _print_summary(m, outp.console())
+    for w in m.get("warnings", []):
+        sys.stderr.write(f"dtoc: warning: {w}\n")
     if m.get("interrupted"):
         interrupted_exit(m)
 

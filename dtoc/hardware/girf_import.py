@@ -62,7 +62,7 @@ def _h5_complex(ds) -> np.ndarray:
     return a.ravel().astype(np.complex128)
 
 
-def _import_time_terms(m: dict, path: Path) -> GirfData:
+def _import_time_terms(m: dict, path: Path, allow_partial: bool = False) -> GirfData:
     t = np.asarray(m["t"], dtype=np.float64).ravel()
     L = t.size
     if L < 2 or np.any(np.diff(t) <= 0):
@@ -93,6 +93,7 @@ def _import_time_terms(m: dict, path: Path) -> GirfData:
     if max_imag:
         notes.append(f"complex kernels reduced to real part (largest |imag| {max_imag:.3g})")
     missing = [AXES[a] for a in range(3) if not have[a, a]]
+    _partial(path, missing, allow_partial)
     i0 = int(np.argmin(np.abs(t)))
     if abs(t[i0]) > 1e-3 * dt and missing:
         raise InputError(f"{path}: no tap at t = 0 to place the ideal response of missing axis {missing}")
@@ -206,7 +207,11 @@ def _import_prisma_axis(path: Path):
 
 
 def import_girf(
-    files: list[str | os.PathLike], include_b0: bool = False, shift_s: float = 0.0, as_published: bool = False
+    files: list[str | os.PathLike],
+    include_b0: bool = False,
+    shift_s: float = 0.0,
+    as_published: bool = False,
+    allow_partial: bool = False,
 ) -> GirfData:
     """Read one published GIRF (one file, or the per-axis X/Y/Z files) into :class:`GirfData`.
 
@@ -216,6 +221,10 @@ def import_girf(
             files its unit is undocumented, so it is only imported on request and flagged).
         shift_s: extra pure delay added to every term, s (positive = later).
         as_published: keep a GMTF's declared ADC/gradient convention shift in its phase (default: undo it).
+        allow_partial: accept a GIRF that lacks an axis, giving that axis an ideal response (default:
+            refuse it with one line: a scanner's missing axis is not ideal, it is unmeasured).
+    Raises:
+        InputError: unreadable or malformed files; a partial GIRF without ``allow_partial``.
     """
     paths = [Path(f) for f in files]
     if not paths:
@@ -236,15 +245,15 @@ def import_girf(
         if "GMTF" in m:
             gd = _import_gmtf(m["GMTF"], paths[0], include_b0, as_published)
         elif m and "t" in m and any(k.startswith("h") and len(k) == 3 for k in m):
-            gd = _import_time_terms(m, paths[0])
+            gd = _import_time_terms(m, paths[0], allow_partial)
         elif not m:
-            gd = _import_prisma([paths[0]], include_b0)
+            gd = _import_prisma([paths[0]], include_b0, allow_partial)
         else:
             raise InputError(
                 f"{paths[0]}: unknown GIRF layout (expected h<in><out> + t, a GMTF struct, or GIRF_FT + freq)"
             )
     else:
-        gd = _import_prisma(paths, include_b0)
+        gd = _import_prisma(paths, include_b0, allow_partial)
     if shift_s:
         gd = _shift(gd, shift_s)
     return gd
@@ -258,7 +267,17 @@ def _prisma_axis_of(p: Path) -> int:
     raise InputError(f"{p}: cannot tell the axis from the name (expected ..._X/_Y/_Z.mat)")
 
 
-def _import_prisma(paths: list[Path], include_b0: bool) -> GirfData:
+def _partial(where, missing: list[str], allow_partial: bool) -> None:
+    """Refuse a GIRF without some axes unless the user asked for ideal ones (--partial)."""
+    if missing and not allow_partial:
+        ax = ",".join(missing)
+        raise InputError(
+            f"{where}: axis {ax} is not in the GIRF (a partial measurement); pass --partial to import it with an "
+            f"ideal {ax} (unit response, no cross terms), which the scanner's {ax} axis is not"
+        )
+
+
+def _import_prisma(paths: list[Path], include_b0: bool, allow_partial: bool = False) -> GirfData:
     got: dict[int, tuple] = {}
     for p in paths:
         if _loadmat(p):  # a MATLAB v5 file among per-axis HDF5 files
@@ -304,6 +323,7 @@ def _import_prisma(paths: list[Path], include_b0: bool) -> GirfData:
                 if got[a][2] is not None:
                     got[a][2][np.abs(f) > bands[0]] = 0.0
     missing = [AXES[a] for a in range(3) if a not in got]
+    _partial(", ".join(p.name for p in paths), missing, allow_partial)
     if missing:
         notes.append(f"axis {','.join(missing)} not given: ideal unit response")
     if include_b0:

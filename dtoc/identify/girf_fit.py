@@ -67,6 +67,10 @@ def _solve_rows(I: np.ndarray, O: np.ndarray, use: np.ndarray, lam: float) -> np
     return row.T
 
 
+#: Fewest samples per waveform a GIRF fit accepts.
+MIN_FIT_SAMPLES = 32
+
+
 def fit_girf(
     meas: Measurement,
     reg: float = 1e-6,
@@ -88,6 +92,11 @@ def fit_girf(
     if not (reg > 0 and np.isfinite(reg)):
         raise InputError(f"--reg must be > 0, got {reg}")
     M, _, N = meas.g.shape
+    if N < MIN_FIT_SAMPLES:
+        raise InputError(
+            f"the measurement has {N} samples per waveform; a GIRF fit needs at least {MIN_FIT_SAMPLES} "
+            "(its frequency resolution is 1 / (N dt))"
+        )
     dt = meas.dt_s
     Gm = meas.realized_G()
     nfft = scipy.fft.next_fast_len(2 * N)

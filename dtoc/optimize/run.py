@@ -330,6 +330,7 @@ def optimize_sequence(
         raise InputError("sequence has no optimizable gradient samples (free_mask is empty)")
     projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
     check_area_reachable(ir, limits)
+    warnings_out = base_limit_warnings(ir, limits)
     dtype = torch.float64
     twin = EdgeTwin(ir, hardware, projector, dtype=dtype, device=device)
     ctx = L.build_context(ir, limits, dtype=dtype, device=device)
@@ -438,6 +439,12 @@ def optimize_sequence(
             extra["checkpoint"] = str(ckpt_target)
         if resumed_from is not None:
             extra["resumed_from"] = resumed_from
+        nb, na = before.get("nrmse"), after.get("nrmse")
+        if nb is not None and na is not None and na > nb:
+            warnings_out.append(
+                f"the output's image NRMSE ({100 * na:.3g} %) is worse than the base's ({100 * nb:.3g} %): "
+                "the limits or the model leave no better waveform; do not upload it without review"
+            )
 
         manifest = {
             "dtoc_optimize": 1,
@@ -471,6 +478,7 @@ def optimize_sequence(
             "loss_history": state.history,
             "interrupted": state.interrupted,
             "stage_times_s": stage_times,
+            "warnings": warnings_out,
             "run_time_s": None,
             **extra,
         }
@@ -492,6 +500,25 @@ def _write_outputs(ir_out, out, force, limits, manifest, manifest_path, png_path
         from dtoc.optimize.report import write_report_png
 
         write_report_png(png_path, figures, manifest, force=force)
+
+
+def base_limit_warnings(ir, limits: Limits) -> list[str]:
+    """Warnings when the base sequence itself needs more amplitude or slew than the limits allow: the output
+    then cannot reproduce the base's k-space (it is still written within the limits)."""
+    ext = waveform_extremes(ir.grad_mT_per_m, ir.dt_fine_s)
+    out = []
+    g, sl = max(ext["gmax_mT_per_m"]), max(ext["smax_T_per_m_per_s"])
+    if g > limits.gmax_mT_per_m * (1 + 1e-6):
+        out.append(
+            f"the base sequence needs {g:.4g} mT/m, above gmax {limits.gmax_mT_per_m:g} mT/m: "
+            "the output cannot follow its k-space everywhere"
+        )
+    if sl > limits.smax_T_per_m_per_s * (1 + 1e-6):
+        out.append(
+            f"the base sequence needs {sl:.4g} T/m/s, above smax {limits.smax_T_per_m_per_s:g} T/m/s "
+            f"({sl / limits.smax_T_per_m_per_s:.3g}x): the output cannot follow its k-space everywhere"
+        )
+    return out
 
 
 def loop_imager(imager, cfg: OptimizeConfig):

@@ -186,6 +186,10 @@ def _text_rules(st, system: SystemSpec, out: list[Violation]) -> None:
         out.append(Violation("line_endings", message=f"{n} CR characters: the file must use LF line endings"))
     if st.signature_hash is None:
         out.append(Violation("signature", message="no [SIGNATURE] md5 hash"))
+    elif st.signature_type not in (None, "md5"):
+        out.append(
+            Violation("signature", message=f"signature type {st.signature_type!r}: Pulseq interpreters verify md5")
+        )
     else:
         got = st.content_md5()
         if got != st.signature_hash:

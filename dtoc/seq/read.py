@@ -95,7 +95,12 @@ def read_seq(
         require_signature: reject unsigned files and files whose md5 signature does not match (default;
             pass False for hand-edited files).
     """
-    seq, _ = read_pypulseq(path, require_signature=require_signature)
+    seq, st = read_pypulseq(path, require_signature=require_signature)
+    if b"\r" in st.raw:
+        raise InputError(
+            f"{path}: CR/CRLF line endings: Pulseq files use LF (convert with dos2unix, then re-sign; "
+            "'dtoc check' lists what else differs)"
+        )
     ir = from_pypulseq(seq, free_slice_axis=free_slice_axis, free_unused_axes=free_unused_axes, rf_guard=rf_guard)
     ir.meta["path"] = str(path)
     return ir

@@ -11,6 +11,8 @@ Signature: Pulseq's md5 covers the bytes before the newline that precedes ``[SIG
 from __future__ import annotations
 
 import hashlib
+import math
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -102,6 +104,15 @@ def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
             raise _err(p, "no such file")
         if p.is_dir():
             raise _err(p, "is a directory, expected a .seq file")
+        if not p.is_file():
+            raise _err(p, "not a regular file (a device or pipe): give a .seq file")
+        size = p.stat().st_size
+        if size > max_file_bytes():
+            raise _err(
+                p,
+                f"{size / 1e6:.0f} MB: larger than this machine can parse ({max_file_bytes() / 1e6:.0f} MB at most, "
+                "about 1/40 of its memory)",
+            )
         try:
             raw = p.read_bytes()
         except OSError as e:
@@ -208,6 +219,7 @@ def _check_structure(st: SeqText, p: Path) -> None:
             bad = [x for x in numeric if not _NUM.match(x)]
             if bad:
                 raise _err(p, f"line {ln.lineno} in {sec}: not a number: {bad[0][:20]!r}")
+            _check_values(st, sec, ln, numeric, p)
             if is_rf15 and t[-1] not in ("e", "r", "i", "s", "p", "o", "u"):
                 raise _err(p, f"line {ln.lineno} in [RF]: unknown RF use {t[-1]!r}")
             try:
@@ -245,7 +257,9 @@ def _check_structure(st: SeqText, p: Path) -> None:
             raise _err(p, f"shape {sid} (line {shp[i].lineno}): compressed data do not expand to {num} samples{hint}")
         st.shapes[sid] = (num, data, shp[i].lineno)
         i = j
+    _check_sizes(st, p)
     # references
+    ext_ids = _extension_ids(st, p)
     grad_ids = ids["[GRADIENTS]"] | ids["[TRAP]"]
     for ln in st.sections["[BLOCKS]"]:
         t = [int(float(x)) for x in ln.tokens]
@@ -256,7 +270,7 @@ def _check_structure(st: SeqText, p: Path) -> None:
             ("gradient", t[5], grad_ids),
             ("ADC", t[6], ids["[ADC]"]),
         )
-        for name, ref, have in refs:
+        for name, ref, have in (*refs, ("extension list", t[7], ext_ids)):
             if ref and ref not in have:
                 raise _err(p, f"line {ln.lineno}: block {t[0]} uses {name} {ref}, which is not defined{hint}")
     shape_cols = {"[RF]": (2, 3, 4), "[GRADIENTS]": (4, 5) if st.major_minor == (1, 5) else (2, 3)}
@@ -266,6 +280,113 @@ def _check_structure(st: SeqText, p: Path) -> None:
                 sid = int(float(ln.tokens[c]))
                 if sid > 0 and sid not in st.shapes:
                     raise _err(p, f"line {ln.lineno} in {sec}: shape {sid} is not defined{hint}")
+
+
+#: Largest |value| of an event amplitude: gradients in Hz/m (1e9 Hz/m = 23 T/m), RF in Hz (1e6 Hz = 23 mT).
+MAX_GRAD_HZ_PER_M = 1e9
+MAX_RF_HZ = 1e6
+#: Named (column, what) per section and version: values that are durations/delays/counts (>= 0, integer).
+_NONNEGATIVE = {
+    (1, 5): {
+        "[BLOCKS]": ((1, "duration"),),
+        "[RF]": ((6, "delay"),),
+        "[GRADIENTS]": ((6, "delay"),),
+        "[TRAP]": ((2, "rise time"), (3, "flat time"), (4, "fall time"), (5, "delay")),
+        "[ADC]": ((1, "number of samples"), (2, "dwell"), (3, "delay")),
+    },
+    (1, 4): {
+        "[BLOCKS]": ((1, "duration"),),
+        "[RF]": ((5, "delay"),),
+        "[GRADIENTS]": ((4, "delay"),),
+        "[TRAP]": ((2, "rise time"), (3, "flat time"), (4, "fall time"), (5, "delay")),
+        "[ADC]": ((1, "number of samples"), (2, "dwell"), (3, "delay")),
+    },
+}
+_AMPLITUDE_COL = {
+    "[RF]": (1, MAX_RF_HZ, "Hz"),
+    "[GRADIENTS]": (1, MAX_GRAD_HZ_PER_M, "Hz/m"),
+    "[TRAP]": (1, MAX_GRAD_HZ_PER_M, "Hz/m"),
+}
+
+
+def _check_values(st: SeqText, sec: str, ln: SeqLine, numeric: list[str], p: Path) -> None:
+    """Every number finite; integer columns integers; durations, delays and counts >= 0; amplitudes bounded."""
+    vals = [float(x) for x in numeric]
+    for c, v in enumerate(vals):
+        if not math.isfinite(v):
+            raise _err(p, f"line {ln.lineno} in {sec}: column {c + 1} is {numeric[c]!r}: numbers must be finite")
+    for c in INTEGER_COLUMNS[st.major_minor].get(sec, ()):
+        if c < len(vals) and not vals[c].is_integer():
+            raise _err(p, f"line {ln.lineno} in {sec}: column {c + 1} must be an integer, got {numeric[c]!r}")
+    for c, what in _NONNEGATIVE[st.major_minor].get(sec, ()):
+        if vals[c] < 0:
+            raise _err(p, f"line {ln.lineno} in {sec}: negative {what} {numeric[c]}")
+    if sec == "[BLOCKS]" and any(v < 0 for v in vals[2:]):
+        raise _err(p, f"line {ln.lineno} in [BLOCKS]: negative event id")
+    if sec in _AMPLITUDE_COL:
+        c, bound, unit = _AMPLITUDE_COL[sec]
+        if abs(vals[c]) > bound:
+            raise _err(
+                p,
+                f"line {ln.lineno} in {sec}: amplitude {numeric[c]} {unit} is beyond any scanner (|a| <= {bound:g} {unit})",
+            )
+
+
+def _extension_ids(st: SeqText, p: Path) -> set[int]:
+    """Ids of the [EXTENSIONS] list (each line: id type ref next_id)."""
+    out: set[int] = set()
+    for ln in st.sections.get("[EXTENSIONS]", []):
+        t = ln.tokens
+        if len(t) == 4 and all(re.match(r"^\d+$", x) for x in t):
+            out.add(int(t[0]))
+    return out
+
+
+#: Memory estimates (bytes) behind :func:`_check_sizes`: per gradient-raster interval of the sequence (fine
+#: grid of 2 samples x 3 axes in float64, and the ~12 working copies the twin and optimizer keep) and per
+#: ADC sample (k-space, signal, masks and the simulator's per-sample tables).
+BYTES_PER_RASTER = 2 * 3 * 8 * 12
+BYTES_PER_ADC_SAMPLE = 400
+
+
+def _check_sizes(st: SeqText, p: Path) -> None:
+    """Refuse, before anything is allocated, a sequence whose raster grid or ADC samples need more than a
+    quarter of this machine's memory (a duration or sample count off by orders of magnitude)."""
+    defs = st.definitions()
+
+    def num(key: str, default: float) -> float:
+        try:
+            return float(defs.get(key, "").split()[0])
+        except (ValueError, IndexError):
+            return default
+
+    block_raster = num("BlockDurationRaster", 10e-6)
+    grad_raster = num("GradientRasterTime", 10e-6)
+    ticks = 0
+    for ln in st.sections["[BLOCKS]"]:
+        ticks += int(float(ln.tokens[1]))
+    duration_s = ticks * block_raster if st.major_minor >= (1, 4) else 0.0
+    n_raster = duration_s / grad_raster
+    adc_num = {int(float(ln.tokens[0])): int(float(ln.tokens[1])) for ln in st.sections.get("[ADC]", [])}
+    n_adc = sum(adc_num.get(int(float(ln.tokens[6])), 0) for ln in st.sections["[BLOCKS]"])
+    need = n_raster * BYTES_PER_RASTER + n_adc * BYTES_PER_ADC_SAMPLE
+    budget = max_file_bytes() * 10  # a quarter of the memory
+    if need > budget:
+        raise _err(
+            p,
+            f"{duration_s:.4g} s of sequence ({n_raster:.3g} gradient raster steps) and {n_adc:.3g} ADC samples need "
+            f"~{need / 1e9:.3g} GB; this machine allows {budget / 1e9:.3g} GB (a duration or sample count off by "
+            "orders of magnitude?)",
+        )
+
+
+def max_file_bytes() -> int:
+    """Largest .seq dtoc parses on this machine: 1/40 of its memory (the parse holds ~20 bytes per byte)."""
+    try:
+        mem = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        mem = 8 << 30
+    return int(mem // 40)
 
 
 def _compressed_length_ok(data: list[float], num: int) -> bool:
