@@ -286,3 +286,21 @@ def test_partial_vendor_girf_needs_an_explicit_flag(capsys, tmp_path, shared_dat
     assert "axis z is not in the GIRF" in err and "--partial" in err
     code, _, err = run_cli(capsys, "girf", "import", mat, "-o", tmp_path / "h.npz", "--partial")
     assert code == 0 and "axis z not in the file: ideal response" in err
+
+
+def test_full_disk_is_one_line_and_leaves_nothing(capsys, tmp_path, monkeypatch):
+    import errno
+    import os
+
+    import dtoc.util.atomic as atomic
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp_path))
+
+    monkeypatch.setattr(atomic.os, "fsync", full)
+    err = _assert_clean_failure(capsys, tmp_path, ["build", SPEC, "-o", tmp_path / "o.seq"])
+    assert "No space left on device" in err
+    err = _assert_clean_failure(
+        capsys, tmp_path, ["girf", "show", GIRF, "--png", tmp_path / "g.png", "--json", tmp_path / "g.json"]
+    )
+    assert list(tmp_path.iterdir()) == []  # no temporary left behind either
