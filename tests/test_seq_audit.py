@@ -95,7 +95,7 @@ def test_bad_recorded_limits(capsys, tmp_path, repo_root, value):
     code, out, err = _run(capsys, "check", f, "--gmax", "72", "--smax", "180", "--json", "-")
     res = json.loads(out)
     assert code == 1 and {v["rule"] for v in res["violations"]} == {"signature"}
-    assert res["limits_source"] == "defaults + --gmax 72 --smax 180"
+    assert res["limits_source"] == "the command line (rasters and dead times: defaults) + --gmax 72 --smax 180"
 
 
 @pytest.mark.parametrize("opt,val", [("--gmax", "72000"), ("--smax", "1e9")])

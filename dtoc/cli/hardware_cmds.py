@@ -10,7 +10,7 @@ from pathlib import Path
 
 import typer
 
-from dtoc.cli.output import Output, json_option, note, strict_json
+from dtoc.cli.output import Output, json_option, note, sequence_notes, strict_json
 
 girf_app = typer.Typer(
     help="GIRF files: import published ones, fit from measurements, show figures.", no_args_is_help=True
@@ -234,6 +234,7 @@ def predict_cmd(
     check_outputs({"--png": png, "--json": json_out}, {"SEQ": seq, "--girf": girf, "--model": model}, force)
     m = resolve_model(girf=girf, model=model)
     ir = load_sequence(seq)
+    sequence_notes(ir)
     res = predict(ir, m, device=device)
     outp = Output(json_out)
     with outputs_together():

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from dtoc.cli.output import Output, json_option, strict_json
+from dtoc.cli.output import Output, json_option, sequence_notes, strict_json
 from dtoc.constants import DEFAULT_B0_T
 
 
@@ -63,6 +63,7 @@ def optimize_cmd(
     if not base.exists():
         raise InputError(f"{base}: base sequence not found")
     ir = load_sequence(base)
+    sequence_notes(ir)
     weights = {k: v for k, v in (("image", w_image), ("kspace", w_k), ("rf", w_rf)) if v is not None}
     overrides = {
         "method": method,

@@ -75,6 +75,12 @@ class Output:
         atomic_write_text(self.json_target, text, force=force)
 
 
+def sequence_notes(ir) -> None:
+    """The reader's notes on a sequence (e.g. how an undefined RF use was taken), one stderr line each."""
+    for n in (getattr(ir, "meta", None) or {}).get("notes", []):
+        note(f"note: {n}")
+
+
 def note(line: str) -> None:
     """One line on stderr (wrote ..., note: ..., warning: ...)."""
     sys.stderr.write(line.rstrip("\n") + "\n")

@@ -57,8 +57,8 @@ def check_cmd(
 ):
     """Validate a .seq before upload; exit 1 on any violation, 0 when clean.
 
-    Limits: --gmax/--smax override --system, which overrides the limits a dtoc-built file records;
-    otherwise SystemSpec defaults (Siemens rasters, 72 mT/m, 180 T/m/s).
+    Limits: --gmax/--smax override --system, which overrides the limits a dtoc-built file records; a file
+    without recorded limits needs --gmax and --smax (or --system): limits are never assumed.
     """
     import math
 
@@ -88,7 +88,12 @@ def check_cmd(
                 if gmax is None or smax is None:  # the file's other limit is needed but invalid
                     raise InputError(f"{seq}: {e}") from None
                 sysspec = None
-            base = "file definitions" if sysspec is not None else "defaults"
+            if sysspec is None and (gmax is None or smax is None):
+                missing = "--smax" if smax is None else "--gmax"
+                raise InputError(
+                    f"{seq}: the file records no gradient limits: give {missing} too, or --system (limits are never assumed)"
+                )
+            base = "file definitions" if sysspec is not None else "the command line (rasters and dead times: defaults)"
             sysspec = sysspec or SystemSpec()
         upd = {}
         if gmax is not None:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from dtoc.cli.output import Output, json_option, note
+from dtoc.cli.output import Output, json_option, note, sequence_notes
 from dtoc.constants import DEFAULT_B0_T
 
 
@@ -74,6 +74,7 @@ def simulate_cmd(
 
     rep = ProgressReporter("dtoc simulate", quiet=quiet)
     ir = load_sequence(seq)
+    sequence_notes(ir)
     hw = resolve_model(girf=girf, model=model)
     ir.require_geometry(f"{seq}: simulate")
     ph = phantom_for(ir, phantom, field_T=field_T, b0=b0_map, b1=b1_map)

@@ -463,6 +463,7 @@ def optimize_sequence(
                 "raster_s": ir.raster_s,
                 "n_free_variables": int(free.sum()),
                 "duration_s": ir.duration_s,
+                "notes": list(ir.meta.get("notes", [])),
             },
             "versions": _versions(),
             "device": str(device),

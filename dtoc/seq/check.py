@@ -492,8 +492,8 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
 
 
 def check_file(path: str | Path, system: SystemSpec | None = None) -> CheckResult:
-    """Validate a ``.seq`` file.  ``system=None``: the limits the file records (dtoc-built files), else
-    :class:`SystemSpec` defaults.
+    """Validate a ``.seq`` file.  ``system=None``: the limits the file records (dtoc-built files); a file that
+    records none is refused (limits are never assumed: give a :class:`SystemSpec`).
 
     Raises:
         InputError: only when the file cannot be opened or parsed at all (missing, binary, truncated
@@ -509,9 +509,12 @@ def check_file(path: str | Path, system: SystemSpec | None = None) -> CheckResul
             system = system_from_definitions(defs)
         except InputError as e:
             raise InputError(f"{path}: {e}") from None
-        source = "file definitions" if system is not None else "defaults"
         if system is None:
-            system = SystemSpec()
+            raise InputError(
+                f"{path}: the file records no gradient limits (MaxGrad_mT_per_m / MaxSlew_T_per_m_per_s): give "
+                "--gmax and --smax or --system (limits are never assumed)"
+            )
+        source = "file definitions"
     res = CheckResult(path=str(path), system=system, limits_source=source)
     if st.definitions().get("DtocInterrupted", "").split()[:1] == ["1"]:
         res.warnings.append(

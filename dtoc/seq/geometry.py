@@ -93,3 +93,141 @@ def encoding_geometry(
     f = tuple(float(v) for v in fov_m)
     f3 = (f + (0.0, 0.0, 0.0))[:3]
     return EncodingGeometry(ro, pe, (int(matrix[0]), int(matrix[1])), f3)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class InferredGrid:
+    """A Cartesian grid read off the nominal k of the ADC samples (for files without FOV/matrix definitions).
+
+    Attributes:
+        readout_axis / phase_axis: physical axes (k varies within an ADC / between ADCs).
+        matrix_readout_phase: grid points along readout and phase.
+        fov_m: 2 pi / dk per physical axis (0 on the axis that is not encoded), m.
+        offset_dk: (3,) where the samples sit between grid points, fraction of dk in [-0.5, 0.5) (pypulseq's
+            usual readout has its centre at sample N/2: no offset; a readout centred between samples: 0.5).
+        n_outside: samples beyond the N-point grid, not used by the Cartesian reconstruction (0 for the
+            layouts inferred so far; kept for the reconstruction's contract).
+    """
+
+    readout_axis: int
+    phase_axis: int
+    matrix_readout_phase: tuple[int, int]
+    fov_m: tuple[float, float, float]
+    offset_dk: tuple[float, float, float]
+    n_outside: int
+
+    def describe(self) -> str:
+        ro, pe = "xyz"[self.readout_axis], "xyz"[self.phase_axis]
+        n_ro, n_pe = self.matrix_readout_phase
+        f = self.fov_m
+        s = (
+            f"no FOV/matrix definitions: Cartesian grid inferred from the ADC k positions: {n_ro} ({ro}, readout) x "
+            f"{n_pe} ({pe}, phase), FOV {1e3 * f[self.readout_axis]:.4g} x {1e3 * f[self.phase_axis]:.4g} mm"
+        )
+        off = [o for o in self.offset_dk if abs(o) > 1e-3]
+        if off:
+            s += f", samples offset by {', '.join(f'{o:+.3g}' for o in self.offset_dk)} dk"
+        if self.n_outside:
+            s += f", {self.n_outside} sample(s) outside the grid not used by the image reconstruction"
+        return s
+
+
+def _grid_step(values, tol: float = 1e-3) -> tuple[float, float] | None:
+    """(dk, offset) when sorted distinct ``values`` sit on a common grid ``(i + offset) dk``; None otherwise."""
+    import numpy as np
+
+    v = np.unique(np.round(np.asarray(values, dtype=np.float64), 9))
+    if v.size < 2:
+        return None
+    span = float(v[-1] - v[0])
+    d = np.diff(v)
+    d = d[d > 1e-9 * max(span, 1e-300)]
+    if d.size == 0:
+        return None
+    dk = float(np.min(d))
+    if dk <= 0 or span / dk > 1e5:
+        return None
+    steps = d / dk
+    if np.max(np.abs(steps - np.rint(steps))) > tol * 10:
+        return None
+    # refine dk on the whole span, then the common offset
+    n = np.rint((v - v[0]) / dk)
+    dk = float(np.polyfit(n, v, 1)[0]) if n[-1] > 0 else dk
+    o0 = float(v[0] / dk - math.floor(v[0] / dk + 0.5))  # offset of the first value, in [-0.5, 0.5)
+    r = v / dk - o0
+    dev = r - np.rint(r)  # every value's distance from the grid through the first one
+    if np.max(np.abs(dev)) > tol * 10:
+        return None
+    off = o0 + float(np.median(dev))
+    return dk, off - math.floor(off + 0.5)
+
+
+def _layout_points(u) -> int:
+    """Grid points of integer sample indices ``u``: ``2h + 1`` when symmetric (-h .. h), else the even
+    standard layout -N/2 .. N/2-1 (the larger side sets N, as for partial Fourier)."""
+    lo, hi = int(u.min()), int(u.max())
+    if -lo == hi:
+        return 2 * hi + 1
+    return 2 * max(-lo, hi + 1)
+
+
+def infer_cartesian_grid(k0_rad_per_m, adc_sizes) -> InferredGrid | None:
+    """The Cartesian grid of a 2D sequence from the nominal k of its ADC samples; None when the samples are
+    not on one (radial, spiral, 3D, or nothing varies).
+
+    Args:
+        k0_rad_per_m: (3, N_adc) nominal k at every ADC sample.
+        adc_sizes: samples per ADC event, in order (they sum to N_adc).
+    Rules: the readout axis is the one along which k varies within ADC events, the phase axis the one that
+    varies between them and is constant within each; each must sit on a common grid ``(i + offset) dk``.
+    The matrix is the even number of points the standard layout ``-N/2 .. N/2 - 1`` needs (the larger side
+    sets it for a partial-Fourier layout), or ``2h + 1`` for a layout symmetric about 0 (``-h .. h``).
+    Ramp-sampled readouts (non-uniform k along the readout) are not a grid: None.
+    """
+    import numpy as np
+
+    k = np.asarray(k0_rad_per_m, dtype=np.float64)
+    edges = np.cumsum([0, *adc_sizes])
+    if k.ndim != 2 or k.shape[0] != 3 or edges[-1] != k.shape[1] or k.shape[1] == 0:
+        return None
+    scale = max(float(np.abs(k).max()), 1e-12)
+    within = np.zeros(3)
+    between = np.zeros(3)
+    for a in range(3):
+        spreads = [np.ptp(k[a, s:e]) for s, e in zip(edges[:-1], edges[1:]) if e > s]
+        within[a] = max(spreads) if spreads else 0.0
+        means = [np.mean(k[a, s:e]) for s, e in zip(edges[:-1], edges[1:]) if e > s]
+        between[a] = np.ptp(means) if means else 0.0
+    varies = within > 1e-6 * scale
+    if varies.sum() != 1:
+        return None  # no readout, or k moves on two axes within one ADC (radial, spiral): not Cartesian
+    ro = int(np.argmax(varies))
+    pe_candidates = [a for a in range(3) if a != ro and between[a] > 1e-6 * scale]
+    if len(pe_candidates) > 1:
+        return None  # 3D or oblique encoding: not handled by the 2D grid
+    pe = pe_candidates[0] if pe_candidates else (1 if ro == 0 else 0)
+    out_n = [1, 1, 1]
+    fov = [0.0, 0.0, 0.0]
+    off = [0.0, 0.0, 0.0]
+    n_out = 0
+    for a in (ro, pe):
+        if a == pe and not pe_candidates:
+            g = None
+        else:
+            g = _grid_step(k[a])
+            if g is None:
+                return None
+        if g is None:  # a single line (e.g. a 1D readout): one phase point
+            continue
+        dk, o = g
+        # a half-step offset is +0.5 or -0.5 alike: take the one that gives the smaller standard grid
+        cands = [o] + ([o - math.copysign(1.0, o)] if abs(o) > 0.49 else [])
+        n, o = min((_layout_points(np.rint(k[a] / dk - c).astype(np.int64)), c) for c in cands)
+        out_n[a] = n
+        fov[a] = 2 * math.pi / dk
+        off[a] = float(o)
+    if fov[ro] == 0.0:
+        return None
+    if fov[pe] == 0.0:
+        fov[pe] = fov[ro] * out_n[pe] / out_n[ro]  # one line: a nominal FOV, the recon needs one
+    return InferredGrid(ro, pe, (out_n[ro], out_n[pe]), (fov[0], fov[1], fov[2]), (off[0], off[1], off[2]), n_out)

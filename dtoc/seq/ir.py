@@ -54,6 +54,18 @@ class RFEvent:
     use: str
     grad_at_center_mT_per_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
+    @property
+    def excites(self) -> bool:
+        """True for an excitation: ``use`` 'excitation', or 'undefined' -- pypulseq's and Pulseq MATLAB's
+        k-space calculation (``calculate_kspace`` / ``calcKspace``) treat an undefined use as an excitation
+        (docs/conventions.md); dtoc follows them and says so when it happens (``meta['rf_use_undefined']``)."""
+        return self.use in ("excitation", "undefined")
+
+    @property
+    def refocuses(self) -> bool:
+        """True for a refocusing pulse (``use`` 'refocusing'): k -> -k at its centre."""
+        return self.use == "refocusing"
+
 
 @dataclass(frozen=True)
 class ADCEvent:

@@ -72,7 +72,8 @@ def kspace_at(g_mT_per_m, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_use
         dt: sample spacing, s.
         t_s: (Q,) query times, s.
         rf_centres_s: times of the RF pulse centres (instantaneous rotations), s, ascending.
-        rf_uses: Pulseq ``use`` of each pulse ('excitation', 'refocusing', others ignored).
+        rf_uses: Pulseq ``use`` of each pulse: 'excitation' and 'undefined' reset k to 0 (as pypulseq and
+            Pulseq do), 'refocusing' negates it, others are ignored.
     Returns:
         (..., 3, Q) k in rad/m, differentiable w.r.t. the gradient.
     """
@@ -80,7 +81,8 @@ def kspace_at(g_mT_per_m, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_use
     t = np.asarray(t_s, dtype=np.float64)
     C = pwl_cumulative(g, dt)
     integ = pwl_integral_at(g, dt, t, cumulative=C)  # (..., 3, Q)
-    events = [(tc, u) for tc, u in zip(rf_centres_s, rf_uses) if u in ("excitation", "refocusing")]
+    # 'undefined' excites, as in pypulseq's calculate_kspace and Pulseq's calcKspace
+    events = [(tc, u) for tc, u in zip(rf_centres_s, rf_uses) if u in ("excitation", "undefined", "refocusing")]
     if not events:
         return GAMMA_RAD_PER_S_PER_MT * integ
     tc = np.array([e[0] for e in events], dtype=np.float64)
@@ -93,7 +95,7 @@ def kspace_at(g_mT_per_m, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_use
             k_before = GAMMA_RAD_PER_S_PER_MT * i_rf[..., 0]
         else:
             k_before = GAMMA_RAD_PER_S_PER_MT * (i_rf[..., j] - i_rf[..., j - 1]) + k_prev
-        k_prev = torch.zeros_like(k_before) if use == "excitation" else -k_before
+        k_prev = -k_before if use == "refocusing" else torch.zeros_like(k_before)
         k_after.append(k_prev)
     k_after_t = torch.stack(k_after, dim=-1)  # (..., 3, E)
     seg = np.searchsorted(tc, t, side="right") - 1  # -1: before first event

@@ -29,4 +29,55 @@ def load_sequence(path_or_spec, **kwargs) -> SequenceIR:
         return ir
     if p.suffix.lower() != ".seq" and p.exists():
         raise InputError(f"{p}: expected a .seq file or a spec .yaml")
-    return read_seq(p, **kwargs)
+    ir = read_seq(p, **kwargs)
+    infer_missing_geometry(ir)
+    return ir
+
+
+def infer_missing_geometry(ir: SequenceIR) -> None:
+    """For a file without FOV/matrix definitions (most pypulseq and Pulseq MATLAB files): read the Cartesian
+    grid off the nominal k of its ADC samples (:func:`dtoc.seq.geometry.infer_cartesian_grid`) and guess the
+    kind (several readouts per excitation with alternating polarity: EPI; one: GRE), each with a note.
+    Non-Cartesian files keep no geometry (k-space figures only)."""
+    if ir.fov_m is not None and ir.matrix is not None or not ir.adc:
+        return
+    from dtoc.seq.geometry import infer_cartesian_grid
+
+    g = infer_cartesian_grid(ir.nominal_kspace_rad_per_m(), [a.num_samples for a in ir.adc])
+    notes = ir.meta.setdefault("notes", [])
+    if g is None:
+        notes.append(
+            "no FOV/matrix definitions and the ADC samples are not on a 2D Cartesian grid (non-Cartesian, 3D or "
+            "ramp-sampled): k-space figures only, no image"
+        )
+        return
+    ir.fov_m = g.fov_m
+    ir.matrix = g.matrix_readout_phase
+    ir.readout_axis, ir.phase_axis = g.readout_axis, g.phase_axis
+    ir.meta["grid_inferred"] = True
+    ir.meta["grid_offset_dk"] = list(g.offset_dk)
+    notes.append(g.describe())
+    if ir.kind is None:
+        ir.kind = _guess_kind(ir)
+        if ir.kind is not None:
+            notes.append(f"kind guessed from the readout pattern: {ir.kind}")
+
+
+def _guess_kind(ir: SequenceIR) -> str | None:
+    """'epi' when an excitation is followed by several readouts of alternating readout polarity, 'gre' when
+    every excitation has one readout; None otherwise."""
+    import numpy as np
+
+    exc = sorted(r.t_center_s for r in ir.rf if r.excites)
+    if not exc:
+        return None
+    t_adc = np.array([a.t_start_s for a in ir.adc])
+    per = np.bincount(np.searchsorted(exc, t_adc, side="right"), minlength=len(exc) + 1)[1:]
+    if per.max() == 1:
+        return "gre"
+    ro = ir.readout_axis if ir.readout_axis is not None else 0
+    mid = np.array([a.t_start_s + 0.5 * a.num_samples * a.dwell_s for a in ir.adc])
+    sign = np.sign(np.interp(mid, ir.t_fine_s, ir.grad_mT_per_m[ro]))
+    if per.max() > 1 and np.mean(sign[1:] * sign[:-1] < 0) > 0.5:
+        return "epi"
+    return None

@@ -246,6 +246,13 @@ def from_pypulseq(
         ir, free_slice_axis=free_slice_axis, free_unused_axes=free_unused_axes, rf_guard=rf_guard
     )
     ir.meta["block_ids"] = [int(k) for k in keys]
+    n_undef = sum(r.use == "undefined" for r in rf_events)
+    if n_undef:
+        ir.meta["rf_use_undefined"] = n_undef
+        ir.meta.setdefault("notes", []).append(
+            f"{n_undef} RF pulse(s) have use 'undefined': taken as excitations (k = 0 after them, slice axis held), "
+            "as pypulseq's calculate_kspace and Pulseq's calcKspace do"
+        )
     if off_grid:
         ir.meta["off_grid_vertices"] = off_grid
     return ir
@@ -304,7 +311,7 @@ def slice_axes(ir: SequenceIR, tol_mT_per_m: float = 1e-6) -> list[int]:
     """Axes with a non-zero demanded gradient at the centre of any excitation pulse."""
     out = set()
     for r in ir.rf:
-        if r.use == "excitation":
+        if r.excites:
             for a in range(3):
                 if abs(r.grad_at_center_mT_per_m[a]) > tol_mT_per_m:
                     out.add(a)

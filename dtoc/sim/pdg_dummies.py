@@ -20,7 +20,7 @@ def detect_rf_spoiling(ir: SequenceIR) -> float:
     RF spoiling sets phi_j = phi_0 + c j (j + 1) / 2: the second difference of consecutive excitation
     phases is the constant c (e.g. 117 deg).
     """
-    p = np.array([r.phase_rad for r in sorted(ir.rf, key=lambda r: r.t_center_s) if r.use == "excitation"])
+    p = np.array([r.phase_rad for r in sorted(ir.rf, key=lambda r: r.t_center_s) if r.excites])
     if p.size < 3:
         return 0.0
     d2 = np.angle(np.exp(1j * (p[2:] - 2 * p[1:-1] + p[:-2])))
@@ -48,7 +48,7 @@ def _dummy_train(ir: SequenceIR, n: int, block_range, rf_spoil_rad: float = 0.0)
             raise InputError(f"steady_state_mz: block_range {block_range} outside 0..{nb}")
         reps = [(b0, b1)]
     else:
-        exc = sorted({r.block for r in ir.rf if r.use == "excitation"} or {r.block for r in ir.rf})
+        exc = sorted({r.block for r in ir.rf if r.excites} or {r.block for r in ir.rf})
         if not exc:
             raise InputError("steady_state_mz: the sequence has no RF pulse")
         reps = [(exc[i], exc[i + 1] if i + 1 < len(exc) else nb) for i in range(len(exc))]

@@ -98,6 +98,9 @@ def cartesian_grid(
         raise InputError(f"keep_mask has {keep.size} entries, expected one per ADC sample ({n_adc})")
     dk = 2 * np.pi / np.asarray(fov)
     u = k0[:2] / dk[:, None]  # (2, N_adc) in grid units
+    offset = (getattr(ir, "meta", None) or {}).get("grid_offset_dk")
+    if offset is not None:  # an inferred grid whose samples sit between its points (e.g. half a step)
+        u = u - np.asarray(offset[:2], dtype=np.float64)[:, None]
     r = np.rint(u)
     off = np.abs(u - r)
     max_off = float(off[:, keep].max()) if keep.any() else 0.0
