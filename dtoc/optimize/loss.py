@@ -72,10 +72,13 @@ def build_context(ir, limits, dtype=torch.float64, device="cpu") -> LossContext:
     k0 = torch.as_tensor(ir.nominal_kspace_rad_per_m(), dtype=dtype, device=device)
     dk = ir.dk_rad_per_m
     if dk is None:
-        # without a FOV use the spread of the target k-space / matrix as the step
-        span = np.ptp(ir.nominal_kspace_rad_per_m(), axis=1)
-        n = max(ir.matrix or (64,))
-        dk = np.where(span > 0, span / max(n - 1, 1), np.inf)
+        # no grid (radial, spiral, ...): the readouts' sampling step on every axis the samples move along
+        from dtoc.seq.geometry import sampling_step_dk
+
+        k0n = ir.nominal_kspace_rad_per_m()
+        step = sampling_step_dk(k0n, [a.num_samples for a in ir.adc]) or 1.0
+        span = np.ptp(k0n, axis=1)
+        dk = np.where(span > 1e-6 * max(float(span.max()), 1e-300), step, np.inf)  # axes the samples move along
     dk_t = torch.as_tensor(np.asarray(dk, dtype=np.float64), dtype=dtype, device=device)
     g0 = torch.as_tensor(ir.grad_mT_per_m, dtype=dtype, device=device)
     gref = float(np.abs(ir.grad_mT_per_m).max()) or 1.0

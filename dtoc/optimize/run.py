@@ -335,7 +335,9 @@ def optimize_sequence(
     twin = EdgeTwin(ir, hardware, projector, dtype=dtype, device=device)
     ctx = L.build_context(ir, limits, dtype=dtype, device=device)
     if with_image is None:
-        with_image = True
+        with_image = ir.geometry is not None  # no grid (non-Cartesian): the k-space term alone
+    if not with_image:
+        cfg = cfg.model_copy(update={"weights": cfg.weights.model_copy(update={"image": 0.0})})
     imager = None
     if with_image:
         phantoms = make_phantoms(ir, cfg, phantom)
@@ -464,6 +466,9 @@ def optimize_sequence(
                 "n_free_variables": int(free.sum()),
                 "duration_s": ir.duration_s,
                 "notes": list(ir.meta.get("notes", [])),
+                "image_term": with_image,
+                "dk_rad_per_m": [float(x) for x in ctx.dk_rad_per_m.cpu().numpy()],
+                "dk_source": "grid (2 pi / FOV)" if ir.dk_rad_per_m is not None else "sampling step of the readouts",
             },
             "versions": _versions(),
             "device": str(device),

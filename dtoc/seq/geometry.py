@@ -231,3 +231,19 @@ def infer_cartesian_grid(k0_rad_per_m, adc_sizes) -> InferredGrid | None:
     if fov[pe] == 0.0:
         fov[pe] = fov[ro] * out_n[pe] / out_n[ro]  # one line: a nominal FOV, the recon needs one
     return InferredGrid(ro, pe, (out_n[ro], out_n[pe]), (fov[0], fov[1], fov[2]), (off[0], off[1], off[2]), n_out)
+
+
+def sampling_step_dk(k0_rad_per_m, adc_sizes) -> float | None:
+    """The k-space unit of a sequence without a grid (radial, spiral, ...): the readouts' sampling step, rad/m --
+    the median over ADC events of the largest distance between consecutive samples (2 pi / FOV for radial
+    and Cartesian readouts; for a spiral the step along the path at peak gradient).  None without readouts."""
+    import numpy as np
+
+    k = np.asarray(k0_rad_per_m, dtype=np.float64)
+    edges = np.cumsum([0, *adc_sizes])
+    steps = []
+    for s, e in zip(edges[:-1], edges[1:]):
+        if e - s >= 2:
+            steps.append(float(np.max(np.linalg.norm(np.diff(k[:, s:e], axis=1), axis=0))))
+    steps = [x for x in steps if x > 0]
+    return float(np.median(steps)) if steps else None

@@ -50,6 +50,7 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
             "no FOV/matrix definitions and the ADC samples are not on a 2D Cartesian grid (non-Cartesian, 3D or "
             "ramp-sampled): k-space figures only, no image"
         )
+        _note_kind(ir, notes)
         return
     ir.fov_m = g.fov_m
     ir.matrix = g.matrix_readout_phase
@@ -57,6 +58,10 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
     ir.meta["grid_inferred"] = True
     ir.meta["grid_offset_dk"] = list(g.offset_dk)
     notes.append(g.describe())
+    _note_kind(ir, notes)
+
+
+def _note_kind(ir: SequenceIR, notes: list) -> None:
     if ir.kind is None:
         ir.kind = _guess_kind(ir)
         if ir.kind is not None:

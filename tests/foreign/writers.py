@@ -126,3 +126,107 @@ def epi(n: int = 32, fov: float = 0.22, slice_thickness: float = 3e-3) -> bytes:
         gx = pp.scale_grad(gx, -1)
     seq.add_block(pp.make_delay(1e-3))
     return _bytes(seq)
+
+
+def radial(n: int = 64, spokes: int = 32, fov: float = 0.22, tr: float = 8e-3) -> bytes:
+    """2D radial GRE: ``spokes`` full diameters over 180 deg, ``n`` samples each, golden-free uniform angles."""
+    import pypulseq as pp
+
+    sys = _system(pp)
+    seq = pp.Sequence(sys)
+    rf, gz, gzr = pp.make_sinc_pulse(
+        flip_angle=math.radians(10),
+        duration=1.5e-3,
+        slice_thickness=5e-3,
+        apodization=0.5,
+        time_bw_product=4,
+        system=sys,
+        return_gz=True,
+        delay=sys.rf_dead_time,
+    )
+    dk = 1 / fov
+    g_ro = pp.make_trapezoid("x", flat_area=n * dk, flat_time=2.56e-3, system=sys)
+    adc = pp.make_adc(n, duration=g_ro.flat_time, delay=g_ro.rise_time, system=sys)
+    g_pre = pp.make_trapezoid("x", area=-g_ro.area / 2, duration=1e-3, system=sys)
+    g_sp = pp.make_trapezoid("x", area=2 * n * dk, system=sys)
+    fill = tr - pp.calc_duration(gz) - pp.calc_duration(g_pre, gzr) - pp.calc_duration(g_ro) - pp.calc_duration(g_sp)
+    fill = math.ceil(fill / sys.grad_raster_time) * sys.grad_raster_time
+    for i in range(spokes):
+        phi = math.pi * i / spokes
+        seq.add_block(rf, gz)
+        seq.add_block(*pp.rotate(g_pre, angle=phi, axis="z"), gzr)
+        seq.add_block(*pp.rotate(g_ro, adc, angle=phi, axis="z"))
+        seq.add_block(*pp.rotate(g_sp, angle=phi, axis="z"))
+        seq.add_block(pp.make_delay(fill))
+    return _bytes(seq)
+
+
+def spiral(interleaves: int = 1, fov: float = 0.22, n: int = 48, tr: float = 30e-3) -> bytes:
+    """2D constant-density Archimedean spiral out (``interleaves`` shots), arbitrary gradients, 4 us ADC dwell,
+    rewound to zero at the end of each shot. The waveform is built on the 10 us raster within 30 mT/m and
+    120 T/m/s by a simple slew-limited integration (not optimal; users bring far better ones)."""
+    import pypulseq as pp
+
+    sys = _system(pp)
+    seq = pp.Sequence(sys)
+    rf, gz, gzr = pp.make_sinc_pulse(
+        flip_angle=math.radians(20),
+        duration=1.5e-3,
+        slice_thickness=5e-3,
+        apodization=0.5,
+        time_bw_product=4,
+        system=sys,
+        return_gz=True,
+        delay=sys.rf_dead_time,
+    )
+    dt = sys.grad_raster_time
+    kmax = n / (2 * fov)  # 1/m
+    turns = n / (2 * interleaves)
+    gam = sys.gamma  # Hz/T
+    gmax, smax = 30e-3 * gam, 120 * gam  # Hz/m, Hz/m/s
+    # k(theta) = kmax theta / (2 pi turns); advance theta as fast as gmax and smax allow
+    th, kx, ky = 0.0, [0.0], [0.0]
+    g_prev = np.zeros(2)
+    while th < 2 * math.pi * turns:
+        r = kmax * th / (2 * math.pi * turns)
+        dr = kmax / (2 * math.pi * turns)
+        speed = math.hypot(dr, r)  # |dk/dtheta|
+        w = min(gmax / max(speed, 1e-9), math.sqrt(smax / max(speed, 1e-9) / max(th, 1.0)) * 0.95)
+        th_new = th + w * dt
+        r_new = kmax * th_new / (2 * math.pi * turns)
+        k_new = np.array([r_new * math.cos(th_new), r_new * math.sin(th_new)])
+        g = (k_new - np.array([kx[-1], ky[-1]])) / dt
+        if np.linalg.norm(g - g_prev) > smax * dt:  # keep the slew: shorter step
+            w *= 0.5
+            th_new = th + w * dt
+            r_new = kmax * th_new / (2 * math.pi * turns)
+            k_new = np.array([r_new * math.cos(th_new), r_new * math.sin(th_new)])
+            g = (k_new - np.array([kx[-1], ky[-1]])) / dt
+        kx.append(k_new[0])
+        ky.append(k_new[1])
+        g_prev = g
+        th = th_new
+    gx = np.diff(kx) / dt
+    gy = np.diff(ky) / dt
+    # ramp down to zero within the slew limit
+    while abs(gx[-1]) > 0 or abs(gy[-1]) > 0:
+        step = smax * dt * 0.9
+        gx = np.append(gx, np.sign(gx[-1]) * max(abs(gx[-1]) - step, 0.0))
+        gy = np.append(gy, np.sign(gy[-1]) * max(abs(gy[-1]) - step, 0.0))
+    gx = np.concatenate([[0.0], gx, [0.0]])
+    gy = np.concatenate([[0.0], gy, [0.0]])
+    n_adc = int((len(gx) * dt - 2 * sys.adc_dead_time) / 4e-6) // 4 * 4
+    for shot in range(interleaves):
+        phi = 2 * math.pi * shot / interleaves
+        c, s = math.cos(phi), math.sin(phi)
+        gxs = pp.make_arbitrary_grad("x", c * gx - s * gy, system=sys, first=0, last=0)
+        gys = pp.make_arbitrary_grad("y", s * gx + c * gy, system=sys, first=0, last=0)
+        adc = pp.make_adc(n_adc, dwell=4e-6, delay=sys.adc_dead_time, system=sys)
+        seq.add_block(rf, gz)
+        seq.add_block(gzr)
+        seq.add_block(gxs, gys, adc)
+        spoil = pp.make_trapezoid("z", area=4 / 5e-3, system=sys)
+        seq.add_block(spoil)
+        fill = tr - seq.duration()[0] + shot * tr
+        seq.add_block(pp.make_delay(max(math.ceil(fill / dt) * dt, dt)))
+    return _bytes(seq)
