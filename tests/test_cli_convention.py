@@ -123,11 +123,11 @@ def test_interrupt_at_each_stage(tmp_path, stage, sig, code):
     if stage == "setup":  # nothing to keep yet: nothing written
         assert files == [] and "no output written" in last
     elif stage == "export":  # the signal waits for the outputs, which are complete and not marked
-        assert files == ["o.json", "o.seq"] and "outputs were complete" in last
+        assert files == ["o.json", "o.seq", "o.traj.npz"] and "outputs were complete" in last
         assert json.loads(man.read_text())["interrupted"] is False
         assert b"DtocInterrupted" not in out.read_bytes()
     else:  # best-so-far, marked in the .seq and the manifest, with a checkpoint to resume from
-        assert files == ["o.json", "o.seq", "o.seq.ckpt.npz"]
+        assert files == ["o.json", "o.seq", "o.seq.ckpt.npz", "o.traj.npz"]
         m = json.loads(man.read_text())
         assert m["interrupted"] is True and m["checkpoint"].endswith("o.seq.ckpt.npz")
         assert b"DtocInterrupted 1" in out.read_bytes()

@@ -23,6 +23,12 @@ def optimize_cmd(
     force: bool = typer.Option(False, "--force", help="overwrite existing outputs"),
     resume: Path | None = typer.Option(None, "--resume", help="continue from a checkpoint .npz"),
     checkpoint: Path | None = typer.Option(None, "--checkpoint", help="save checkpoints here while running"),
+    trajectory: Path | None = typer.Option(
+        None,
+        "--trajectory",
+        help="realized-trajectory side-car (.npz, docs/contracts.md §5; default: beside -o as <name>.traj.npz)",
+    ),
+    no_trajectory: bool = typer.Option(False, "--no-trajectory", help="do not write the side-car"),
     method: str | None = typer.Option(None, "--method", help="dto | adam-paper | warmstart | preemphasis"),
     gmax: float | None = typer.Option(None, "--gmax", help="gradient limit per axis, mT/m (default: the sequence's)"),
     smax: float | None = typer.Option(None, "--smax", help="slew limit per axis, T/m/s (default: the sequence's)"),
@@ -58,7 +64,11 @@ def optimize_cmd(
     from dtoc.sim.comparison import check_device
 
     check_device(device)
-    check_run_paths(base, out, json_out, png, force, girf, model, config, resume, checkpoint)
+    if trajectory is None and not no_trajectory:
+        trajectory = out.with_name(out.stem + ".traj.npz")
+    if no_trajectory:
+        trajectory = None
+    check_run_paths(base, out, json_out, png, force, girf, model, config, resume, checkpoint, trajectory)
     require_hardware(girf, model, ideal)
     if not base.exists():
         raise InputError(f"{base}: base sequence not found")
@@ -101,6 +111,7 @@ def optimize_cmd(
             progress=progress,
             base_path=base,
             ideal=ideal,
+            trajectory_path=trajectory,
         ),
     )
     m = res.manifest
@@ -176,6 +187,13 @@ def _print_summary(m: dict, con) -> None:
         f"gmax {lim['gmax_mT_per_m']:g} mT/m ({src.get('gmax_mT_per_m', '?')}), "
         f"smax {lim['smax_T_per_m_per_s']:g} T/m/s ({src.get('smax_T_per_m_per_s', '?')})"
     )
+    tr = m.get("trajectory")
+    if tr:
+        nd = tr["n_discarded"]
+        note(
+            f"wrote {tr['path']}: predicted realized k and B0 phase of {tr['n_samples']} ADC samples"
+            + (f" ({nd} discarded, flagged there)" if nd else "")
+        )
 
 
 def register(app: typer.Typer) -> None:

@@ -162,6 +162,7 @@ def quality(twin: EdgeTwin, imager: Imager | None, ctx, edges, keep_mask=None, p
         out["_k"] = k.cpu().numpy()
         out["_G"] = G.cpu().numpy()
         out["_g"] = g.cpu().numpy()
+        out["_b0"] = None if b0 is None else b0.cpu().numpy()
     return out
 
 
@@ -216,12 +217,14 @@ def require_hardware(girf, model, ideal: bool) -> None:
         raise InputError("no hardware model: give --girf or --model, or --ideal to optimize for ideal hardware")
 
 
-def check_run_paths(base, out, manifest_path, png_path, force, girf, model, config_path, resume, checkpoint) -> None:
+def check_run_paths(
+    base, out, manifest_path, png_path, force, girf, model, config_path, resume, checkpoint, trajectory=None
+) -> None:
     """Refuse, before any work, outputs that exist (without ``force``), coincide, or resolve to an input (any
     ``force``); the checkpoint may be the file resumed from, never the base, a model or another output."""
     inputs = {"BASE": base, "--girf": girf, "--model": model, "--config": config_path}
     check_outputs(
-        {"-o": out, "--json": manifest_path, "--png": png_path},
+        {"-o": out, "--json": manifest_path, "--png": png_path, "--trajectory": trajectory},
         {**inputs, "--resume": resume, "--checkpoint": checkpoint},
         force,
     )
@@ -270,6 +273,7 @@ def optimize_sequence(
     with_image: bool | None = None,
     base_path=None,
     ideal: bool = False,
+    trajectory_path=None,
 ) -> RunOutputs:
     """Run `dtoc optimize` (see the module doc).
 
@@ -285,6 +289,7 @@ def optimize_sequence(
             None = the built-in head 'brain'.
         with_image: simulate images (default: when the image weight is > 0 or for reporting).
         ideal: optimize for ideal hardware (required when neither ``girf``, ``model`` nor ``hardware`` is given).
+        trajectory_path: write the realized-trajectory side-car here (:mod:`dtoc.optimize.sidecar`; None: not written).
     Returns:
         :class:`RunOutputs` (manifest dict, output IR, arrays for plots).
     """
@@ -303,6 +308,7 @@ def optimize_sequence(
         config_path,
         resume,
         checkpoint_path,
+        trajectory_path,
     )
     if isinstance(base, (str, os.PathLike)):
         bp = Path(base)
@@ -489,9 +495,31 @@ def optimize_sequence(
             **extra,
         }
         figures = {"before": before, "after": after, "keep": keep, "ir": ir, "imager": imager, "history": state.history}
-        with outputs_together():  # the .seq, the manifest and the PNG appear together, or none of them
+        with outputs_together():  # the .seq, manifest, PNG and side-car appear together, or none of them
+            if trajectory_path is not None:
+                manifest["trajectory"] = _write_sidecar(trajectory_path, ir, after, keep, ctx, girf or model, force)
             _write_outputs(ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start)
     return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)
+
+
+def _write_sidecar(path, ir, after: dict, keep, ctx, model_file, force: bool) -> dict:
+    """The realized-trajectory side-car (:mod:`dtoc.optimize.sidecar`); its manifest record."""
+    from dtoc.hardware.npzio import npz_bytes
+    from dtoc.optimize.sidecar import sidecar_arrays
+    from dtoc.sim.predict import b0_phase_at_adc_rad
+
+    b0 = after.get("_b0")
+    phase = np.zeros(ir.n_adc_samples) if b0 is None else b0_phase_at_adc_rad(ir, b0)
+    sha = sha256_file(model_file) if isinstance(model_file, (str, os.PathLike)) else None
+    arrays = sidecar_arrays(ir, after["_k"], phase, keep, ctx.dk_rad_per_m.cpu().numpy(), sha)
+    data = npz_bytes(arrays)
+    atomic_write_bytes(path, data, force=force)
+    return {
+        "path": str(path),
+        "sha256": sha256_bytes(data),
+        "n_samples": int(ir.n_adc_samples),
+        "n_discarded": int(arrays["discarded"].sum()),
+    }
 
 
 def _write_outputs(ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start) -> None:

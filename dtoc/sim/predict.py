@@ -73,11 +73,7 @@ def predict(ir: SequenceIR, model: HardwareModel, device: str = "cpu") -> dict[s
             if dk is not None and np.isfinite(dk[a]):
                 row.update(max_dk=mx / dk[a], rms_dk=rms / dk[a])
             out["k_error"][name] = row
-        # B0 phase: integrate b0 like a gradient channel (same excitation/refocusing bookkeeping)
-        b3 = np.zeros_like(G)
-        b3[0] = b0
-        kb = ir.kspace_rad_per_m(b3).numpy()[0]  # gamma_mT * integral(b0 [uT]) -> scale to rad
-        phi = -kb * 1e-3  # uT = 1e-3 mT
+        phi = b0_phase_at_adc_rad(ir, b0)
         out["b0_phase_max_rad"] = float(np.max(np.abs(phi)))
         out["epi"] = _epi_offsets(ir, k, k0)
     else:
@@ -145,6 +141,16 @@ def zoom_window_ms(ir: SequenceIR) -> tuple[float, float]:
             hi = a.t_start_s + a.num_samples * a.dwell_s + 1.0e-3
         return max(lo, 0.0) * 1e3, min(hi, ir.duration_s) * 1e3
     return 0.0, min(ir.duration_s, 2e-3) * 1e3
+
+
+def b0_phase_at_adc_rad(ir: SequenceIR, b0_uT) -> np.ndarray:
+    """(N_adc,) phase accrued by a spatially uniform field offset ``b0_uT`` ((M,) on the fine grid) at every
+    ADC sample, rad, integrated like a gradient channel (the same excitation/refocusing bookkeeping as k)."""
+    b0 = np.asarray(b0_uT, dtype=np.float64)
+    b3 = np.zeros((3, b0.size))
+    b3[0] = b0
+    kb = ir.kspace_rad_per_m(b3).numpy()[0]  # gamma_mT * integral(b0 [uT]) -> scale to rad
+    return -kb * 1e-3  # uT = 1e-3 mT
 
 
 def plot_prediction(ir: SequenceIR, res: dict[str, Any], path, title: str = "", force: bool = False):
