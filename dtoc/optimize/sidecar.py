@@ -27,8 +27,9 @@ def sidecar_arrays(
         model_sha256: sha256 of the hardware model file the prediction used (None: in-memory or ideal).
     """
     n = ir.n_adc_samples
-    event = np.concatenate([np.full(a.num_samples, i, dtype=np.int32) for i, a in enumerate(ir.adc)] or [[]])
-    sample = np.concatenate([np.arange(a.num_samples, dtype=np.int32) for a in ir.adc] or [[]])
+    empty = np.zeros(0, dtype=np.int32)
+    event = np.concatenate([empty] + [np.full(a.num_samples, i, dtype=np.int32) for i, a in enumerate(ir.adc)])
+    sample = np.concatenate([empty] + [np.arange(a.num_samples, dtype=np.int32) for a in ir.adc])
     keep = np.ones(n, dtype=bool) if keep_mask is None else np.asarray(keep_mask, dtype=bool)
     return {
         "version": np.array(SIDECAR_VERSION, dtype=np.int32),

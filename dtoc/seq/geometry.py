@@ -136,10 +136,14 @@ def _grid_step(values, tol: float = 1e-3) -> tuple[float, float] | None:
     """(dk, offset) when sorted distinct ``values`` sit on a common grid ``(i + offset) dk``; None otherwise."""
     import numpy as np
 
-    v = np.unique(np.round(np.asarray(values, dtype=np.float64), 9))
+    x = np.sort(np.asarray(values, dtype=np.float64))
+    span = float(x[-1] - x[0]) if x.size else 0.0
+    if span <= 0:
+        return None
+    # merge values closer than 1e-5 of the span (amplitudes rounded to 6 digits by the writers)
+    v = x[np.concatenate([[True], np.diff(x) > 1e-5 * span])]
     if v.size < 2:
         return None
-    span = float(v[-1] - v[0])
     d = np.diff(v)
     d = d[d > 1e-9 * max(span, 1e-300)]
     if d.size == 0:
@@ -198,11 +202,11 @@ def infer_cartesian_grid(k0_rad_per_m, adc_sizes) -> InferredGrid | None:
         within[a] = max(spreads) if spreads else 0.0
         means = [np.mean(k[a, s:e]) for s, e in zip(edges[:-1], edges[1:]) if e > s]
         between[a] = np.ptp(means) if means else 0.0
-    varies = within > 1e-6 * scale
+    varies = within > 1e-4 * scale
     if varies.sum() != 1:
         return None  # no readout, or k moves on two axes within one ADC (radial, spiral): not Cartesian
     ro = int(np.argmax(varies))
-    pe_candidates = [a for a in range(3) if a != ro and between[a] > 1e-6 * scale]
+    pe_candidates = [a for a in range(3) if a != ro and between[a] > 1e-4 * scale]
     if len(pe_candidates) > 1:
         return None  # 3D or oblique encoding: not handled by the 2D grid
     pe = pe_candidates[0] if pe_candidates else (1 if ro == 0 else 0)
@@ -227,6 +231,13 @@ def infer_cartesian_grid(k0_rad_per_m, adc_sizes) -> InferredGrid | None:
         fov[a] = 2 * math.pi / dk
         off[a] = float(o)
     if fov[ro] == 0.0:
+        return None
+    # the readout's own sampling step must be the grid step: lines whose samples sit at different offsets
+    # (an ADC not centred on alternating readouts) only form a finer grid that half the points never fill
+    step = float(
+        np.median([np.median(np.abs(np.diff(k[ro, s:e]))) for s, e in zip(edges[:-1], edges[1:]) if e - s > 1])
+    )
+    if step > 1.1 * 2 * math.pi / fov[ro]:
         return None
     if fov[pe] == 0.0:
         fov[pe] = fov[ro] * out_n[pe] / out_n[ro]  # one line: a nominal FOV, the recon needs one

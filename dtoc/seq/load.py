@@ -50,6 +50,7 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
             "no FOV/matrix definitions and the ADC samples are not on a 2D Cartesian grid (non-Cartesian, 3D or "
             "ramp-sampled): k-space figures only, no image"
         )
+        _free_encoded_slice_axes(ir, notes)
         _note_kind(ir, notes)
         return
     ir.fov_m = g.fov_m
@@ -59,6 +60,22 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
     ir.meta["grid_offset_dk"] = list(g.offset_dk)
     notes.append(g.describe())
     _note_kind(ir, notes)
+
+
+def _free_encoded_slice_axes(ir: SequenceIR, notes: list) -> None:
+    """A slab-selective 3D sequence encodes k along its slab axis: that axis must be optimized too (outside RF)."""
+    import numpy as np
+
+    from dtoc.seq.read import default_free_mask, slice_axes
+
+    k = ir.nominal_kspace_rad_per_m()
+    scale = max(float(np.abs(k).max()), 1e-12)
+    enc = [a for a in slice_axes(ir) if np.ptp(k[a]) > 1e-4 * scale]
+    if enc:
+        ir.free_mask = default_free_mask(ir, free_slice_axis=True)
+        notes.append(
+            f"k is encoded along the slice-select axis {','.join('xyz'[a] for a in enc)} (3D): optimized outside RF"
+        )
 
 
 def _note_kind(ir: SequenceIR, notes: list) -> None:

@@ -169,9 +169,12 @@ def from_pypulseq(
     adc_events: list[ADCEvent] = []
     off_grid: list[str] = []
     rf_blocks: list[int] = []
+    soft: list[int] = []  # blocks holding a soft delay (their duration is set on the scanner)
     for b, key in enumerate(keys):
         with quiet():
             blk = seq.get_block(key)
+        if getattr(blk, "soft_delay", None) is not None:
+            soft.append(b)
         t0 = edges[b]
         m0, m1 = 2 * int(edge_idx[b]), 2 * int(edge_idx[b + 1])
         for a, ch in enumerate(("gx", "gy", "gz")):
@@ -242,6 +245,8 @@ def from_pypulseq(
         source_grad_mT_per_m=np.array(g, dtype=np.float64),
     )
     _apply_metadata(ir)
+    if soft:
+        ir.meta["soft_delay_blocks"] = soft
     ir.free_mask = default_free_mask(
         ir, free_slice_axis=free_slice_axis, free_unused_axes=free_unused_axes, rf_guard=rf_guard
     )
@@ -334,6 +339,10 @@ def default_free_mask(
             lo_t, hi_t = r.t_start_s, r.t_start_s + r.duration_s
         lo = int(np.floor(lo_t / dtf + 1e-6))
         hi = int(np.ceil(hi_t / dtf - 1e-6))
+        mask[:, max(lo, 0) : min(hi, n - 1) + 1] = False
+    for b in ir.meta.get("soft_delay_blocks", []):  # its duration changes on the scanner: no gradient may live there
+        lo = int(np.floor(ir.block_edges_s[b] / dtf + 1e-6))
+        hi = int(np.ceil(ir.block_edges_s[b + 1] / dtf - 1e-6))
         mask[:, max(lo, 0) : min(hi, n - 1) + 1] = False
     if not free_slice_axis:
         for a in slice_axes(ir):

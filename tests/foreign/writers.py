@@ -19,7 +19,7 @@ def _system(pp):
         grad_unit="mT/m",
         max_slew=130,
         slew_unit="T/m/s",
-        rf_ringdown_time=20e-6,
+        rf_ringdown_time=30e-6,
         rf_dead_time=100e-6,
         adc_dead_time=10e-6,
     )
@@ -229,4 +229,200 @@ def spiral(interleaves: int = 1, fov: float = 0.22, n: int = 48, tr: float = 30e
         seq.add_block(spoil)
         fill = tr - seq.duration()[0] + shot * tr
         seq.add_block(pp.make_delay(max(math.ceil(fill / dt) * dt, dt)))
+    return _bytes(seq)
+
+
+def _sinc(pp, sys, flip_deg, thickness, duration=2e-3, use=None, phase_deg=0.0):
+    kw = {} if use is None else {"use": use}
+    return pp.make_sinc_pulse(
+        flip_angle=math.radians(flip_deg),
+        duration=duration,
+        slice_thickness=thickness,
+        apodization=0.5,
+        time_bw_product=4,
+        system=sys,
+        return_gz=True,
+        delay=sys.rf_dead_time,
+        phase_offset=math.radians(phase_deg),
+        **kw,
+    )
+
+
+def _fill(pp, sys, t):
+    return pp.make_delay(max(math.ceil(t / sys.block_duration_raster) * sys.block_duration_raster, 10e-6))
+
+
+def se_epi(n: int = 32, fov: float = 0.22, te: float = 60e-3, ramp_sampling: bool = False) -> bytes:
+    """Spin-echo EPI: 90 (use undefined) - 180 (use 'refocusing', as users set it) with crushers, then a
+    blipped EPI readout; ``ramp_sampling``: the ADC also runs on the ramps (non-uniform k along x)."""
+    import pypulseq as pp
+
+    sys = _system(pp)
+    seq = pp.Sequence(sys)
+    thk = 4e-3
+    rf, gz, gzr = _sinc(pp, sys, 90, thk, 3e-3)
+    rf180, gz180, _ = _sinc(pp, sys, 180, thk, 3e-3, use="refocusing", phase_deg=90)
+    crush = pp.make_trapezoid("z", area=4 / thk, duration=1.5e-3, system=sys)
+    dk = 1 / fov
+    if ramp_sampling:
+        gx = pp.make_trapezoid("x", area=n * dk, system=sys)  # triangle-ish: sample everything
+        dur = pp.calc_duration(gx)
+        dwell = math.floor((dur - 2 * sys.adc_dead_time) / n / 1e-7) * 1e-7
+        adc = pp.make_adc(n, dwell=dwell, delay=math.floor((dur - n * dwell) / 2 / 1e-6) * 1e-6, system=sys)
+        # the k-space the samples reach: symmetric by construction, not uniform in k
+    else:
+        flat = math.ceil((n * 4e-6 + 10e-6) / 20e-6) * 20e-6  # ADC centred on the flat top, on the 1 us raster
+        gx = pp.make_trapezoid("x", flat_area=n * dk, flat_time=flat, system=sys)
+        adc = pp.make_adc(n, duration=n * 4e-6, delay=gx.rise_time + (flat - n * 4e-6) / 2, system=sys)
+    blip = pp.make_trapezoid("y", area=dk, system=sys)
+    gxpre = pp.make_trapezoid("x", area=gx.area / 2, system=sys)  # + before the 180: the 180 negates it
+    gypre = pp.make_trapezoid("y", area=(n / 2) * dk, system=sys)
+    seq.add_block(rf, gz)
+    seq.add_block(gzr)
+    seq.add_block(gxpre, gypre)
+    t_echo_train = n * (pp.calc_duration(gx) + pp.calc_duration(blip))
+    t_pre = pp.calc_duration(gz) / 2 + pp.calc_duration(gzr) + pp.calc_duration(gxpre, gypre)
+    d1 = te / 2 - t_pre - pp.calc_duration(crush) - pp.calc_duration(gz180) / 2
+    seq.add_block(_fill(pp, sys, d1))
+    seq.add_block(crush)
+    seq.add_block(rf180, gz180)
+    seq.add_block(crush)
+    d2 = te / 2 - pp.calc_duration(gz180) / 2 - pp.calc_duration(crush) - t_echo_train / 2
+    seq.add_block(_fill(pp, sys, d2))
+    for i in range(n):
+        seq.add_block(gx, adc)
+        if i < n - 1:
+            seq.add_block(blip)
+        gx = pp.scale_grad(gx, -1)
+    seq.add_block(pp.make_delay(1e-3))
+    return _bytes(seq)
+
+
+def tse(n: int = 32, etl: int = 8, fov: float = 0.22, esp: float = 10e-3, single_shot: bool = False) -> bytes:
+    """Turbo spin echo (CPMG: 90x, 180y trains with use 'refocusing'), linear phase order, ``etl`` echoes per
+    shot; ``single_shot``: a HASTE-like single shot of n/2 + 4 echoes (half Fourier)."""
+    import pypulseq as pp
+
+    sys = _system(pp)
+    seq = pp.Sequence(sys)
+    thk = 5e-3
+    rf, gz, gzr = _sinc(pp, sys, 90, thk, 2e-3)
+    rf180, gz180, _ = _sinc(pp, sys, 180, thk, 2e-3, use="refocusing", phase_deg=90)
+    dk = 1 / fov
+    gx = pp.make_trapezoid("x", flat_area=n * dk, flat_time=2.56e-3, system=sys)
+    adc = pp.make_adc(n, duration=gx.flat_time, delay=gx.rise_time, system=sys)
+    gxpre = pp.make_trapezoid("x", area=gx.area / 2, duration=1e-3, system=sys)
+    crush = pp.make_trapezoid("z", area=2 / thk, duration=0.8e-3, system=sys)
+    lines = np.arange(n) - n // 2
+    if single_shot:
+        lines = np.arange(-4, n // 2)
+        shots = [lines]
+    else:
+        shots = [lines[s :: n // etl] for s in range(n // etl)]
+    for shot in shots:
+        seq.add_block(rf, gz)
+        seq.add_block(gxpre, gzr)
+        seq.add_block(
+            _fill(
+                pp,
+                sys,
+                esp / 2
+                - pp.calc_duration(gz) / 2
+                - pp.calc_duration(gxpre, gzr)
+                - pp.calc_duration(gz180) / 2
+                - pp.calc_duration(crush),
+            )
+        )
+        for j in shot:
+            gy = pp.make_trapezoid("y", area=j * dk, duration=0.8e-3, system=sys)
+            gyr = pp.make_trapezoid("y", area=-j * dk, duration=0.8e-3, system=sys)
+            seq.add_block(crush)
+            seq.add_block(rf180, gz180)
+            seq.add_block(crush)
+            seq.add_block(gy)
+            fill = (esp - pp.calc_duration(gz180) - 2 * pp.calc_duration(crush) - 2 * 0.8e-3 - pp.calc_duration(gx)) / 2
+            seq.add_block(_fill(pp, sys, fill))
+            seq.add_block(gx, adc)
+            seq.add_block(_fill(pp, sys, fill))
+            seq.add_block(gyr)
+        seq.add_block(pp.make_delay(20e-3))
+    return _bytes(seq)
+
+
+def ute(spokes: int = 32, n: int = 64, fov: float = 0.22) -> bytes:
+    """2D UTE-like: a short hard pulse, then centre-out half spokes read from the start of the ramp
+    (the ADC starts with the gradient: ramp samples, non-Cartesian)."""
+    import pypulseq as pp
+
+    sys = _system(pp)
+    seq = pp.Sequence(sys)
+    rf = pp.make_block_pulse(flip_angle=math.radians(8), duration=80e-6, delay=sys.rf_dead_time, system=sys)
+    dk = 1 / fov
+    g = pp.make_trapezoid("x", flat_area=n / 2 * dk, flat_time=1.28e-3, system=sys)
+    dwell = math.floor((g.rise_time + g.flat_time) / n / 1e-7) * 1e-7
+    adc = pp.make_adc(n, dwell=dwell, delay=sys.adc_dead_time, system=sys)
+    sp = pp.make_trapezoid("z", area=8 / 5e-3, system=sys)
+    for i in range(spokes):
+        phi = 2 * math.pi * i / spokes
+        seq.add_block(rf)
+        seq.add_block(*pp.rotate(g, adc, angle=phi, axis="z"))
+        seq.add_block(sp)
+        seq.add_block(pp.make_delay(3e-3))
+    return _bytes(seq)
+
+
+def gre3d(n: int = 16, nz: int = 8, fov: float = 0.22, fovz: float = 0.08, tr: float = 10e-3) -> bytes:
+    """3D spoiled GRE, slab-selective, phase encodes on y and z (k-space term only: no 2D grid)."""
+    import pypulseq as pp
+
+    sys = _system(pp)
+    seq = pp.Sequence(sys)
+    rf, gz, gzr = _sinc(pp, sys, 8, fovz, 2e-3)
+    dk, dkz = 1 / fov, 1 / fovz
+    gx = pp.make_trapezoid("x", flat_area=n * dk, flat_time=1.6e-3, system=sys)
+    adc = pp.make_adc(n, duration=gx.flat_time, delay=gx.rise_time, system=sys)
+    gxpre = pp.make_trapezoid("x", area=-gx.area / 2, duration=1.2e-3, system=sys)
+    spoil = pp.make_trapezoid("x", area=2 * n * dk, system=sys)
+    for kz in np.arange(nz) - nz // 2:
+        for ky in np.arange(n) - n // 2:
+            gy = pp.make_trapezoid("y", area=ky * dk, duration=1.2e-3, system=sys)
+            gzp = pp.make_trapezoid("z", area=kz * dkz + gzr.area, duration=1.2e-3, system=sys)
+            seq.add_block(rf, gz)
+            seq.add_block(gxpre, gy, gzp)
+            seq.add_block(gx, adc)
+            gyr = pp.make_trapezoid("y", area=-ky * dk, duration=1.2e-3, system=sys)
+            gzr2 = pp.make_trapezoid("z", area=-kz * dkz, duration=1.2e-3, system=sys)
+            seq.add_block(spoil, gyr, gzr2)
+            seq.add_block(
+                _fill(pp, sys, tr - 2e-3 - sys.rf_dead_time - 2.4e-3 - pp.calc_duration(gx) - pp.calc_duration(spoil))
+            )
+    return _bytes(seq)
+
+
+def gre_multislice_labels(n: int = 16, slices: int = 3, fov: float = 0.22, gap: float = 6e-3) -> bytes:
+    """Multi-slice GRE (slice frequency offsets), LIN/SLC labels and a soft delay (TE) in every repetition:
+    the 1.5 extensions a user's protocol carries."""
+    import pypulseq as pp
+
+    sys = _system(pp)
+    seq = pp.Sequence(sys)
+    thk = 3e-3
+    rf, gz, gzr = _sinc(pp, sys, 15, thk, 2e-3)
+    dk = 1 / fov
+    gx = pp.make_trapezoid("x", flat_area=n * dk, flat_time=1.6e-3, system=sys)
+    adc = pp.make_adc(n, duration=gx.flat_time, delay=gx.rise_time, system=sys)
+    gxpre = pp.make_trapezoid("x", area=-gx.area / 2, duration=1e-3, system=sys)
+    spoil = pp.make_trapezoid("z", area=4 / thk, system=sys)
+    te_delay = pp.make_soft_delay(hint="TE", numID=0, offset=0, factor=1, default_duration=1e-3)
+    for i in range(n):
+        for s in range(slices):
+            rf.freq_offset = gz.amplitude * (s - slices // 2) * gap
+            gy = pp.make_trapezoid("y", area=(i - n // 2) * dk, duration=1e-3, system=sys)
+            seq.add_block(rf, gz)
+            seq.add_block(gxpre, gy, gzr)
+            seq.add_block(te_delay)
+            seq.add_block(gx, adc, pp.make_label("LIN", "SET", i), pp.make_label("SLC", "SET", s))
+            gyr = pp.make_trapezoid("y", area=-(i - n // 2) * dk, duration=1e-3, system=sys)
+            seq.add_block(spoil, gyr)
+            seq.add_block(pp.make_delay(2e-3))
     return _bytes(seq)
