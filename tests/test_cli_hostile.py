@@ -62,6 +62,15 @@ BAD_SEQ: dict[str, bytes] = {
     "sha1_signature": RAW.replace(b"Type md5", b"Type sha1"),
     "crlf_resigned": sign_text(BODY.replace(b"\n", b"\r\n")),
 }
+
+
+def _with_rotation_extension() -> bytes:
+    i = BODY.find(b"# Sequence Shapes")
+    body = BODY[:i] + b"[EXTENSIONS]\n1 1 1 0\n\nextension ROTATIONS 1\n1 1 0 0 0\n\n" + BODY[i:]
+    return sign_text(body.replace(b" 1 200   1   0   0   0  0  0", b" 1 200   1   0   0   0  0  1", 1))
+
+
+BAD_SEQ["rotation_extension_unsupported"] = _with_rotation_extension()
 #: check reads these without failing to parse and reports them as violations (exit 1)
 CHECK_VIOLATION = {"bad_signature", "sha1_signature", "crlf_resigned"}
 

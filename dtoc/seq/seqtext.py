@@ -177,8 +177,31 @@ def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
             elif len(t) == 2 and t[0] == "Type":
                 st.signature_type = t[1].lower()
     _check_definitions(st, p)
+    _check_extensions(st, p)
     _check_structure(st, p)
     return st
+
+
+#: Extensions this reader (pypulseq 1.5.0) understands; any other is refused by name.
+SUPPORTED_EXTENSIONS = ("TRIGGERS", "LABELSET", "LABELINC", "DELAYS")
+_EXTENSION_MEANING = {
+    "ROTATIONS": "the 1.5.1 rotation extension: its blocks would be played unrotated",
+    "RF_SHIMS": "the 1.5.1 RF shim extension",
+}
+
+
+def _check_extensions(st: SeqText, p: Path) -> None:
+    for name in st.section_order:
+        if not name.startswith("extension "):
+            continue
+        parts = name.split()
+        kind = parts[1] if len(parts) > 1 else "?"
+        if kind not in SUPPORTED_EXTENSIONS:
+            what = _EXTENSION_MEANING.get(kind, "an extension this reader does not know")
+            raise _err(
+                p,
+                f"'extension {kind}' is not supported ({what}); dtoc reads {', '.join(SUPPORTED_EXTENSIONS)}",
+            )
 
 
 #: Definitions that must be a positive time in s when present (pypulseq divides by them).
