@@ -62,6 +62,31 @@ def test_json_path_writes_a_file_and_the_table_stays_on_stdout(capsys, tmp_path)
                 p.unlink()
 
 
+def test_identify_and_girf_import_follow_it_too(capsys, tmp_path, shared_data):
+    from dtoc.hardware.girf_io import save_girf
+    from dtoc.hardware.model import HardwareModel, build_effect, girf_effect
+    from dtoc.identify.synth import lowpass_girf, probe_waveforms, save_measurement, simulate_measurement
+
+    dt = 10e-6
+    gd = lowpass_girf(dt)
+    save_girf(gd, tmp_path / "declared.npz")
+    true = HardwareModel([girf_effect(gd), build_effect("delay", {"seconds": 3e-6}, axis="x")])
+    save_measurement(
+        simulate_measurement(true, probe_waveforms(3, 1500, dt, seed=3), dt, sigma_G=0.01, seed=4), tmp_path / "m.npz"
+    )
+    ident = ["identify", tmp_path / "m.npz", "--girf", tmp_path / "declared.npz", "-o", tmp_path / "u.json", "-q"]
+    code, out, err = run_cli(capsys, *ident, "--json", "-")
+    assert code == 0, err
+    assert {"before", "after", "effects", "explained"} <= set(json.loads(out))  # stdout is the §3 report only
+    assert "explained" in err  # the tables went to stderr
+    code, out, err = run_cli(capsys, *ident, "--json", tmp_path / "r.json", "--force")
+    assert code == 0 and "explained" in out and json.loads((tmp_path / "r.json").read_text())["effects"]
+    mat = shared_data / "girf" / "kcl_7T_terra_2024" / "7T_GIRF.mat"
+    if mat.exists():
+        code, out, err = run_cli(capsys, "girf", "import", mat, "-o", tmp_path / "k.npz", "--json", "-")
+        assert code == 0 and len(json.loads(out)["terms"]) >= 9 and "DC gain" in err
+
+
 def test_report_keys_carry_units(capsys, tmp_path):
     code, out, _ = run_cli(capsys, "simulate", EPI, "--girf", GIRF, "--json", "-")
     r = json.loads(out)
