@@ -11,6 +11,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, note, sequence_notes, strict_json
+from dtoc.hardware.orientation import ORIENTATION_HELP
 
 girf_app = typer.Typer(
     help="GIRF files: import published ones, fit from measurements, show figures.", no_args_is_help=True
@@ -216,6 +217,7 @@ def predict_cmd(
     ),
     force: bool = typer.Option(False, "--force", help="overwrite an existing PNG or --json file"),
     device: str = typer.Option("cpu", "--device", help="torch device (cpu, cuda)"),
+    orientation: str | None = typer.Option(None, "--orientation", help=ORIENTATION_HELP),
 ):
     """Realized vs demanded: gradient error, k error at ADC samples, B0 phase, EPI odd/even offsets.
 
@@ -233,6 +235,11 @@ def predict_cmd(
 
     check_outputs({"--png": png, "--json": json_out}, {"SEQ": seq, "--girf": girf, "--model": model}, force)
     m = resolve_model(girf=girf, model=model)
+    from dtoc.hardware.orientation import RotatedChain, parse_orientation
+
+    R = parse_orientation(orientation)
+    if R is not None:
+        m = RotatedChain(m, R)
     ir = load_sequence(seq)
     sequence_notes(ir)
     res = predict(ir, m, device=device)

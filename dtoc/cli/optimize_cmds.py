@@ -9,6 +9,7 @@ import typer
 
 from dtoc.cli.output import Output, json_option, sequence_notes, strict_json
 from dtoc.constants import DEFAULT_B0_T
+from dtoc.hardware.orientation import ORIENTATION_HELP
 
 
 def optimize_cmd(
@@ -29,6 +30,7 @@ def optimize_cmd(
         help="realized-trajectory side-car (.npz, docs/contracts.md §5; default: beside -o as <name>.traj.npz)",
     ),
     no_trajectory: bool = typer.Option(False, "--no-trajectory", help="do not write the side-car"),
+    orientation: str | None = typer.Option(None, "--orientation", help=ORIENTATION_HELP),
     method: str | None = typer.Option(None, "--method", help="dto | adam-paper | warmstart | preemphasis"),
     gmax: float | None = typer.Option(None, "--gmax", help="gradient limit per axis, mT/m (default: the sequence's)"),
     smax: float | None = typer.Option(None, "--smax", help="slew limit per axis, T/m/s (default: the sequence's)"),
@@ -64,6 +66,9 @@ def optimize_cmd(
     from dtoc.sim.comparison import check_device
 
     check_device(device)
+    from dtoc.hardware.orientation import parse_orientation
+
+    R = parse_orientation(orientation)
     if trajectory is None and not no_trajectory:
         trajectory = out.with_name(out.stem + ".traj.npz")
     if no_trajectory:
@@ -112,6 +117,7 @@ def optimize_cmd(
             base_path=base,
             ideal=ideal,
             trajectory_path=trajectory,
+            orientation=R,
         ),
     )
     m = res.manifest

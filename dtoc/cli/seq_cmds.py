@@ -54,6 +54,9 @@ def check_cmd(
     json_out: str | None = json_option("the check result"),
     force: bool = typer.Option(False, "--force", help="overwrite an existing --json file"),
     max_rows: int = typer.Option(20, "--max-rows", help="violations shown in the table (all are in --json)"),
+    orientation: str | None = typer.Option(
+        None, "--orientation", help="the orientation it will be played at: warn if the file was compiled for another"
+    ),
 ):
     """Validate a .seq before upload; exit 1 on any violation, 0 when clean.
 
@@ -115,6 +118,8 @@ def check_cmd(
         res.limits_source += " + " + " ".join(
             f"{n} {v:g}" for n, v in (("--gmax", gmax), ("--smax", smax)) if v is not None
         )
+    if orientation is not None:
+        res.warnings.extend(_orientation_warnings(seq, orientation))
     outp = Output(json_out)
     outp.write_json(strict_json(res.to_dict()), force)
     _print_check(res, max_rows, outp.console())
@@ -122,6 +127,31 @@ def check_cmd(
         note(f"dtoc: warning: {w}")
     if not res.ok:
         raise typer.Exit(1)
+
+
+def _orientation_warnings(seq: Path, orientation: str) -> list[str]:
+    """A file compiled (pre-compensated) for one orientation and checked for another: one warning."""
+    import numpy as np
+
+    from dtoc.hardware.orientation import file_orientation, orientation_name, parse_orientation
+    from dtoc.seq.seqtext import parse_seq_text
+
+    want = parse_orientation(orientation)
+    st = parse_seq_text(seq)
+    got = file_orientation({k: v for k, v in st.definitions().items()})
+    if got is None:
+        if want is not None and not np.allclose(want, np.eye(3)):
+            return [
+                f"the file records no orientation (DtocOrientation): if it was pre-compensated, it was for the "
+                f"file's own axes (tra), not {orientation_name(want)}"
+            ]
+        return []
+    if want is None or not np.allclose(got, want, atol=1e-6):
+        return [
+            f"the file was compiled for orientation {orientation_name(got)}, checked for {orientation_name(want)}: "
+            "its pre-compensation does not hold at this orientation; re-optimize with --orientation"
+        ]
+    return []
 
 
 def _print_check(res, max_rows: int, con) -> None:

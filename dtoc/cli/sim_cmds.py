@@ -8,6 +8,7 @@ import typer
 
 from dtoc.cli.output import Output, json_option, note, sequence_notes
 from dtoc.constants import DEFAULT_B0_T
+from dtoc.hardware.orientation import ORIENTATION_HELP
 
 
 def _round(x):
@@ -49,6 +50,7 @@ def simulate_cmd(
     dtype: str = typer.Option("float64", "--dtype", help="float32 or float64."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing outputs."),
     quiet: bool = typer.Option(False, "-q", "--quiet", help="No progress on stderr."),
+    orientation: str | None = typer.Option(None, "--orientation", help=ORIENTATION_HELP),
 ):
     """Simulate ideal versus realized images of SEQ on a phantom; NRMSE, EPI ghost ratio, k-space error."""
     from rich.table import Table
@@ -76,6 +78,11 @@ def simulate_cmd(
     ir = load_sequence(seq)
     sequence_notes(ir)
     hw = resolve_model(girf=girf, model=model)
+    from dtoc.hardware.orientation import RotatedChain, parse_orientation
+
+    R = parse_orientation(orientation)
+    if R is not None:
+        hw = RotatedChain(hw, R)
     ir.require_geometry(f"{seq}: simulate")
     ph = phantom_for(ir, phantom, field_T=field_T, b0=b0_map, b1=b1_map)
     res = compare_ideal_realized(

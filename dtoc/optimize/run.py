@@ -274,6 +274,7 @@ def optimize_sequence(
     base_path=None,
     ideal: bool = False,
     trajectory_path=None,
+    orientation=None,
 ) -> RunOutputs:
     """Run `dtoc optimize` (see the module doc).
 
@@ -290,6 +291,8 @@ def optimize_sequence(
         with_image: simulate images (default: when the image weight is > 0 or for reporting).
         ideal: optimize for ideal hardware (required when neither ``girf``, ``model`` nor ``hardware`` is given).
         trajectory_path: write the realized-trajectory side-car here (:mod:`dtoc.optimize.sidecar`; None: not written).
+        orientation: (3, 3) logical -> physical rotation the file will be played at
+            (:mod:`dtoc.hardware.orientation`; None = transverse, the file's axes are the scanner's).
     Returns:
         :class:`RunOutputs` (manifest dict, output IR, arrays for plots).
     """
@@ -328,9 +331,27 @@ def optimize_sequence(
 
         require_hardware(girf, model, ideal)
         hardware = resolve_model(girf=girf, model=model)
+    R = None if orientation is None else np.asarray(orientation, dtype=np.float64)
+    if R is not None:
+        from dtoc.hardware.orientation import RotatedChain
+
+        hardware = RotatedChain(hardware, R)  # the model acts on the physical axes
     if hasattr(hardware, "frozen"):
         hardware = hardware.frozen()  # the model is fixed here: no parameter gradients, cached GIRF spectra
     limits, limit_sources = limits_and_sources(ir, cfg)
+    phys_limits = limits
+    if R is not None:
+        from dtoc.hardware.orientation import logical_limit_scale
+
+        f = logical_limit_scale(R)
+        if f < 1.0:  # per-axis limits hold on the physical axes: a logical bound that guarantees them
+            limits = Limits(
+                limits.gmax_mT_per_m * f,
+                limits.smax_T_per_m_per_s * f,
+                amp_margin=limits.amp_margin,
+                slew_margin=limits.slew_margin,
+            )
+            limit_sources = {k: f"{v}, x {f:.4g} on the logical axes (oblique)" for k, v in limit_sources.items()}
     free = free_edges(ir)
     if not free.any():
         raise InputError("sequence has no optimizable gradient samples (free_mask is empty)")
@@ -458,7 +479,10 @@ def optimize_sequence(
             "dtoc_optimize": 1,
             "inputs": _inputs(base_path if base_path is not None else base, girf, model, config_path, resume),
             "options": json.loads(cfg.model_dump_json()),
+            "orientation": None if R is None else {"R_logical_to_physical": R.tolist(), "name": _orient_name(R)},
             "limits": {
+                "physical_gmax_mT_per_m": phys_limits.gmax_mT_per_m,
+                "physical_smax_T_per_m_per_s": phys_limits.smax_T_per_m_per_s,
                 "gmax_mT_per_m": limits.gmax_mT_per_m,
                 "smax_T_per_m_per_s": limits.smax_T_per_m_per_s,
                 "amp_margin": limits.amp_margin,
@@ -525,7 +549,9 @@ def _write_sidecar(path, ir, after: dict, keep, ctx, model_file, force: bool) ->
 def _write_outputs(ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start) -> None:
     """The .seq (checked after writing), the manifest and the PNG report, in one :func:`outputs_together`."""
     if out is not None:
-        definitions = {"DtocInterrupted": 1} if manifest["interrupted"] else None
+        definitions: dict = {"DtocInterrupted": 1} if manifest["interrupted"] else {}
+        if manifest.get("orientation"):  # the orientation the file was compiled for (dtoc check --orientation)
+            definitions["DtocOrientation"] = manifest["orientation"]["R_logical_to_physical"]
         manifest["output"] = _write_checked(ir_out, out, force, limits, definitions)
     manifest["run_time_s"] = time.time() - t_start
     if manifest_path is not None:
@@ -534,6 +560,12 @@ def _write_outputs(ir_out, out, force, limits, manifest, manifest_path, png_path
         from dtoc.optimize.report import write_report_png
 
         write_report_png(png_path, figures, manifest, force=force)
+
+
+def _orient_name(R) -> str:
+    from dtoc.hardware.orientation import orientation_name
+
+    return orientation_name(R)
 
 
 def base_limit_warnings(ir, limits: Limits) -> list[str]:

@@ -146,9 +146,11 @@ def seq_bytes_of(ir: SequenceIR, definitions: dict | None = None) -> bytes:
     (names: letters and digits; values: numbers)."""
     seq = to_pypulseq(ir)
     for k, v in (definitions or {}).items():
-        if not str(k).isalnum() or not isinstance(v, (int, float)):
+        vals = [float(x) for x in np.ravel(v)] if isinstance(v, (list, tuple, np.ndarray)) else v
+        ok_val = isinstance(vals, (int, float)) or (isinstance(vals, list) and vals and all(np.isfinite(vals)))
+        if not str(k).isalnum() or not ok_val:
             raise DtocError(f"definition {k!r}: names are letters/digits and values numbers")
-        seq.set_definition(str(k), v)
+        seq.set_definition(str(k), vals)
     return seq_bytes(seq)
 
 
