@@ -11,6 +11,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, note, sequence_notes, strict_json
+from dtoc.cli.scanner import scanner_option
 from dtoc.hardware.orientation import ORIENTATION_HELP
 
 girf_app = typer.Typer(
@@ -218,6 +219,7 @@ def predict_cmd(
     force: bool = typer.Option(False, "--force", help="overwrite an existing PNG or --json file"),
     device: str = typer.Option("cpu", "--device", help="torch device (cpu, cuda)"),
     orientation: str | None = typer.Option(None, "--orientation", help=ORIENTATION_HELP),
+    scanner: Path | None = scanner_option(),
 ):
     """Realized vs demanded: gradient error, k error at ADC samples, B0 phase, EPI odd/even offsets.
 
@@ -234,7 +236,10 @@ def predict_cmd(
     from dtoc.util.atomic import check_outputs, outputs_together
 
     check_outputs({"--png": png, "--json": json_out}, {"SEQ": seq, "--girf": girf, "--model": model}, force)
-    m = resolve_model(girf=girf, model=model)
+    from dtoc.cli import scanner as sc
+
+    prof = sc.load(scanner)
+    m = sc.hardware(prof, girf, model) or resolve_model(girf=girf, model=model)
     from dtoc.hardware.orientation import RotatedChain, parse_orientation
 
     R = parse_orientation(orientation)

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import typer
 
+from dtoc.cli.scanner import scanner_option
+
 KINDS = ("delay", "gain", "offset", "exp_eddy", "cross_eddy", "b0_eddy", "lti", "slew_limit")
 
 
@@ -37,6 +39,7 @@ def identify_cmd(
         None, "--kinds", help="comma-separated candidate kinds (default: all: " + ",".join(KINDS) + ")"
     ),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress lines on stderr"),
+    scanner: Path | None = scanner_option(),
 ):
     """Compare a measurement with the declared model, trace the residual to missing effects, write the updated model."""
     from dtoc.errors import InputError
@@ -55,6 +58,9 @@ def identify_cmd(
             sys.stderr.write(f"identify: {msg}\n")
             sys.stderr.flush()
 
+    from dtoc.cli import scanner as sc
+
+    declared = sc.hardware(sc.load(scanner), girf, model)
     res = run_identify(
         measured,
         girf=girf,
@@ -67,6 +73,7 @@ def identify_cmd(
         threshold=threshold,
         kinds=kind_list,
         progress=progress,
+        declared_model=declared,
     )
     from dtoc.cli.output import Output
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, sequence_notes, strict_json
+from dtoc.cli.scanner import scanner_option
 from dtoc.constants import DEFAULT_B0_T
 from dtoc.hardware.orientation import ORIENTATION_HELP
 
@@ -31,6 +32,7 @@ def optimize_cmd(
     ),
     no_trajectory: bool = typer.Option(False, "--no-trajectory", help="do not write the side-car"),
     orientation: str | None = typer.Option(None, "--orientation", help=ORIENTATION_HELP),
+    scanner: Path | None = scanner_option(),
     method: str | None = typer.Option(None, "--method", help="dto | adam-paper | warmstart | preemphasis"),
     gmax: float | None = typer.Option(None, "--gmax", help="gradient limit per axis, mT/m (default: the sequence's)"),
     smax: float | None = typer.Option(None, "--smax", help="slew limit per axis, T/m/s (default: the sequence's)"),
@@ -74,7 +76,23 @@ def optimize_cmd(
     if no_trajectory:
         trajectory = None
     check_run_paths(base, out, json_out, png, force, girf, model, config, resume, checkpoint, trajectory)
-    require_hardware(girf, model, ideal)
+    from dtoc.cli import scanner as sc
+
+    prof = sc.load(scanner)
+    hw = sc.hardware(prof, girf, model)
+    if hw is None:
+        require_hardware(girf, model, ideal)
+    elif ideal:
+        raise InputError("give --ideal or a hardware model (--girf / --model / the --scanner profile's), not both")
+    limit_from = {}
+    if prof is not None:
+        p = prof.profile
+        if gmax is None:
+            gmax, limit_from["gmax_mT_per_m"] = p.gmax_min_mT_per_m, f"--scanner {p.name}"
+        if smax is None:
+            smax, limit_from["smax_T_per_m_per_s"] = p.smax_min_T_per_m_per_s, f"--scanner {p.name}"
+        if b0 is None:
+            b0 = p.b0_T
     if not base.exists():
         raise InputError(f"{base}: base sequence not found")
     ir = load_sequence(base)
@@ -118,6 +136,9 @@ def optimize_cmd(
             ideal=ideal,
             trajectory_path=trajectory,
             orientation=R,
+            hardware=hw,
+            limit_sources=limit_from or None,
+            scanner_path=scanner,
         ),
     )
     m = res.manifest

@@ -9,6 +9,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, note, strict_json
+from dtoc.cli.scanner import scanner_option
 
 
 def build_cmd(
@@ -57,6 +58,7 @@ def check_cmd(
     orientation: str | None = typer.Option(
         None, "--orientation", help="the orientation it will be played at: warn if the file was compiled for another"
     ),
+    scanner: Path | None = scanner_option(),
 ):
     """Validate a .seq before upload; exit 1 on any violation, 0 when clean.
 
@@ -81,6 +83,16 @@ def check_cmd(
     check_outputs({"--json": json_out}, {"SEQ": seq, "--system": system}, force)
     sysspec = load_system(system) if system else None
     base = f"--system {system}" if system else None
+    if sysspec is None and scanner is not None:
+        from dtoc.cli import scanner as sc
+
+        prof = sc.load(scanner)
+        sysspec, base = prof.profile.system_spec(), f"--scanner {prof.profile.name}"
+    if scanner is not None:
+        from dtoc.cli import scanner as sc
+
+        for line in sc.load(scanner).profile.not_checked():
+            note(line)
     if gmax is not None or smax is not None:
         if sysspec is None:
             st = parse_seq_text(seq)

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, note, sequence_notes
+from dtoc.cli.scanner import scanner_option
 from dtoc.constants import DEFAULT_B0_T
 from dtoc.hardware.orientation import ORIENTATION_HELP
 
@@ -31,11 +32,11 @@ def simulate_cmd(
         "--phantom",
         help="Phantom .npz, or 'brain' / 'brain:N' / 'brain-noscalp[:N]' (built-in head; noscalp: without fat and skull; default: brain at the image matrix).",
     ),
-    field_T: float = typer.Option(
-        DEFAULT_B0_T,
+    field_T: float | None = typer.Option(
+        None,
         "--b0",
         "--field",
-        help="Field strength of the built-in phantom's tissue values, T (shared default with optimize; 3 or 7 tabulated).",
+        help=f"Field strength of the built-in phantom's tissue values, T (default: the --scanner profile's, else {DEFAULT_B0_T:g}, as optimize; 3 and 7 tabulated).",
     ),
     b0_map: bool = typer.Option(False, "--b0-map", help="Built-in phantom: add its smooth B0 map."),
     b1_map: bool = typer.Option(False, "--b1-map", help="Built-in phantom: add its smooth B1 map."),
@@ -51,6 +52,7 @@ def simulate_cmd(
     force: bool = typer.Option(False, "--force", help="Overwrite existing outputs."),
     quiet: bool = typer.Option(False, "-q", "--quiet", help="No progress on stderr."),
     orientation: str | None = typer.Option(None, "--orientation", help=ORIENTATION_HELP),
+    scanner: Path | None = scanner_option(),
 ):
     """Simulate ideal versus realized images of SEQ on a phantom; NRMSE, EPI ghost ratio, k-space error."""
     from rich.table import Table
@@ -77,7 +79,12 @@ def simulate_cmd(
     rep = ProgressReporter("dtoc simulate", quiet=quiet)
     ir = load_sequence(seq)
     sequence_notes(ir)
-    hw = resolve_model(girf=girf, model=model)
+    from dtoc.cli import scanner as sc
+
+    prof = sc.load(scanner)
+    hw = sc.hardware(prof, girf, model) or resolve_model(girf=girf, model=model)
+    if field_T is None:
+        field_T = prof.profile.b0_T if prof is not None else DEFAULT_B0_T
     from dtoc.hardware.orientation import RotatedChain, parse_orientation
 
     R = parse_orientation(orientation)

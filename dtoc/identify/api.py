@@ -67,6 +67,7 @@ def run_identify(
     threshold: float = 10.0,
     kinds=None,
     progress=None,
+    declared_model=None,
 ) -> IdentifyResult:
     """Identify missing effects in ``measured`` against the declared model and write the outputs.
 
@@ -82,7 +83,7 @@ def run_identify(
         force,
     )
     meas = load_identify_measurement(measured)
-    declared = resolve_model(girf=girf, model=model)
+    declared = declared_model if declared_model is not None else resolve_model(girf=girf, model=model)
     data = from_measurement(meas)
     res = identify(data, declared, max_effects=max_effects, threshold=threshold, kinds=kinds, progress=progress)
     # Render everything first, so that a failure while rendering leaves no output half-done.

@@ -275,6 +275,8 @@ def optimize_sequence(
     ideal: bool = False,
     trajectory_path=None,
     orientation=None,
+    limit_sources: dict | None = None,
+    scanner_path=None,
 ) -> RunOutputs:
     """Run `dtoc optimize` (see the module doc).
 
@@ -293,6 +295,8 @@ def optimize_sequence(
         trajectory_path: write the realized-trajectory side-car here (:mod:`dtoc.optimize.sidecar`; None: not written).
         orientation: (3, 3) logical -> physical rotation the file will be played at
             (:mod:`dtoc.hardware.orientation`; None = transverse, the file's axes are the scanner's).
+        limit_sources: where limits given in ``config`` came from, when not the command line (e.g. a profile).
+        scanner_path: the scanner profile the limits / model came from (recorded in the manifest).
     Returns:
         :class:`RunOutputs` (manifest dict, output IR, arrays for plots).
     """
@@ -338,7 +342,8 @@ def optimize_sequence(
         hardware = RotatedChain(hardware, R)  # the model acts on the physical axes
     if hasattr(hardware, "frozen"):
         hardware = hardware.frozen()  # the model is fixed here: no parameter gradients, cached GIRF spectra
-    limits, limit_sources = limits_and_sources(ir, cfg)
+    limits, sources = limits_and_sources(ir, cfg)
+    limit_sources = {**sources, **(limit_sources or {})}
     phys_limits = limits
     if R is not None:
         from dtoc.hardware.orientation import logical_limit_scale
@@ -477,7 +482,12 @@ def optimize_sequence(
 
         manifest = {
             "dtoc_optimize": 1,
-            "inputs": _inputs(base_path if base_path is not None else base, girf, model, config_path, resume),
+            "inputs": {
+                **_inputs(base_path if base_path is not None else base, girf, model, config_path, resume),
+                "scanner": None
+                if scanner_path is None
+                else {"path": str(scanner_path), "sha256": sha256_file(scanner_path)},
+            },
             "options": json.loads(cfg.model_dump_json()),
             "orientation": None if R is None else {"R_logical_to_physical": R.tolist(), "name": _orient_name(R)},
             "limits": {

@@ -1,0 +1,29 @@
+"""``--scanner PROFILE.yaml`` (docs/scanner.md): the option and how its values yield to explicit options."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+SCANNER_HELP = "scanner profile YAML (docs/scanner.md): limits, rasters, dead times, hardware model, B0; explicit options override it"
+
+
+def scanner_option():
+    return typer.Option(None, "--scanner", help=SCANNER_HELP)
+
+
+def load(scanner: Path | None):
+    """The :class:`dtoc.hardware.profile.LoadedProfile`, or None."""
+    if scanner is None:
+        return None
+    from dtoc.hardware.profile import load_profile
+
+    return load_profile(scanner)
+
+
+def hardware(prof, girf, model):
+    """The hardware model: --girf/--model when given, else the profile's (None: neither)."""
+    if girf is not None or model is not None or prof is None:
+        return None
+    return prof.hardware_model()

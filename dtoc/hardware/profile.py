@@ -1,0 +1,181 @@
+"""Scanner profile: one typed YAML file that describes a scanner as dtoc needs it (docs/scanner.md).
+
+``--scanner PROFILE.yaml`` on every command that takes limits or a hardware model (optimize, simulate,
+predict, check, identify); an explicit option (``--gmax``, ``--smax``, ``--system``, ``--girf``, ``--model``,
+``--b0``) overrides the profile's value.  Paths in the profile are relative to the profile file; a GIRF may
+be a dtoc ``.npz`` or a published MATLAB file, imported on the fly (the profile points at it, nothing is
+copied).  Sections the checks need but the profile lacks (PNS, acoustics) are reported as "not checked",
+never as passed.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from dtoc.errors import InputError
+
+PerAxis = float | Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class Rasters(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    grad_s: float = Field(gt=0, lt=1e-3)
+    rf_s: float = Field(gt=0, lt=1e-3)
+    adc_s: float = Field(gt=0, lt=1e-3)
+    block_s: float = Field(gt=0, lt=1e-3)
+
+
+class DeadTimes(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    rf_dead_time_s: float = Field(ge=0, lt=1e-2)
+    rf_ringdown_time_s: float = Field(ge=0, lt=1e-2)
+    adc_dead_time_s: float = Field(ge=0, lt=1e-2)
+
+
+class HardwareRef(BaseModel):
+    """The hardware model: a GIRF file (``.npz``, or a published ``.mat`` imported as ``dtoc girf import``
+    would) or a model JSON; exactly one."""
+
+    model_config = ConfigDict(extra="forbid")
+    girf: str | list[str] | None = None  # one file, or the per-axis files of one GIRF (GIRF_X/Y/Z.mat)
+    girf_partial: bool = False  # the GIRF lacks an axis and may be imported with it ideal (girf import --partial)
+    model: str | None = None
+
+
+class ScannerProfile(BaseModel):
+    """A scanner as dtoc needs it.  Units in the names; per-axis values as one number or [x, y, z]."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(min_length=1, max_length=200)
+    b0_T: float = Field(gt=0, le=21.1)
+    gamma_hz_per_T: float = Field(42.577478e6, gt=0)
+    gmax_mT_per_m: PerAxis
+    smax_T_per_m_per_s: PerAxis
+    rasters: Rasters
+    dead_times: DeadTimes
+    hardware: HardwareRef | None = None
+    pns: dict | None = None  # SAFE model parameters (not evaluated yet: reported as "not checked")
+    acoustic_forbidden_bands_hz: list[Annotated[list[float], Field(min_length=2, max_length=2)]] = Field(
+        default_factory=list
+    )
+    source: str | None = None  # where the numbers come from
+
+    @field_validator("gmax_mT_per_m", "smax_T_per_m_per_s")
+    @classmethod
+    def _positive(cls, v):
+        vals = v if isinstance(v, list) else [v]
+        if not all(0 < x < 1e5 for x in vals):
+            raise ValueError("limits must be positive (mT/m, T/m/s)")
+        return v
+
+    # -------------------------------------------------------------------------------------------
+    @property
+    def gmax_min_mT_per_m(self) -> float:
+        """The smallest per-axis amplitude limit (the optimizer's limits are one number for all axes)."""
+        v = self.gmax_mT_per_m
+        return float(min(v) if isinstance(v, list) else v)
+
+    @property
+    def smax_min_T_per_m_per_s(self) -> float:
+        v = self.smax_T_per_m_per_s
+        return float(min(v) if isinstance(v, list) else v)
+
+    def not_checked(self) -> list[str]:
+        """The pre-upload checks this profile cannot support (said as "not checked", never as passed)."""
+        out = []
+        if not self.pns:
+            out.append("PNS: not checked (the profile has no SAFE model parameters)")
+        else:
+            out.append("PNS: not checked (SAFE parameters given, but dtoc does not evaluate the SAFE model yet)")
+        if not self.acoustic_forbidden_bands_hz:
+            out.append("acoustic bands: not checked (the profile lists no forbidden bands)")
+        else:
+            out.append("acoustic bands: not checked (dtoc does not evaluate the gradient spectrum yet)")
+        return out
+
+    def system_spec(self):
+        """The :class:`dtoc.seq.system.SystemSpec` of ``dtoc check`` (limits, rasters, dead times)."""
+        from dtoc.seq.system import SystemSpec
+
+        return SystemSpec(
+            name=self.name,
+            max_grad_mT_per_m=self.gmax_min_mT_per_m,
+            max_slew_T_per_m_per_s=self.smax_min_T_per_m_per_s,
+            grad_raster_s=self.rasters.grad_s,
+            rf_raster_s=self.rasters.rf_s,
+            adc_raster_s=self.rasters.adc_s,
+            block_raster_s=self.rasters.block_s,
+            rf_dead_time_s=self.dead_times.rf_dead_time_s,
+            rf_ringdown_time_s=self.dead_times.rf_ringdown_time_s,
+            adc_dead_time_s=self.dead_times.adc_dead_time_s,
+        )
+
+
+class LoadedProfile:
+    """A validated profile and the folder its relative paths start from."""
+
+    def __init__(self, profile: ScannerProfile, path: Path) -> None:
+        self.profile = profile
+        self.path = path
+
+    def _resolve(self, p: str) -> Path:
+        q = Path(os.path.expanduser(p))
+        return q if q.is_absolute() else (self.path.parent / q)
+
+    def hardware_files(self) -> tuple[list[Path] | None, Path | None]:
+        """(girf files, model) paths of the profile (None where absent)."""
+        h = self.profile.hardware
+        if h is None:
+            return None, None
+        g = None if not h.girf else [self._resolve(x) for x in ([h.girf] if isinstance(h.girf, str) else h.girf)]
+        return g, (self._resolve(h.model) if h.model else None)
+
+    def hardware_model(self):
+        """The profile's :class:`dtoc.hardware.model.HardwareModel` (None when it declares none)."""
+        girf, model = self.hardware_files()
+        if girf is None and model is None:
+            return None
+        where = f"{self.path}: hardware"
+        for f in girf or []:
+            if not f.exists():
+                raise InputError(f"{where}: GIRF file {f} not found (paths are relative to the profile)")
+        if model is not None and not model.exists():
+            raise InputError(f"{where}: model file {model} not found (paths are relative to the profile)")
+        from dtoc.hardware.model import HardwareModel, girf_effect, load_model, model_from_girf
+
+        if model is not None:
+            return load_model(model)
+        assert girf
+        if len(girf) == 1 and girf[0].suffix.lower() == ".npz":
+            return model_from_girf(girf[0])
+        from dtoc.hardware.girf_import import import_girf
+
+        h = self.profile.hardware
+        gd = import_girf(girf, allow_partial=bool(h and h.girf_partial))
+        return HardwareModel([girf_effect(gd)], description=f"{self.profile.name}: {', '.join(f.name for f in girf)}")
+
+
+def load_profile(path: str | os.PathLike) -> LoadedProfile:
+    """Read and validate a scanner profile YAML (one-line InputError naming the key on any problem)."""
+    import yaml
+
+    from dtoc.seq.system import format_validation_error
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: scanner profile not found")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise InputError(f"{p}: not a YAML scanner profile ({type(e).__name__})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{p}: a scanner profile is a mapping (name, b0_T, gmax_mT_per_m, ...)")
+    try:
+        prof = ScannerProfile(**data)
+    except ValidationError as e:
+        raise InputError(f"{p}: {format_validation_error(e)}") from None
+    return LoadedProfile(prof, p)
