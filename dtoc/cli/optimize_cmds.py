@@ -139,6 +139,7 @@ def optimize_cmd(
             hardware=hw,
             limit_sources=limit_from or None,
             scanner_path=scanner,
+            pns_model=None if prof is None else prof.profile.pns,
         ),
     )
     m = res.manifest
@@ -214,6 +215,8 @@ def _print_summary(m: dict, con) -> None:
         f"gmax {lim['gmax_mT_per_m']:g} mT/m ({src.get('gmax_mT_per_m', '?')}), "
         f"smax {lim['smax_T_per_m_per_s']:g} T/m/s ({src.get('smax_T_per_m_per_s', '?')})"
     )
+    for c in (m.get("output") or {}).get("checks", []):
+        note(c)
     tr = m.get("trajectory")
     if tr:
         nd = tr["n_discarded"]

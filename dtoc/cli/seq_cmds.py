@@ -123,7 +123,16 @@ def check_cmd(
             sysspec = SystemSpec(**{**sysspec.model_dump(), **upd})
         except ValidationError as e:
             raise InputError(f"--gmax/--smax: {format_validation_error(e)} (mT/m and T/m/s)") from None
-    res = check_file(seq, sysspec)
+    pns_model, rotation = None, None
+    if scanner is not None:
+        from dtoc.cli import scanner as sc
+
+        pns_model = sc.load(scanner).profile.pns
+    if orientation is not None:
+        from dtoc.hardware.orientation import parse_orientation
+
+        rotation = parse_orientation(orientation)
+    res = check_file(seq, sysspec, pns=pns_model, rotation=rotation)
     if base is not None:
         res.limits_source = base
     if gmax is not None or smax is not None:
@@ -137,6 +146,8 @@ def check_cmd(
     _print_check(res, max_rows, outp.console())
     for w in res.warnings:
         note(f"dtoc: warning: {w}")
+    for c in res.checks:
+        note(c)
     if not res.ok:
         raise typer.Exit(1)
 

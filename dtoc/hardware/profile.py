@@ -17,6 +17,7 @@ from typing import Annotated
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from dtoc.errors import InputError
+from dtoc.seq.pns import SafeModel
 
 PerAxis = float | Annotated[list[float], Field(min_length=3, max_length=3)]
 
@@ -58,7 +59,7 @@ class ScannerProfile(BaseModel):
     rasters: Rasters
     dead_times: DeadTimes
     hardware: HardwareRef | None = None
-    pns: dict | None = None  # SAFE model parameters (not evaluated yet: reported as "not checked")
+    pns: SafeModel | None = None  # SAFE model parameters per physical axis (dtoc.seq.pns)
     acoustic_forbidden_bands_hz: list[Annotated[list[float], Field(min_length=2, max_length=2)]] = Field(
         default_factory=list
     )
@@ -87,10 +88,8 @@ class ScannerProfile(BaseModel):
     def not_checked(self) -> list[str]:
         """The pre-upload checks this profile cannot support (said as "not checked", never as passed)."""
         out = []
-        if not self.pns:
+        if self.pns is None:
             out.append("PNS: not checked (the profile has no SAFE model parameters)")
-        else:
-            out.append("PNS: not checked (SAFE parameters given, but dtoc does not evaluate the SAFE model yet)")
         if not self.acoustic_forbidden_bands_hz:
             out.append("acoustic bands: not checked (the profile lists no forbidden bands)")
         else:

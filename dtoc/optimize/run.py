@@ -277,6 +277,7 @@ def optimize_sequence(
     orientation=None,
     limit_sources: dict | None = None,
     scanner_path=None,
+    pns_model=None,
 ) -> RunOutputs:
     """Run `dtoc optimize` (see the module doc).
 
@@ -297,6 +298,7 @@ def optimize_sequence(
             (:mod:`dtoc.hardware.orientation`; None = transverse, the file's axes are the scanner's).
         limit_sources: where limits given in ``config`` came from, when not the command line (e.g. a profile).
         scanner_path: the scanner profile the limits / model came from (recorded in the manifest).
+        pns_model: SAFE parameters (:class:`dtoc.seq.pns.SafeModel`): the output must stay below their limit.
     Returns:
         :class:`RunOutputs` (manifest dict, output IR, arrays for plots).
     """
@@ -532,7 +534,9 @@ def optimize_sequence(
         with outputs_together():  # the .seq, manifest, PNG and side-car appear together, or none of them
             if trajectory_path is not None:
                 manifest["trajectory"] = _write_sidecar(trajectory_path, ir, after, keep, ctx, girf or model, force)
-            _write_outputs(ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start)
+            _write_outputs(
+                ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start, pns_model, R
+            )
     return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)
 
 
@@ -556,13 +560,15 @@ def _write_sidecar(path, ir, after: dict, keep, ctx, model_file, force: bool) ->
     }
 
 
-def _write_outputs(ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start) -> None:
+def _write_outputs(
+    ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start, pns_model=None, rotation=None
+) -> None:
     """The .seq (checked after writing), the manifest and the PNG report, in one :func:`outputs_together`."""
     if out is not None:
         definitions: dict = {"DtocInterrupted": 1} if manifest["interrupted"] else {}
         if manifest.get("orientation"):  # the orientation the file was compiled for (dtoc check --orientation)
             definitions["DtocOrientation"] = manifest["orientation"]["R_logical_to_physical"]
-        manifest["output"] = _write_checked(ir_out, out, force, limits, definitions)
+        manifest["output"] = _write_checked(ir_out, out, force, limits, definitions, pns_model, rotation)
     manifest["run_time_s"] = time.time() - t_start
     if manifest_path is not None:
         atomic_write_text(manifest_path, json.dumps(_jsonable(manifest), indent=2, sort_keys=True) + "\n", force=force)
@@ -628,7 +634,15 @@ def _check_system_limits(ir_out: SequenceIR, limits: Limits) -> None:
         raise LimitError(f"exported waveform fails the validator: {v[0].message}; nothing written")
 
 
-def _write_checked(ir_out: SequenceIR, out, force: bool, limits: Limits, definitions: dict | None = None) -> dict:
+def _write_checked(
+    ir_out: SequenceIR,
+    out,
+    force: bool,
+    limits: Limits,
+    definitions: dict | None = None,
+    pns_model=None,
+    rotation=None,
+) -> dict:
     """Write via the seq writer into a temporary file, validate it, then move it into place.
     ``definitions``: extra [DEFINITIONS] entries (e.g. ``DtocInterrupted 1`` on a best-so-far)."""
     outp = Path(out)
@@ -641,8 +655,8 @@ def _write_checked(ir_out: SequenceIR, out, force: bool, limits: Limits, definit
             grad_raster_s=ir_out.raster_s,
             block_raster_s=_block_raster(ir_out),
         )
-        res = check_file(tmp, sysspec)
-        lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector"}
+        res = check_file(tmp, sysspec, pns=pns_model, rotation=rotation)
+        lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector", "pns"}
         bad = [v for v in res.violations if v.rule in lim_rules]
         if bad:
             raise ValidationFailed(f"written file fails dtoc check: {bad[0].message}; nothing written")
@@ -650,6 +664,7 @@ def _write_checked(ir_out: SequenceIR, out, force: bool, limits: Limits, definit
             "path": str(outp),
             "check_ok": res.ok,
             "check_other_rules": sorted(res.rules() - lim_rules),
+            "checks": list(res.checks),
         }
         data = tmp.read_bytes()
     atomic_write_bytes(outp, data, force=force)

@@ -64,6 +64,8 @@ class CheckResult:
     violations: list[Violation] = field(default_factory=list)
     #: facts that do not fail the check but a user must see (e.g. an interrupted optimize's best-so-far)
     warnings: list[str] = field(default_factory=list)
+    #: what was checked beyond the limits, with its figure (e.g. "PNS (SAFE): max 63.2 % of the limit")
+    checks: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -81,6 +83,7 @@ class CheckResult:
             "n_violations": len(self.violations),
             "violations": [v.to_dict() for v in self.violations],
             "warnings": list(self.warnings),
+            "checks": list(self.checks),
         }
 
 
@@ -491,7 +494,7 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
             )
 
 
-def check_file(path: str | Path, system: SystemSpec | None = None) -> CheckResult:
+def check_file(path: str | Path, system: SystemSpec | None = None, pns=None, rotation=None) -> CheckResult:
     """Validate a ``.seq`` file.  ``system=None``: the limits the file records (dtoc-built files); a file that
     records none is refused (limits are never assumed: give a :class:`SystemSpec`).
 
@@ -529,7 +532,34 @@ def check_file(path: str | Path, system: SystemSpec | None = None) -> CheckResul
         return res
     _event_rules(seq, ir, system, res.violations)
     res.violations.extend(check_ir_limits(ir, system))
+    if pns is not None:
+        _pns_rule(ir, pns, rotation, res)
     return res
+
+
+def _pns_rule(ir: SequenceIR, model, rotation, res: CheckResult) -> None:
+    """SAFE PNS on the physical axes (:mod:`dtoc.seq.pns`): a violation above the model's limit."""
+    from dtoc.seq.pns import safe_pns
+
+    r = safe_pns(ir.grad_mT_per_m, ir.dt_fine_s, model, rotation)
+    where = f"at t = {1e3 * r.t_max_s:.3f} ms"
+    res.checks.append(
+        f"PNS (SAFE): max {r.max_percent:.1f} % of the stimulation limit {where} (allowed {model.limit_percent:g} %)"
+    )
+    if r.max_percent > model.limit_percent:
+        b = int(np.searchsorted(np.asarray(ir.block_edges_s), r.t_max_s, side="right")) - 1
+        ids = _block_numbers(ir)
+        res.violations.append(
+            Violation(
+                "pns",
+                ids[min(max(b, 0), len(ids) - 1)],
+                None,
+                r.max_percent,
+                model.limit_percent,
+                "%",
+                f"SAFE PNS {r.max_percent:.1f} % of the stimulation limit {where}",
+            )
+        )
 
 
 __all__ = ["Violation", "CheckResult", "check_ir_limits", "check_file", "system_from_definitions"]
