@@ -80,3 +80,27 @@ def test_check_fails_above_the_stimulation_limit_and_says_when_it_did_not_check(
     assert "pns" not in {v["rule"] for v in res["violations"]} and "PNS (SAFE): max" in err
     code, out, err = run_cli(capsys, "check", gentle, "--scanner", _profile(tmp_path, None))
     assert "PNS: not checked" in err and "PNS (SAFE)" not in err
+
+
+def test_forbidden_acoustic_band_at_the_epi_readout_frequency(capsys, tmp_path):
+    """An EPI switches its readout at 1 / (2 echo spacing): 89 % of the x power of the foreign EPI sits within
+    +-10 % of its 819 Hz fundamental; a band there fails the check (rule acoustic), a band elsewhere does not."""
+    import json
+
+    from foreign.writers import epi
+
+    seq = tmp_path / "epi.seq"
+    seq.write_bytes(epi())
+    d = yaml.safe_load((REPO / "scanners" / "kcl_terra_7T.yaml").read_text())
+    d.pop("hardware")
+    for band, fails in (([740, 900], True), ([2500, 3000], False)):
+        d["acoustic_forbidden_bands_hz"] = [band]
+        p = tmp_path / "p.yaml"
+        p.write_text(yaml.safe_dump(d))
+        code, out, err = run_cli(capsys, "check", seq, "--scanner", p, "--json", "-")
+        res = json.loads(out)
+        ac = [v for v in res["violations"] if v["rule"] == "acoustic"]
+        assert bool(ac) == fails and code == (1 if fails else 0), (band, res["violations"], err)
+        assert "acoustic bands: at most" in err
+        if fails:
+            assert ac[0]["axis"] == "x" and ac[0]["value"] > 80

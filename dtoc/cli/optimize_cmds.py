@@ -140,6 +140,9 @@ def optimize_cmd(
             limit_sources=limit_from or None,
             scanner_path=scanner,
             pns_model=None if prof is None else prof.profile.pns,
+            acoustic=None
+            if prof is None
+            else (prof.profile.acoustic_forbidden_bands_hz, prof.profile.acoustic_max_power_fraction),
         ),
     )
     m = res.manifest

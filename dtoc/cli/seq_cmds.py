@@ -123,16 +123,17 @@ def check_cmd(
             sysspec = SystemSpec(**{**sysspec.model_dump(), **upd})
         except ValidationError as e:
             raise InputError(f"--gmax/--smax: {format_validation_error(e)} (mT/m and T/m/s)") from None
-    pns_model, rotation = None, None
+    pns_model, rotation, acoustic = None, None, None
     if scanner is not None:
         from dtoc.cli import scanner as sc
 
-        pns_model = sc.load(scanner).profile.pns
+        p = sc.load(scanner).profile
+        pns_model, acoustic = p.pns, (p.acoustic_forbidden_bands_hz, p.acoustic_max_power_fraction)
     if orientation is not None:
         from dtoc.hardware.orientation import parse_orientation
 
         rotation = parse_orientation(orientation)
-    res = check_file(seq, sysspec, pns=pns_model, rotation=rotation)
+    res = check_file(seq, sysspec, pns=pns_model, rotation=rotation, acoustic=acoustic)
     if base is not None:
         res.limits_source = base
     if gmax is not None or smax is not None:

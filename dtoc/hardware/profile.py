@@ -63,7 +63,16 @@ class ScannerProfile(BaseModel):
     acoustic_forbidden_bands_hz: list[Annotated[list[float], Field(min_length=2, max_length=2)]] = Field(
         default_factory=list
     )
+    acoustic_max_power_fraction: float = Field(0.1, gt=0, le=1)  # dtoc's criterion (dtoc.seq.acoustics)
     source: str | None = None  # where the numbers come from
+
+    @field_validator("acoustic_forbidden_bands_hz")
+    @classmethod
+    def _bands(cls, v):
+        for lo, hi in v:
+            if not (0 <= lo < hi):
+                raise ValueError("each forbidden band is [f_lo, f_hi] in Hz with 0 <= f_lo < f_hi")
+        return v
 
     @field_validator("gmax_mT_per_m", "smax_T_per_m_per_s")
     @classmethod
@@ -92,8 +101,6 @@ class ScannerProfile(BaseModel):
             out.append("PNS: not checked (the profile has no SAFE model parameters)")
         if not self.acoustic_forbidden_bands_hz:
             out.append("acoustic bands: not checked (the profile lists no forbidden bands)")
-        else:
-            out.append("acoustic bands: not checked (dtoc does not evaluate the gradient spectrum yet)")
         return out
 
     def system_spec(self):

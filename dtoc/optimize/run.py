@@ -278,6 +278,7 @@ def optimize_sequence(
     limit_sources: dict | None = None,
     scanner_path=None,
     pns_model=None,
+    acoustic=None,
 ) -> RunOutputs:
     """Run `dtoc optimize` (see the module doc).
 
@@ -299,6 +300,7 @@ def optimize_sequence(
         limit_sources: where limits given in ``config`` came from, when not the command line (e.g. a profile).
         scanner_path: the scanner profile the limits / model came from (recorded in the manifest).
         pns_model: SAFE parameters (:class:`dtoc.seq.pns.SafeModel`): the output must stay below their limit.
+        acoustic: (forbidden bands [[lo, hi], ...] Hz, max power fraction): the output must keep out of them.
     Returns:
         :class:`RunOutputs` (manifest dict, output IR, arrays for plots).
     """
@@ -535,7 +537,7 @@ def optimize_sequence(
             if trajectory_path is not None:
                 manifest["trajectory"] = _write_sidecar(trajectory_path, ir, after, keep, ctx, girf or model, force)
             _write_outputs(
-                ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start, pns_model, R
+                ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start, pns_model, R, acoustic
             )
     return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)
 
@@ -561,14 +563,25 @@ def _write_sidecar(path, ir, after: dict, keep, ctx, model_file, force: bool) ->
 
 
 def _write_outputs(
-    ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start, pns_model=None, rotation=None
+    ir_out,
+    out,
+    force,
+    limits,
+    manifest,
+    manifest_path,
+    png_path,
+    figures,
+    t_start,
+    pns_model=None,
+    rotation=None,
+    acoustic=None,
 ) -> None:
     """The .seq (checked after writing), the manifest and the PNG report, in one :func:`outputs_together`."""
     if out is not None:
         definitions: dict = {"DtocInterrupted": 1} if manifest["interrupted"] else {}
         if manifest.get("orientation"):  # the orientation the file was compiled for (dtoc check --orientation)
             definitions["DtocOrientation"] = manifest["orientation"]["R_logical_to_physical"]
-        manifest["output"] = _write_checked(ir_out, out, force, limits, definitions, pns_model, rotation)
+        manifest["output"] = _write_checked(ir_out, out, force, limits, definitions, pns_model, rotation, acoustic)
     manifest["run_time_s"] = time.time() - t_start
     if manifest_path is not None:
         atomic_write_text(manifest_path, json.dumps(_jsonable(manifest), indent=2, sort_keys=True) + "\n", force=force)
@@ -642,6 +655,7 @@ def _write_checked(
     definitions: dict | None = None,
     pns_model=None,
     rotation=None,
+    acoustic=None,
 ) -> dict:
     """Write via the seq writer into a temporary file, validate it, then move it into place.
     ``definitions``: extra [DEFINITIONS] entries (e.g. ``DtocInterrupted 1`` on a best-so-far)."""
@@ -655,8 +669,8 @@ def _write_checked(
             grad_raster_s=ir_out.raster_s,
             block_raster_s=_block_raster(ir_out),
         )
-        res = check_file(tmp, sysspec, pns=pns_model, rotation=rotation)
-        lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector", "pns"}
+        res = check_file(tmp, sysspec, pns=pns_model, rotation=rotation, acoustic=acoustic)
+        lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector", "pns", "acoustic"}
         bad = [v for v in res.violations if v.rule in lim_rules]
         if bad:
             raise ValidationFailed(f"written file fails dtoc check: {bad[0].message}; nothing written")

@@ -494,7 +494,9 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
             )
 
 
-def check_file(path: str | Path, system: SystemSpec | None = None, pns=None, rotation=None) -> CheckResult:
+def check_file(
+    path: str | Path, system: SystemSpec | None = None, pns=None, rotation=None, acoustic=None
+) -> CheckResult:
     """Validate a ``.seq`` file.  ``system=None``: the limits the file records (dtoc-built files); a file that
     records none is refused (limits are never assumed: give a :class:`SystemSpec`).
 
@@ -534,7 +536,39 @@ def check_file(path: str | Path, system: SystemSpec | None = None, pns=None, rot
     res.violations.extend(check_ir_limits(ir, system))
     if pns is not None:
         _pns_rule(ir, pns, rotation, res)
+    if acoustic is not None and acoustic[0]:
+        _acoustic_rule(ir, acoustic[0], acoustic[1], rotation, res)
     return res
+
+
+def _acoustic_rule(ir: SequenceIR, bands, max_fraction: float, rotation, res: CheckResult) -> None:
+    """Switching power inside a forbidden acoustic band (:mod:`dtoc.seq.acoustics`)."""
+    from dtoc.seq.acoustics import band_power_fractions
+
+    rows = band_power_fractions(ir.grad_mT_per_m, ir.dt_fine_s, bands, rotation)
+    worst = max(rows, key=lambda r: r.power_fraction, default=None)
+    if worst is None:
+        res.checks.append("acoustic bands: no switching gradient")
+        return
+    lo, hi = worst.band_hz
+    res.checks.append(
+        f"acoustic bands: at most {100 * worst.power_fraction:.1f} % of an axis' switching power in a forbidden band "
+        f"({AXES[worst.axis]}, {lo:g}-{hi:g} Hz; allowed {100 * max_fraction:g} %)"
+    )
+    for r in rows:
+        if r.power_fraction > max_fraction:
+            res.violations.append(
+                Violation(
+                    "acoustic",
+                    None,
+                    AXES[r.axis],
+                    100 * r.power_fraction,
+                    100 * max_fraction,
+                    "%",
+                    f"{100 * r.power_fraction:.1f} % of the {AXES[r.axis]} switching power in the forbidden band "
+                    f"{r.band_hz[0]:g}-{r.band_hz[1]:g} Hz (peak at {r.peak_hz:.0f} Hz)",
+                )
+            )
 
 
 def _pns_rule(ir: SequenceIR, model, rotation, res: CheckResult) -> None:
