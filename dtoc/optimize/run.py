@@ -279,6 +279,7 @@ def optimize_sequence(
     scanner_path=None,
     pns_model=None,
     acoustic=None,
+    offset_m=None,
 ) -> RunOutputs:
     """Run `dtoc optimize` (see the module doc).
 
@@ -301,6 +302,8 @@ def optimize_sequence(
         scanner_path: the scanner profile the limits / model came from (recorded in the manifest).
         pns_model: SAFE parameters (:class:`dtoc.seq.pns.SafeModel`): the output must stay below their limit.
         acoustic: (forbidden bands [[lo, hi], ...] Hz, max power fraction): the output must keep out of them.
+        offset_m: (3,) physical off-centre position of the slice / FOV, m: the interpreter's FOV-shift phase is
+            corrected per ADC event as far as the format allows (:mod:`dtoc.optimize.offcentre`).
     Returns:
         :class:`RunOutputs` (manifest dict, output IR, arrays for plots).
     """
@@ -477,6 +480,16 @@ def optimize_sequence(
             extra["checkpoint"] = str(ckpt_target)
         if resumed_from is not None:
             extra["resumed_from"] = resumed_from
+        adc_offsets = None
+        if offset_m is not None:
+            from dtoc.optimize.offcentre import offcentre_correction
+            from dtoc.seq.read import slice_axes
+
+            if any(free[a].any() for a in slice_axes(ir)):
+                raise InputError("--offset with a freed slice axis: the interpreter's RF frequency would be wrong")
+            oc = offcentre_correction(ir, ir_out, before["_k"], after["_k"], offset_m, R)
+            adc_offsets = {a.block: (float(p), float(f)) for a, p, f in zip(ir.adc, oc.adc_phase_rad, oc.adc_freq_hz)}
+            extra["offcentre"] = {"offset_m": [float(x) for x in offset_m], **oc.summary()}
         nb, na = before.get("nrmse"), after.get("nrmse")
         if nb is not None and na is not None and na > nb:
             warnings_out.append(
@@ -537,7 +550,19 @@ def optimize_sequence(
             if trajectory_path is not None:
                 manifest["trajectory"] = _write_sidecar(trajectory_path, ir, after, keep, ctx, girf or model, force)
             _write_outputs(
-                ir_out, out, force, limits, manifest, manifest_path, png_path, figures, t_start, pns_model, R, acoustic
+                ir_out,
+                out,
+                force,
+                limits,
+                manifest,
+                manifest_path,
+                png_path,
+                figures,
+                t_start,
+                pns_model,
+                R,
+                acoustic,
+                adc_offsets,
             )
     return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)
 
@@ -575,13 +600,16 @@ def _write_outputs(
     pns_model=None,
     rotation=None,
     acoustic=None,
+    adc_offsets=None,
 ) -> None:
     """The .seq (checked after writing), the manifest and the PNG report, in one :func:`outputs_together`."""
     if out is not None:
         definitions: dict = {"DtocInterrupted": 1} if manifest["interrupted"] else {}
         if manifest.get("orientation"):  # the orientation the file was compiled for (dtoc check --orientation)
             definitions["DtocOrientation"] = manifest["orientation"]["R_logical_to_physical"]
-        manifest["output"] = _write_checked(ir_out, out, force, limits, definitions, pns_model, rotation, acoustic)
+        manifest["output"] = _write_checked(
+            ir_out, out, force, limits, definitions, pns_model, rotation, acoustic, adc_offsets
+        )
     manifest["run_time_s"] = time.time() - t_start
     if manifest_path is not None:
         atomic_write_text(manifest_path, json.dumps(_jsonable(manifest), indent=2, sort_keys=True) + "\n", force=force)
@@ -656,13 +684,14 @@ def _write_checked(
     pns_model=None,
     rotation=None,
     acoustic=None,
+    adc_offsets=None,
 ) -> dict:
     """Write via the seq writer into a temporary file, validate it, then move it into place.
     ``definitions``: extra [DEFINITIONS] entries (e.g. ``DtocInterrupted 1`` on a best-so-far)."""
     outp = Path(out)
     with tempfile.TemporaryDirectory(dir=outp.parent if str(outp.parent) else ".") as d:
         tmp = Path(d) / outp.name
-        tmp.write_bytes(seq_bytes_of(ir_out, definitions))  # a private folder: checked before it is staged
+        tmp.write_bytes(seq_bytes_of(ir_out, definitions, adc_offsets))  # a private folder: checked before it is staged
         sysspec = SystemSpec(
             max_grad_mT_per_m=limits.gmax_mT_per_m,
             max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,

@@ -62,8 +62,11 @@ def changed_blocks(ir: SequenceIR) -> dict[int, list[int]]:
     return out
 
 
-def to_pypulseq(ir: SequenceIR):
-    """A pypulseq ``Sequence``: ``ir.source`` with every changed gradient replaced (module doc)."""
+def to_pypulseq(ir: SequenceIR, adc_offsets: dict[int, tuple[float, float]] | None = None):
+    """A pypulseq ``Sequence``: ``ir.source`` with every changed gradient replaced (module doc).
+
+    ``adc_offsets``: {block index: (phase rad, frequency Hz)} added to that block's ADC phase and frequency
+    offsets (the off-centre correction of :mod:`dtoc.optimize.offcentre`; the only non-gradient change)."""
     import pypulseq as pp
 
     src = ir.source
@@ -72,8 +75,9 @@ def to_pypulseq(ir: SequenceIR):
     if abs(float(src.grad_raster_time) - ir.raster_s) > 1e-15:
         raise DtocError("IR raster differs from its source sequence's gradient raster")
     changes = changed_blocks(ir)
+    adc_offsets = {b: v for b, v in (adc_offsets or {}).items() if v[0] or v[1]}
     seq = copy.deepcopy(src)
-    if not changes:
+    if not changes and not adc_offsets:
         return seq
     orig = _original_grad(ir)
     r = ir.raster_s
@@ -98,7 +102,8 @@ def to_pypulseq(ir: SequenceIR):
         for a in range(3):
             if abs(g[a, m] - orig[a, m]) > CHANGE_TOL_MT_PER_M:
                 g[a, m] = _round6(np.array([hz_per_m_from_mT_per_m(g[a, m])]))[0] / hz_per_m_from_mT_per_m(1.0)
-    for b, axes in changes.items():
+    for b in sorted(set(changes) | set(adc_offsets)):
+        axes = changes.get(b, [])
         key = keys[b]
         with quiet():
             blk = seq.get_block(key)
@@ -124,6 +129,13 @@ def to_pypulseq(ir: SequenceIR):
             with quiet():
                 ev = pp.make_extended_trapezoid(channel=AXES[a], times=times, amplitudes=amps, system=opts)
             setattr(blk, ch, ev)
+        if b in adc_offsets:
+            if getattr(blk, "adc", None) is None:
+                raise DtocError(f"block {key}: an ADC correction for a block without ADC")
+            adc = copy.copy(blk.adc)
+            adc.phase_offset = float(adc.phase_offset) + adc_offsets[b][0]
+            adc.freq_offset = float(adc.freq_offset) + adc_offsets[b][1]
+            blk.adc = adc
         events = [getattr(blk, n) for n in ("rf", "gx", "gy", "gz", "adc") if getattr(blk, n, None) is not None]
         for extra in ("label", "trigger", "soft_delay"):
             v = getattr(blk, extra, None)
@@ -141,10 +153,10 @@ def to_pypulseq(ir: SequenceIR):
     return seq
 
 
-def seq_bytes_of(ir: SequenceIR, definitions: dict | None = None) -> bytes:
+def seq_bytes_of(ir: SequenceIR, definitions: dict | None = None, adc_offsets=None) -> bytes:
     """The signed Pulseq 1.5 text of :func:`to_pypulseq` (ir), with ``definitions`` added to [DEFINITIONS]
     (names: letters and digits; values: numbers)."""
-    seq = to_pypulseq(ir)
+    seq = to_pypulseq(ir, adc_offsets)
     for k, v in (definitions or {}).items():
         vals = [float(x) for x in np.ravel(v)] if isinstance(v, (list, tuple, np.ndarray)) else v
         ok_val = isinstance(vals, (int, float)) or (isinstance(vals, list) and vals and all(np.isfinite(vals)))
