@@ -67,3 +67,38 @@ def test_commands_take_the_profile_and_explicit_options_win(capsys, tmp_path, sh
     assert m["limits"]["smax_T_per_m_per_s"] == 175 and m["options"]["b0_T"] == 6.98
     assert m["inputs"]["scanner"]["path"].endswith("kcl_terra_7T.yaml") and m["inputs"]["girf"] is None
     assert m["after"]["kspace_max_error_dk"] < m["before"]["kspace_max_error_dk"]
+
+
+def test_simulate_predict_identify_take_the_profiles_model(capsys, tmp_path):
+    """A profile pointing at a GIRF .npz (relative path): simulate, predict and identify use its model and B0."""
+    import yaml
+
+    from dtoc.hardware.girf_io import save_girf
+    from dtoc.hardware.model import HardwareModel, build_effect, girf_effect
+    from dtoc.identify.synth import lowpass_girf, probe_waveforms, save_measurement, simulate_measurement
+
+    (tmp_path / "g").mkdir()
+    d = yaml.safe_load((REPO / "scanners" / "kcl_terra_7T.yaml").read_text())
+    d["hardware"] = {"girf": "g/example.npz"}
+    (tmp_path / "g" / "example.npz").write_bytes((REPO / "girf" / "example_7T.npz").read_bytes())
+    prof = tmp_path / "p.yaml"
+    prof.write_text(yaml.safe_dump(d))
+    code, out, _ = run_cli(capsys, "simulate", EPI, "--scanner", prof, "--json", "-", "-q")
+    ref_code, ref, _ = run_cli(
+        capsys, "simulate", EPI, "--girf", REPO / "girf" / "example_7T.npz", "--b0", "6.98", "--json", "-", "-q"
+    )
+    r, r0 = json.loads(out), json.loads(ref)
+    assert code == ref_code == 0 and r["nrmse_percent"] == r0["nrmse_percent"] and r["phantom"]["field_T"] == 6.98
+    code, out, _ = run_cli(capsys, "predict", EPI, "--scanner", prof, "--json", "-")
+    assert code == 0 and json.loads(out)["k_error"]["x"]["max_rad_per_m"] > 0  # not ideal hardware
+    dt = 10e-6
+    gd = lowpass_girf(dt)
+    save_girf(gd, tmp_path / "g" / "declared.npz")
+    d["hardware"] = {"girf": "g/declared.npz"}
+    prof.write_text(yaml.safe_dump(d))
+    true = HardwareModel([girf_effect(gd), build_effect("delay", {"seconds": 3e-6}, axis="x")])
+    meas = simulate_measurement(true, probe_waveforms(3, 1500, dt, seed=5), dt, sigma_G=0.01, seed=6)
+    save_measurement(meas, tmp_path / "m.npz")
+    code, out, err = run_cli(capsys, "identify", tmp_path / "m.npz", "--scanner", prof, "-o", tmp_path / "u.json", "-q")
+    assert code == 0, err
+    assert "delay" in out  # the profile's GIRF was the declared model: only the delay is missing
