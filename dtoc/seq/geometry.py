@@ -258,3 +258,29 @@ def sampling_step_dk(k0_rad_per_m, adc_sizes) -> float | None:
             steps.append(float(np.max(np.linalg.norm(np.diff(k[:, s:e], axis=1), axis=0))))
     steps = [x for x in steps if x > 0]
     return float(np.median(steps)) if steps else None
+
+
+def radial_like_step(k0_rad_per_m, adc_sizes) -> float | None:
+    """The sampling step when every readout runs along a straight line through k-space with a constant step
+    (radial, UTE: then 2 pi / step is the FOV); None otherwise (spiral, ...)."""
+    import numpy as np
+
+    k = np.asarray(k0_rad_per_m, dtype=np.float64)[:2]
+    edges = np.cumsum([0, *adc_sizes])
+    steps = []
+    for s, e in zip(edges[:-1], edges[1:]):
+        if e - s < 3:
+            continue
+        d = np.diff(k[:, s:e], axis=1)
+        nrm = np.linalg.norm(d, axis=0)
+        if nrm.max() <= 0:
+            continue
+        u = d / np.maximum(nrm, 1e-30)
+        if np.max(np.abs(u[0] * u[0, 0] + u[1] * u[1, 0] - 1)) > 1e-3:  # not straight
+            return None
+        if np.ptp(nrm) > 1e-3 * nrm.mean():  # not a constant step
+            return None
+        steps.append(float(nrm.mean()))
+    if not steps or np.ptp(steps) > 1e-3 * np.mean(steps):
+        return None
+    return float(np.mean(steps))

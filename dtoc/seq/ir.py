@@ -222,7 +222,10 @@ class SequenceIR:
         """:attr:`geometry`, or an InputError naming ``what`` needs it."""
         geo = self.geometry
         if geo is None:
-            raise InputError(f"{what}: the sequence declares no FOV/matrix (a Cartesian grid is needed)")
+            raise InputError(
+                f"{what}: no image grid for this sequence (no FOV/matrix, and none inferred: see the notes); "
+                "'dtoc predict' gives its k-space figures"
+            )
         return geo
 
     # ---- edits -------------------------------------------------------------------------------

@@ -46,12 +46,13 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
     g = infer_cartesian_grid(ir.nominal_kspace_rad_per_m(), [a.num_samples for a in ir.adc])
     notes = ir.meta.setdefault("notes", [])
     if g is None:
-        notes.append(
-            "no FOV/matrix definitions and the ADC samples are not on a 2D Cartesian grid (non-Cartesian, 3D or "
-            "ramp-sampled): k-space figures only, no image"
-        )
         _free_encoded_slice_axes(ir, notes)
         _note_kind(ir, notes)
+        if not _non_cartesian_image_grid(ir, notes):
+            notes.append(
+                "no FOV/matrix definitions and the ADC samples are not on a 2D Cartesian grid, nor radial with a "
+                "constant step, nor with a FOV definition (3D, spiral without FOV, ramp-sampled): k-space figures only, no image"
+            )
         return
     ir.fov_m = g.fov_m
     ir.matrix = g.matrix_readout_phase
@@ -60,6 +61,50 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
     ir.meta["grid_offset_dk"] = list(g.offset_dk)
     notes.append(g.describe())
     _note_kind(ir, notes)
+
+
+#: Largest samples x pixels of the exact non-uniform DFT image (a dense complex matrix, 16 bytes an entry).
+NDFT_MAX_ENTRIES = 2e7
+
+
+def _non_cartesian_image_grid(ir: SequenceIR, notes: list) -> bool:
+    """A 2D in-plane (x, y) non-Cartesian trajectory gets an image grid for the non-uniform DFT reconstruction
+    (:mod:`dtoc.sim.ndft`): FOV from the file's FOV definition, else 2 pi / step for radial readouts (straight,
+    constant step); N = the even number of grid steps that covers the largest |k|.  True when set."""
+    import math
+
+    import numpy as np
+
+    from dtoc.seq.geometry import radial_like_step
+
+    k = ir.nominal_kspace_rad_per_m()
+    scale = max(float(np.abs(k).max()), 1e-12)
+    if np.ptp(k[2]) > 1e-4 * scale or ir.fov_m is not None and ir.matrix is not None:
+        return False  # 3D (or already defined)
+    if ir.fov_m is not None and ir.fov_m[0] > 0 and ir.fov_m[1] > 0:
+        fov, src = float(min(ir.fov_m[0], ir.fov_m[1])), "the file's FOV definition"
+    else:
+        step = radial_like_step(k, [a.num_samples for a in ir.adc])
+        if step is None:
+            return False
+        fov, src = 2 * math.pi / step, "2 pi / the radial sampling step"
+    kmax = float(np.max(np.hypot(k[0], k[1])))
+    n = 2 * max(int(math.ceil(kmax * fov / (2 * math.pi) - 1e-6)), 4)
+    if ir.n_adc_samples * n * n > NDFT_MAX_ENTRIES:
+        notes.append(
+            f"non-Cartesian 2D, {ir.n_adc_samples} samples on a {n} x {n} image: beyond the exact non-uniform DFT's "
+            f"size ({NDFT_MAX_ENTRIES:.0e} matrix entries); k-space figures only"
+        )
+        return True
+    ir.fov_m = (fov, fov, 0.0)
+    ir.matrix = (n, n)
+    ir.readout_axis, ir.phase_axis = 0, 1
+    ir.meta["recon"] = "ndft"
+    notes.append(
+        f"non-Cartesian 2D: images by a non-uniform DFT on the nominal trajectory, {n} x {n} over "
+        f"{1e3 * fov:.4g} mm ({src})"
+    )
+    return True
 
 
 def _free_encoded_slice_axes(ir: SequenceIR, notes: list) -> None:

@@ -89,8 +89,9 @@ def compare_ideal_realized(
     from dtoc.sim.pdg import PDGConfig
 
     note = step or (lambda _s: None)
-    grid = cartesian_grid(ir, keep_mask)
-    ny, nx = grid.shape
+    ndft = ir.meta.get("recon") == "ndft"  # non-Cartesian: non-uniform DFT on the nominal trajectory
+    grid = None if ndft else cartesian_grid(ir, keep_mask)
+    ny, nx = ir.require_geometry("simulate").image_shape if grid is None else grid.shape
     note("graph" if not n_dummies or n_dummies <= 0 else f"graph, {n_dummies} dummy cycles, ideal simulation")
     imager = Imager(
         ir,
@@ -101,7 +102,7 @@ def compare_ideal_realized(
         config=config or PDGConfig(),
         steady_state_options={"config": config, "dtype": dtype, "device": device},
     )
-    img0 = imager.image(imager.target_signals[0], grid=grid).abs()
+    img0 = imager.image(imager.target_signals[0], keep_mask=keep_mask if ndft else None, grid=grid).abs()
     twin = Twin(ir, model, dtype=dtype, device=device)
     k0 = ir.nominal_kspace_rad_per_m()
     identity = twin.is_ideal
@@ -113,12 +114,17 @@ def compare_ideal_realized(
         with torch.no_grad():
             r = twin.forward(moments=False)
             s = imager.signal(r.realized_grad_mT_per_m, r.b0_uT, 0)
-        img = imager.image(s, grid=grid).abs()
+        img = imager.image(s, keep_mask=keep_mask if ndft else None, grid=grid).abs()
         # k figures in float64 whatever the simulation precision
         k = ir.kspace_rad_per_m(r.realized_grad_mT_per_m.detach().to("cpu", torch.float64)).numpy()
     note("metrics")
-    dk = np.array([2 * np.pi / grid.fov_m[0], 2 * np.pi / grid.fov_m[1], np.inf])
-    used = grid.flat_index >= 0
+    fov_xy = ir.require_geometry("simulate").fov_xy_m if grid is None else grid.fov_m
+    dk = np.array([2 * np.pi / fov_xy[0], 2 * np.pi / fov_xy[1], np.inf])
+    used = (
+        (np.ones(ir.n_adc_samples, dtype=bool) if keep_mask is None else np.asarray(keep_mask, dtype=bool))
+        if grid is None
+        else grid.flat_index >= 0
+    )
     m: dict[str, Any] = metrics.image_metrics(img, img0, epi=ir.kind == "epi", phase_dim=ir.phase_image_dim)
     m.update(metrics.kspace_errors(k, k0, dk, mask=used))
     m["kept_samples"] = int(used.sum())

@@ -176,11 +176,16 @@ def reconstruct(
         (ny, nx) complex image for one coil, or (ny, nx) real root-sum-of-squares magnitude for several.
     """
     s = torch.as_tensor(signal)
-    if grid is None:
-        grid = cartesian_grid(ir, keep_mask, matrix=matrix, fov_m=fov_m)
+    if grid is None and (getattr(ir, "meta", None) or {}).get("recon") == "ndft":
+        from dtoc.sim.ndft import ndft_image  # non-Cartesian 2D: non-uniform DFT on the nominal trajectory
+
+        img = ndft_image(s, ir, keep_mask)
+    else:
+        if grid is None:
+            grid = cartesian_grid(ir, keep_mask, matrix=matrix, fov_m=fov_m)
+        img = kspace_to_image(grid_kspace(s, grid))
     if coil_axis is None:
         coil_axis = s.ndim >= 2
-    img = kspace_to_image(grid_kspace(s, grid))
     if not coil_axis:
         return img
     if img.shape[-3] == 1:

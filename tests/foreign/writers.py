@@ -215,6 +215,7 @@ def spiral(interleaves: int = 1, fov: float = 0.22, n: int = 48, tr: float = 30e
         gy = np.append(gy, np.sign(gy[-1]) * max(abs(gy[-1]) - step, 0.0))
     gx = np.concatenate([[0.0], gx, [0.0]])
     gy = np.concatenate([[0.0], gy, [0.0]])
+    seq.set_definition("FOV", [fov, fov, 5e-3])  # as users' spiral scripts do: the image FOV is not in the path
     n_adc = int((len(gx) * dt - 2 * sys.adc_dead_time) / 4e-6) // 4 * 4
     for shot in range(interleaves):
         phi = 2 * math.pi * shot / interleaves
