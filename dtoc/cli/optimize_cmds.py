@@ -8,9 +8,8 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, sequence_notes, strict_json
-from dtoc.cli.scanner import scanner_option
+from dtoc.cli.scanner import ORIENTATION_HELP, scanner_option
 from dtoc.constants import DEFAULT_B0_T
-from dtoc.hardware.orientation import ORIENTATION_HELP
 
 
 def optimize_cmd(

@@ -6,6 +6,11 @@ from pathlib import Path
 
 import typer
 
+ORIENTATION_HELP = (
+    "slice orientation the file is played at: tra, sag, cor or 9 numbers (row-major rotation logical -> physical; "
+    "docs/conventions.md); the hardware model acts on the physical axes"
+)
+
 SCANNER_HELP = "scanner profile YAML (docs/scanner.md): limits, rasters, dead times, hardware model, B0; explicit options override it"
 
 

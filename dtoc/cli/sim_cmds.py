@@ -7,9 +7,8 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, note, sequence_notes
-from dtoc.cli.scanner import scanner_option
+from dtoc.cli.scanner import ORIENTATION_HELP, scanner_option
 from dtoc.constants import DEFAULT_B0_T
-from dtoc.hardware.orientation import ORIENTATION_HELP
 
 
 def _round(x):

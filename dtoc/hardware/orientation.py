@@ -56,12 +56,6 @@ def parse_orientation(text: str | None) -> np.ndarray | None:
     return R
 
 
-ORIENTATION_HELP = (
-    "slice orientation the file is played at: tra, sag, cor or 9 numbers (row-major rotation logical -> physical; "
-    "docs/conventions.md); the hardware model acts on the physical axes"
-)
-
-
 def file_orientation(definitions: dict) -> np.ndarray | None:
     """The orientation a dtoc output records (``DtocOrientation`` 9 numbers), or None."""
     v = (definitions or {}).get("DtocOrientation")
