@@ -81,17 +81,20 @@ def check_cmd(
     from dtoc.util.atomic import check_outputs
 
     check_outputs({"--json": json_out}, {"SEQ": seq, "--system": system}, force)
+    from dtoc.cli import scanner as sc
+
+    prof = sc.load(scanner)
+    rotation = None
+    if orientation is not None:
+        from dtoc.hardware.orientation import parse_orientation
+
+        rotation = parse_orientation(orientation)
     sysspec = load_system(system) if system else None
     base = f"--system {system}" if system else None
-    if sysspec is None and scanner is not None:
-        from dtoc.cli import scanner as sc
-
-        prof = sc.load(scanner)
+    if sysspec is None and prof is not None:
         sysspec, base = prof.profile.system_spec(), f"--scanner {prof.profile.name}"
-    if scanner is not None:
-        from dtoc.cli import scanner as sc
-
-        for line in sc.load(scanner).profile.not_checked():
+    if prof is not None:
+        for line in prof.profile.not_checked():
             note(line)
     if gmax is not None or smax is not None:
         if sysspec is None:
@@ -123,16 +126,10 @@ def check_cmd(
             sysspec = SystemSpec(**{**sysspec.model_dump(), **upd})
         except ValidationError as e:
             raise InputError(f"--gmax/--smax: {format_validation_error(e)} (mT/m and T/m/s)") from None
-    pns_model, rotation, acoustic = None, None, None
-    if scanner is not None:
-        from dtoc.cli import scanner as sc
-
-        p = sc.load(scanner).profile
+    pns_model, acoustic = None, None
+    if prof is not None:
+        p = prof.profile
         pns_model, acoustic = p.pns, (p.acoustic_forbidden_bands_hz, p.acoustic_max_power_fraction)
-    if orientation is not None:
-        from dtoc.hardware.orientation import parse_orientation
-
-        rotation = parse_orientation(orientation)
     res = check_file(seq, sysspec, pns=pns_model, rotation=rotation, acoustic=acoustic)
     if base is not None:
         res.limits_source = base
@@ -140,8 +137,8 @@ def check_cmd(
         res.limits_source += " + " + " ".join(
             f"{n} {v:g}" for n, v in (("--gmax", gmax), ("--smax", smax)) if v is not None
         )
-    if orientation is not None:
-        res.warnings.extend(_orientation_warnings(seq, orientation))
+    if rotation is not None:
+        res.warnings.extend(_orientation_warnings(res.definitions, rotation))
     outp = Output(json_out)
     outp.write_json(strict_json(res.to_dict()), force)
     _print_check(res, max_rows, outp.console())
@@ -153,24 +150,21 @@ def check_cmd(
         raise typer.Exit(1)
 
 
-def _orientation_warnings(seq: Path, orientation: str) -> list[str]:
-    """A file compiled (pre-compensated) for one orientation and checked for another: one warning."""
+def _orientation_warnings(definitions: dict, want) -> list[str]:
+    """A file compiled (pre-compensated) for one orientation and checked for another (``want``, R): one warning."""
     import numpy as np
 
-    from dtoc.hardware.orientation import file_orientation, orientation_name, parse_orientation
-    from dtoc.seq.seqtext import parse_seq_text
+    from dtoc.hardware.orientation import file_orientation, orientation_name
 
-    want = parse_orientation(orientation)
-    st = parse_seq_text(seq)
-    got = file_orientation({k: v for k, v in st.definitions().items()})
+    got = file_orientation(definitions)
     if got is None:
-        if want is not None and not np.allclose(want, np.eye(3)):
+        if not np.allclose(want, np.eye(3)):
             return [
                 f"the file records no orientation (DtocOrientation): if it was pre-compensated, it was for the "
                 f"file's own axes (tra), not {orientation_name(want)}"
             ]
         return []
-    if want is None or not np.allclose(got, want, atol=1e-6):
+    if not np.allclose(got, want, atol=1e-6):
         return [
             f"the file was compiled for orientation {orientation_name(got)}, checked for {orientation_name(want)}: "
             "its pre-compensation does not hold at this orientation; re-optimize with --orientation"

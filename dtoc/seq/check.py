@@ -66,6 +66,8 @@ class CheckResult:
     warnings: list[str] = field(default_factory=list)
     #: what was checked beyond the limits, with its figure (e.g. "PNS (SAFE): max 63.2 % of the limit")
     checks: list[str] = field(default_factory=list)
+    #: the file's [DEFINITIONS] as text (name -> value string), for checks made on top (e.g. orientation)
+    definitions: dict[str, str] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -520,8 +522,8 @@ def check_file(
                 "--gmax and --smax or --system (limits are never assumed)"
             )
         source = "file definitions"
-    res = CheckResult(path=str(path), system=system, limits_source=source)
-    if st.definitions().get("DtocInterrupted", "").split()[:1] == ["1"]:
+    res = CheckResult(path=str(path), system=system, limits_source=source, definitions=dict(st.definitions()))
+    if res.definitions.get("DtocInterrupted", "").split()[:1] == ["1"]:
         res.warnings.append(
             "written by an interrupted dtoc optimize (DtocInterrupted 1): a best-so-far, not a finished result"
         )
