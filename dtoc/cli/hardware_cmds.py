@@ -10,8 +10,9 @@ from pathlib import Path
 
 import typer
 
-from dtoc.cli.output import Output, json_option, note, sequence_notes, strict_json
+from dtoc.cli.output import Output, json_option, note, sequence_notes
 from dtoc.cli.scanner import ORIENTATION_HELP, scanner_option
+from dtoc.util.jsonout import strict_json
 
 girf_app = typer.Typer(
     help="GIRF files: import published ones, fit from measurements, show figures.", no_args_is_help=True

@@ -7,9 +7,10 @@ from pathlib import Path
 
 import typer
 
-from dtoc.cli.output import Output, json_option, sequence_notes, strict_json
+from dtoc.cli.output import Output, json_option, sequence_notes
 from dtoc.cli.scanner import ORIENTATION_HELP, scanner_option
 from dtoc.constants import DEFAULT_B0_T
+from dtoc.util.jsonout import strict_json
 
 
 def optimize_cmd(

@@ -12,10 +12,7 @@ Report keys carry their unit in the name (``_percent``, ``_dk``, ``_rad_per_m``,
 
 from __future__ import annotations
 
-import json
-import math
 import sys
-from typing import Any
 
 import typer
 
@@ -25,23 +22,6 @@ def json_option(what: str):
     return typer.Option(
         None, "--json", help=f"write {what} as JSON to this path ('-' = stdout; the table then goes to stderr)"
     )
-
-
-def strict_json(obj: Any) -> str:
-    """Indented, key-sorted JSON; NaN/inf become null so that every consumer can parse it."""
-
-    def clean(x):
-        if hasattr(x, "item") and getattr(x, "ndim", 1) == 0:  # numpy scalars
-            x = x.item()
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        if isinstance(x, dict):
-            return {str(k): clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        return x
-
-    return json.dumps(clean(obj), indent=2, sort_keys=True, allow_nan=False) + "\n"
 
 
 class Output:

@@ -8,8 +8,9 @@ from pathlib import Path
 
 import typer
 
-from dtoc.cli.output import Output, json_option, note, strict_json
+from dtoc.cli.output import Output, json_option, note
 from dtoc.cli.scanner import scanner_option
+from dtoc.util.jsonout import strict_json
 
 
 def build_cmd(

@@ -56,11 +56,11 @@ def simulate_cmd(
     """Simulate ideal versus realized images of SEQ on a phantom; NRMSE, EPI ghost ratio, k-space error."""
     from rich.table import Table
 
-    from dtoc.cli.output import strict_json
     from dtoc.sim.comparison import check_device, compare_ideal_realized, plot_comparison, torch_dtype
     from dtoc.sim.metrics import report_figures
     from dtoc.sim.phantom import phantom_for
     from dtoc.util.atomic import atomic_write_bytes, check_outputs, outputs_together, sha256_file
+    from dtoc.util.jsonout import strict_json
     from dtoc.version import __version__
 
     tdtype = torch_dtype(dtype)

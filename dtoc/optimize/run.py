@@ -43,6 +43,7 @@ from dtoc.util.atomic import (
     sha256_file,
 )
 from dtoc.util.interrupt import deferred, fault_point
+from dtoc.util.jsonout import strict_json
 from dtoc.version import __version__
 
 
@@ -612,7 +613,7 @@ def _write_outputs(
         )
     manifest["run_time_s"] = time.time() - t_start
     if manifest_path is not None:
-        atomic_write_text(manifest_path, json.dumps(_jsonable(manifest), indent=2, sort_keys=True) + "\n", force=force)
+        atomic_write_text(manifest_path, strict_json(manifest), force=force)
     if png_path is not None:
         from dtoc.optimize.report import write_report_png
 
@@ -745,18 +746,3 @@ def _phantom_record(phantom) -> dict:
     if is_builtin_spec(spec):
         return {"builtin": spec}
     return {"builtin": None, "path": spec, "sha256": sha256_file(spec)}
-
-
-def _jsonable(o):
-    if isinstance(o, dict):
-        return {str(k): _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, (np.floating, float)):
-        f = float(o)
-        return f if math.isfinite(f) else None
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    return o
