@@ -280,12 +280,13 @@ def _check_structure(st: SeqText, p: Path) -> None:
             raise _err(p, f"shape {sid} (line {shp[i].lineno}): compressed data do not expand to {num} samples{hint}")
         st.shapes[sid] = (num, data, shp[i].lineno)
         i = j
-    _check_sizes(st, p)
+    # every [BLOCKS] row as integers, once (validated above): sizes and references both read them
+    blocks = [(ln.lineno, [int(float(x)) for x in ln.tokens]) for ln in st.sections["[BLOCKS]"]]
+    _check_sizes(st, blocks, p)
     # references
     ext_ids = _extension_ids(st, p)
     grad_ids = ids["[GRADIENTS]"] | ids["[TRAP]"]
-    for ln in st.sections["[BLOCKS]"]:
-        t = [int(float(x)) for x in ln.tokens]
+    for lineno, t in blocks:
         refs = (
             ("RF", t[2], ids["[RF]"]),
             ("gradient", t[3], grad_ids),
@@ -295,7 +296,7 @@ def _check_structure(st: SeqText, p: Path) -> None:
         )
         for name, ref, have in (*refs, ("extension list", t[7], ext_ids)):
             if ref and ref not in have:
-                raise _err(p, f"line {ln.lineno}: block {t[0]} uses {name} {ref}, which is not defined{hint}")
+                raise _err(p, f"line {lineno}: block {t[0]} uses {name} {ref}, which is not defined{hint}")
     shape_cols = {"[RF]": (2, 3, 4), "[GRADIENTS]": (4, 5) if st.major_minor == (1, 5) else (2, 3)}
     for sec, cols in shape_cols.items():
         for ln in st.sections.get(sec, []):
@@ -372,9 +373,10 @@ BYTES_PER_RASTER = 2 * 3 * 8 * 12
 BYTES_PER_ADC_SAMPLE = 400
 
 
-def _check_sizes(st: SeqText, p: Path) -> None:
+def _check_sizes(st: SeqText, blocks: list[tuple[int, list[int]]], p: Path) -> None:
     """Refuse, before anything is allocated, a sequence whose raster grid or ADC samples need more than a
-    quarter of this machine's memory (a duration or sample count off by orders of magnitude)."""
+    quarter of this machine's memory (a duration or sample count off by orders of magnitude).
+    ``blocks``: (line, integer fields) of every [BLOCKS] row."""
     defs = st.definitions()
 
     def num(key: str, default: float) -> float:
@@ -385,13 +387,10 @@ def _check_sizes(st: SeqText, p: Path) -> None:
 
     block_raster = num("BlockDurationRaster", 10e-6)
     grad_raster = num("GradientRasterTime", 10e-6)
-    ticks = 0
-    for ln in st.sections["[BLOCKS]"]:
-        ticks += int(float(ln.tokens[1]))
-    duration_s = ticks * block_raster if st.major_minor >= (1, 4) else 0.0
+    duration_s = sum(t[1] for _, t in blocks) * block_raster  # durations in block-raster ticks (1.4 and 1.5)
     n_raster = duration_s / grad_raster
     adc_num = {int(float(ln.tokens[0])): int(float(ln.tokens[1])) for ln in st.sections.get("[ADC]", [])}
-    n_adc = sum(adc_num.get(int(float(ln.tokens[6])), 0) for ln in st.sections["[BLOCKS]"])
+    n_adc = sum(adc_num.get(t[6], 0) for _, t in blocks)
     need = n_raster * BYTES_PER_RASTER + n_adc * BYTES_PER_ADC_SAMPLE
     budget = max_file_bytes() * 10  # a quarter of the memory
     if need > budget:
