@@ -228,7 +228,6 @@ def predict_cmd(
     the mean k offset of odd and even readout lines and their difference (rad/m, dk).
     Without --girf/--model the hardware is ideal (all errors 0).
     """
-    from dtoc.hardware.model import resolve_model
     from dtoc.seq.load import load_sequence
     from dtoc.sim.predict import plot_prediction, predict
 
@@ -239,7 +238,7 @@ def predict_cmd(
     from dtoc.cli import scanner as sc
 
     prof = sc.load(scanner)
-    m = sc.hardware(prof, girf, model) or resolve_model(girf=girf, model=model)
+    m = sc.resolve(prof, girf, model)
     from dtoc.hardware.orientation import RotatedChain, parse_orientation
 
     R = parse_orientation(orientation)

@@ -28,7 +28,17 @@ def load(scanner: Path | None):
 
 
 def hardware(prof, girf, model):
-    """The hardware model: --girf/--model when given, else the profile's (None: neither)."""
+    """The profile's hardware model when neither --girf nor --model is given (None otherwise, or without one)."""
     if girf is not None or model is not None or prof is None:
         return None
     return prof.hardware_model()
+
+
+def resolve(prof, girf, model):
+    """The model a command plays: --girf / --model, else the profile's, else ideal hardware."""
+    hw = hardware(prof, girf, model)
+    if hw is not None:
+        return hw
+    from dtoc.hardware.model import resolve_model
+
+    return resolve_model(girf=girf, model=model)

@@ -72,7 +72,6 @@ def simulate_cmd(
         force,
     )
     from dtoc.cli.progress import ProgressReporter
-    from dtoc.hardware.model import resolve_model
     from dtoc.seq.load import load_sequence
 
     rep = ProgressReporter("dtoc simulate", quiet=quiet)
@@ -81,7 +80,7 @@ def simulate_cmd(
     from dtoc.cli import scanner as sc
 
     prof = sc.load(scanner)
-    hw = sc.hardware(prof, girf, model) or resolve_model(girf=girf, model=model)
+    hw = sc.resolve(prof, girf, model)
     if field_T is None:
         field_T = prof.profile.b0_T if prof is not None else DEFAULT_B0_T
     from dtoc.hardware.orientation import RotatedChain, parse_orientation
