@@ -90,7 +90,7 @@ def _cli(*argv) -> tuple[int, str, str]:
     return code, o.getvalue(), e.getvalue()
 
 
-def _pypulseq_checks(path: Path) -> tuple[bool, float]:
+def pypulseq_checks(path: Path) -> tuple[bool, float]:
     """pypulseq read + check_timing, and the peak slew (T/m/s) from pypulseq's own shape decoding."""
     import pypulseq as pp
 
@@ -153,7 +153,7 @@ def run_one(name: str, desc: str, seq: Path, girf: Path, d: Path) -> dict:
     row["discarded"] = man["n_samples_discarded"]
     code, _, _ = _cli("check", o, "--gmax", GMAX, "--smax", SMAX)
     row["check_ok"] = code == 0
-    row["pypulseq_timing_ok"], row["slew_independent"] = _pypulseq_checks(o)
+    row["pypulseq_timing_ok"], row["slew_independent"] = pypulseq_checks(o)
     row["k_after_reread_dk"] = _realized_error_dk(seq, o, girf, man["sequence"]["dk_rad_per_m"])
     code, out, _ = _cli("diff", seq, o, "--json", "-")
     whats = {x["what"] for x in json.loads(out)["differences"]}
