@@ -104,3 +104,20 @@ def test_forbidden_acoustic_band_at_the_epi_readout_frequency(capsys, tmp_path):
         assert "acoustic bands: at most" in err
         if fails:
             assert ac[0]["axis"] == "x" and ac[0]["value"] > 80
+
+
+def test_optimize_writes_nothing_that_fails_the_profiles_safety_checks(capsys, tmp_path):
+    from foreign.writers import epi
+
+    seq = tmp_path / "epi.seq"
+    seq.write_bytes(epi())
+    d = yaml.safe_load((REPO / "scanners" / "kcl_terra_7T.yaml").read_text())
+    d.pop("hardware")
+    d["acoustic_forbidden_bands_hz"] = [[740, 900]]  # around the EPI's 819 Hz readout fundamental
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump(d))
+    out = tmp_path / "o.seq"
+    code, _, err = run_cli(capsys, "optimize", seq, "--scanner", p, "--ideal", "-o", out, "--warm-iters", "5", "-q")
+    errors = [ln for ln in err.splitlines() if ln.startswith("dtoc: error:")]  # the reader's notes come first
+    assert code == 1 and len(errors) == 1 and "forbidden band 740-900 Hz" in errors[0] and "Traceback" not in err
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["epi.seq", "p.yaml"]

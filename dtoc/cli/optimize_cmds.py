@@ -145,11 +145,8 @@ def optimize_cmd(
             hardware=hw,
             limit_sources=limit_from or None,
             scanner_path=scanner,
-            pns_model=None if prof is None else prof.profile.pns,
+            safety=None if prof is None else prof.profile.safety_checks(),
             offset_m=r0,
-            acoustic=None
-            if prof is None
-            else (prof.profile.acoustic_forbidden_bands_hz, prof.profile.acoustic_max_power_fraction),
         ),
     )
     m = res.manifest

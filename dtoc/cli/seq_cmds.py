@@ -127,11 +127,8 @@ def check_cmd(
             sysspec = SystemSpec(**{**sysspec.model_dump(), **upd})
         except ValidationError as e:
             raise InputError(f"--gmax/--smax: {format_validation_error(e)} (mT/m and T/m/s)") from None
-    pns_model, acoustic = None, None
-    if prof is not None:
-        p = prof.profile
-        pns_model, acoustic = p.pns, (p.acoustic_forbidden_bands_hz, p.acoustic_max_power_fraction)
-    res = check_file(seq, sysspec, pns=pns_model, rotation=rotation, acoustic=acoustic)
+    safety = prof.profile.safety_checks(rotation) if prof is not None else None
+    res = check_file(seq, sysspec, safety)
     if base is not None:
         res.limits_source = base
     if gmax is not None or smax is not None:

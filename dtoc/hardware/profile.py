@@ -103,6 +103,17 @@ class ScannerProfile(BaseModel):
             out.append("acoustic bands: not checked (the profile lists no forbidden bands)")
         return out
 
+    def safety_checks(self, rotation=None):
+        """The profile's PNS and acoustic checks (:class:`dtoc.seq.check.SafetyChecks`) at orientation ``rotation``."""
+        from dtoc.seq.check import SafetyChecks
+
+        return SafetyChecks(
+            pns=self.pns,
+            acoustic_bands_hz=tuple(tuple(b) for b in self.acoustic_forbidden_bands_hz),
+            acoustic_max_power_fraction=self.acoustic_max_power_fraction,
+            rotation=rotation,
+        )
+
     def system_spec(self):
         """The :class:`dtoc.seq.system.SystemSpec` of ``dtoc check`` (limits, rasters, dead times)."""
         from dtoc.seq.system import SystemSpec

@@ -8,6 +8,7 @@ written file with the full validator before it replaces the destination), the ma
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -28,7 +29,7 @@ from dtoc.optimize import optimizer as O
 from dtoc.optimize.config import OptimizeConfig
 from dtoc.optimize.limits import EdgeProjector, Limits, check_area_reachable, limit_violations, waveform_extremes
 from dtoc.optimize.twin import EdgeTwin
-from dtoc.seq.check import check_file, check_ir_limits
+from dtoc.seq.check import SafetyChecks, check_file, check_ir_limits
 from dtoc.seq.ir import SequenceIR
 from dtoc.seq.system import SystemSpec
 from dtoc.seq.write import seq_bytes_of
@@ -278,8 +279,7 @@ def optimize_sequence(
     orientation=None,
     limit_sources: dict | None = None,
     scanner_path=None,
-    pns_model=None,
-    acoustic=None,
+    safety=None,
     offset_m=None,
 ) -> RunOutputs:
     """Run `dtoc optimize` (see the module doc).
@@ -301,8 +301,8 @@ def optimize_sequence(
             (:mod:`dtoc.hardware.orientation`; None = transverse, the file's axes are the scanner's).
         limit_sources: where limits given in ``config`` came from, when not the command line (e.g. a profile).
         scanner_path: the scanner profile the limits / model came from (recorded in the manifest).
-        pns_model: SAFE parameters (:class:`dtoc.seq.pns.SafeModel`): the output must stay below their limit.
-        acoustic: (forbidden bands [[lo, hi], ...] Hz, max power fraction): the output must keep out of them.
+        safety: PNS and acoustic checks the output must pass (:class:`dtoc.seq.check.SafetyChecks`; their
+            rotation is set to ``orientation``).
         offset_m: (3,) physical off-centre position of the slice / FOV, m: the interpreter's FOV-shift phase is
             corrected per ADC event as far as the format allows (:mod:`dtoc.optimize.offcentre`).
     Returns:
@@ -560,9 +560,7 @@ def optimize_sequence(
                 png_path,
                 figures,
                 t_start,
-                pns_model,
-                R,
-                acoustic,
+                None if safety is None else dataclasses.replace(safety, rotation=R),
                 adc_offsets,
             )
     return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)
@@ -598,9 +596,7 @@ def _write_outputs(
     png_path,
     figures,
     t_start,
-    pns_model=None,
-    rotation=None,
-    acoustic=None,
+    safety=None,
     adc_offsets=None,
 ) -> None:
     """The .seq (checked after writing), the manifest and the PNG report, in one :func:`outputs_together`."""
@@ -608,9 +604,7 @@ def _write_outputs(
         definitions: dict = {"DtocInterrupted": 1} if manifest["interrupted"] else {}
         if manifest.get("orientation"):  # the orientation the file was compiled for (dtoc check --orientation)
             definitions["DtocOrientation"] = manifest["orientation"]["R_logical_to_physical"]
-        manifest["output"] = _write_checked(
-            ir_out, out, force, limits, definitions, pns_model, rotation, acoustic, adc_offsets
-        )
+        manifest["output"] = _write_checked(ir_out, out, force, limits, definitions, safety, adc_offsets)
     manifest["run_time_s"] = time.time() - t_start
     if manifest_path is not None:
         atomic_write_text(manifest_path, strict_json(manifest), force=force)
@@ -682,9 +676,7 @@ def _write_checked(
     force: bool,
     limits: Limits,
     definitions: dict | None = None,
-    pns_model=None,
-    rotation=None,
-    acoustic=None,
+    safety: SafetyChecks | None = None,
     adc_offsets=None,
 ) -> dict:
     """Write via the seq writer into a temporary file, validate it, then move it into place.
@@ -699,7 +691,7 @@ def _write_checked(
             grad_raster_s=ir_out.raster_s,
             block_raster_s=_block_raster(ir_out),
         )
-        res = check_file(tmp, sysspec, pns=pns_model, rotation=rotation, acoustic=acoustic)
+        res = check_file(tmp, sysspec, safety)
         lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector", "pns", "acoustic"}
         bad = [v for v in res.violations if v.rule in lim_rules]
         if bad:

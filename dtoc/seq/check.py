@@ -21,6 +21,7 @@ from __future__ import annotations
 import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pydantic import ValidationError
@@ -496,11 +497,27 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
             )
 
 
-def check_file(
-    path: str | Path, system: SystemSpec | None = None, pns=None, rotation=None, acoustic=None
-) -> CheckResult:
+@dataclass(frozen=True)
+class SafetyChecks:
+    """Checks beyond limits and timing, made on the physical axes (docs/scanner.md).
+
+    Attributes:
+        pns: SAFE parameters (:class:`dtoc.seq.pns.SafeModel`), or None: PNS not checked.
+        acoustic_bands_hz: forbidden bands ``[[lo, hi], ...]``, Hz (empty: not checked).
+        acoustic_max_power_fraction: the largest fraction of an axis' switching power allowed in a band.
+        rotation: (3, 3) logical -> physical R the file is played at (None: its axes are the physical ones).
+    """
+
+    pns: Any = None
+    acoustic_bands_hz: tuple = ()
+    acoustic_max_power_fraction: float = 0.1
+    rotation: Any = None
+
+
+def check_file(path: str | Path, system: SystemSpec | None = None, safety: SafetyChecks | None = None) -> CheckResult:
     """Validate a ``.seq`` file.  ``system=None``: the limits the file records (dtoc-built files); a file that
-    records none is refused (limits are never assumed: give a :class:`SystemSpec`).
+    records none is refused (limits are never assumed: give a :class:`SystemSpec`).  ``safety``: PNS and
+    acoustic checks (:class:`SafetyChecks`).
 
     Raises:
         InputError: only when the file cannot be opened or parsed at all (missing, binary, truncated
@@ -536,10 +553,10 @@ def check_file(
         return res
     _event_rules(seq, ir, system, res.violations)
     res.violations.extend(check_ir_limits(ir, system))
-    if pns is not None:
-        _pns_rule(ir, pns, rotation, res)
-    if acoustic is not None and acoustic[0]:
-        _acoustic_rule(ir, acoustic[0], acoustic[1], rotation, res)
+    if safety is not None and safety.pns is not None:
+        _pns_rule(ir, safety.pns, safety.rotation, res)
+    if safety is not None and safety.acoustic_bands_hz:
+        _acoustic_rule(ir, safety.acoustic_bands_hz, safety.acoustic_max_power_fraction, safety.rotation, res)
     return res
 
 
@@ -598,4 +615,4 @@ def _pns_rule(ir: SequenceIR, model, rotation, res: CheckResult) -> None:
         )
 
 
-__all__ = ["Violation", "CheckResult", "check_ir_limits", "check_file", "system_from_definitions"]
+__all__ = ["Violation", "CheckResult", "SafetyChecks", "check_ir_limits", "check_file", "system_from_definitions"]
