@@ -105,8 +105,6 @@ class InferredGrid:
         fov_m: 2 pi / dk per physical axis (0 on the axis that is not encoded), m.
         offset_dk: (3,) where the samples sit between grid points, fraction of dk in [-0.5, 0.5) (pypulseq's
             usual readout has its centre at sample N/2: no offset; a readout centred between samples: 0.5).
-        n_outside: samples beyond the N-point grid, not used by the Cartesian reconstruction (0 for the
-            layouts inferred so far; kept for the reconstruction's contract).
     """
 
     readout_axis: int
@@ -114,7 +112,6 @@ class InferredGrid:
     matrix_readout_phase: tuple[int, int]
     fov_m: tuple[float, float, float]
     offset_dk: tuple[float, float, float]
-    n_outside: int
 
     def describe(self) -> str:
         ro, pe = "xyz"[self.readout_axis], "xyz"[self.phase_axis]
@@ -127,8 +124,6 @@ class InferredGrid:
         off = [o for o in self.offset_dk if abs(o) > 1e-3]
         if off:
             s += f", samples offset by {', '.join(f'{o:+.3g}' for o in self.offset_dk)} dk"
-        if self.n_outside:
-            s += f", {self.n_outside} sample(s) outside the grid not used by the image reconstruction"
         return s
 
 
@@ -213,16 +208,12 @@ def infer_cartesian_grid(k0_rad_per_m, adc_sizes) -> InferredGrid | None:
     out_n = [1, 1, 1]
     fov = [0.0, 0.0, 0.0]
     off = [0.0, 0.0, 0.0]
-    n_out = 0
     for a in (ro, pe):
-        if a == pe and not pe_candidates:
-            g = None
-        else:
-            g = _grid_step(k[a])
-            if g is None:
-                return None
-        if g is None:  # a single line (e.g. a 1D readout): one phase point
+        if a == pe and not pe_candidates:  # a single line (e.g. a 1D readout): one phase point
             continue
+        g = _grid_step(k[a])
+        if g is None:
+            return None
         dk, o = g
         # a half-step offset is +0.5 or -0.5 alike: take the one that gives the smaller standard grid
         cands = [o] + ([o - math.copysign(1.0, o)] if abs(o) > 0.49 else [])
@@ -241,7 +232,7 @@ def infer_cartesian_grid(k0_rad_per_m, adc_sizes) -> InferredGrid | None:
         return None
     if fov[pe] == 0.0:
         fov[pe] = fov[ro] * out_n[pe] / out_n[ro]  # one line: a nominal FOV, the recon needs one
-    return InferredGrid(ro, pe, (out_n[ro], out_n[pe]), (fov[0], fov[1], fov[2]), (off[0], off[1], off[2]), n_out)
+    return InferredGrid(ro, pe, (out_n[ro], out_n[pe]), (fov[0], fov[1], fov[2]), (off[0], off[1], off[2]))
 
 
 def sampling_step_dk(k0_rad_per_m, adc_sizes) -> float | None:
