@@ -43,12 +43,13 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
         return
     from dtoc.seq.geometry import infer_cartesian_grid
 
-    g = infer_cartesian_grid(ir.nominal_kspace_rad_per_m(), [a.num_samples for a in ir.adc])
+    k0 = ir.nominal_kspace_rad_per_m()  # (3, N_adc), computed once for every inference below
+    g = infer_cartesian_grid(k0, [a.num_samples for a in ir.adc])
     notes = ir.meta.setdefault("notes", [])
     if g is None:
-        _free_encoded_slice_axes(ir, notes)
+        _free_encoded_slice_axes(ir, k0, notes)
         _note_kind(ir, notes)
-        if not _non_cartesian_image_grid(ir, notes):
+        if not _non_cartesian_image_grid(ir, k0, notes):
             notes.append(
                 "no FOV/matrix definitions and the ADC samples are not on a 2D Cartesian grid, nor radial with a "
                 "constant step, nor with a FOV definition (3D, spiral without FOV, ramp-sampled): k-space figures only, no image"
@@ -67,7 +68,7 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
 NDFT_MAX_ENTRIES = 2e7
 
 
-def _non_cartesian_image_grid(ir: SequenceIR, notes: list) -> bool:
+def _non_cartesian_image_grid(ir: SequenceIR, k, notes: list) -> bool:
     """A 2D in-plane (x, y) non-Cartesian trajectory gets an image grid for the non-uniform DFT reconstruction
     (:mod:`dtoc.sim.ndft`): FOV from the file's FOV definition, else 2 pi / step for radial readouts (straight,
     constant step); N = the even number of grid steps that covers the largest |k|.  True when set."""
@@ -77,7 +78,6 @@ def _non_cartesian_image_grid(ir: SequenceIR, notes: list) -> bool:
 
     from dtoc.seq.geometry import radial_like_step
 
-    k = ir.nominal_kspace_rad_per_m()
     scale = max(float(np.abs(k).max()), 1e-12)
     if np.ptp(k[2]) > 1e-4 * scale or ir.fov_m is not None and ir.matrix is not None:
         return False  # 3D (or already defined)
@@ -107,13 +107,12 @@ def _non_cartesian_image_grid(ir: SequenceIR, notes: list) -> bool:
     return True
 
 
-def _free_encoded_slice_axes(ir: SequenceIR, notes: list) -> None:
+def _free_encoded_slice_axes(ir: SequenceIR, k, notes: list) -> None:
     """A slab-selective 3D sequence encodes k along its slab axis: that axis must be optimized too (outside RF)."""
     import numpy as np
 
     from dtoc.seq.read import default_free_mask, slice_axes
 
-    k = ir.nominal_kspace_rad_per_m()
     scale = max(float(np.abs(k).max()), 1e-12)
     enc = [a for a in slice_axes(ir) if np.ptp(k[a]) > 1e-4 * scale]
     if enc:

@@ -15,10 +15,26 @@ import numpy as np
 import torch
 
 _CACHE: dict = {}
+_NOMINAL: dict = {}  # id(ir) -> (ir, k_xy, k_key): the trajectory once per sequence, not once per image
 
 
-def _operator(k_xy: np.ndarray, shape: tuple[int, int], fov_xy: tuple[float, float], keep: np.ndarray, dtype, device):
-    key = (k_xy.tobytes(), shape, fov_xy, keep.tobytes(), dtype, str(device))
+def _nominal_xy(ir) -> tuple[np.ndarray, bytes]:
+    """(2, N) nominal in-plane k of ``ir`` and its bytes (the operator cache key), computed once per IR (the
+    entry holds the IR, so its id cannot be reused while cached)."""
+    hit = _NOMINAL.get(id(ir))
+    if hit is not None and hit[0] is ir:
+        return hit[1], hit[2]
+    k_xy = np.ascontiguousarray(ir.nominal_kspace_rad_per_m()[:2])
+    if len(_NOMINAL) > 8:
+        _NOMINAL.clear()
+    _NOMINAL[id(ir)] = (ir, k_xy, k_xy.tobytes())
+    return k_xy, _NOMINAL[id(ir)][2]
+
+
+def _operator(
+    k_xy: np.ndarray, k_key: bytes, shape: tuple[int, int], fov_xy: tuple[float, float], keep: np.ndarray, dtype, device
+):
+    key = (k_key, shape, fov_xy, keep.tobytes(), dtype, str(device))
     if key in _CACHE:
         return _CACHE[key]
     ny, nx = shape
@@ -47,10 +63,10 @@ def ndft_image(signal, ir, keep_mask=None) -> torch.Tensor:
     s = torch.as_tensor(signal)
     geo = ir.geometry
     ny, nx = geo.image_shape
-    k0 = ir.nominal_kspace_rad_per_m()
-    n = k0.shape[1]
+    k_xy, k_key = _nominal_xy(ir)
+    n = k_xy.shape[1]
     keep = np.ones(n, dtype=bool) if keep_mask is None else np.asarray(torch.as_tensor(keep_mask).cpu(), dtype=bool)
     real = torch.float64 if s.dtype in (torch.complex128, torch.float64) else torch.float32
-    EH = _operator(np.ascontiguousarray(k0[:2]), (ny, nx), geo.fov_xy_m, keep, real, s.device)
+    EH = _operator(k_xy, k_key, (ny, nx), geo.fov_xy_m, keep, real, s.device)
     sk = s[..., torch.as_tensor(np.flatnonzero(keep), device=s.device)].to(EH.dtype)
     return (sk @ EH.T).reshape(*s.shape[:-1], ny, nx)
