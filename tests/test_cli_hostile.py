@@ -239,6 +239,12 @@ def test_outputs_that_would_destroy_an_input(capsys, tmp_path):
     base.write_bytes(EPI.read_bytes())
     g = tmp_path / "h.npz"
     g.write_bytes(GIRF.read_bytes())
+    prof = tmp_path / "p.yaml"
+    prof.write_text(
+        (REPO / "scanners" / "kcl_terra_7T.yaml")
+        .read_text()
+        .replace("../../shared/data/girf/kcl_7T_terra_2024/7T_GIRF.mat", "h.npz")
+    )
     for argv in (
         ["optimize", base, "--girf", g, "-o", tmp_path / "o.seq", "--json", base, "--force"],
         ["optimize", base, "--girf", g, "-o", tmp_path / "o.seq", "--png", tmp_path / "o.seq", "--force"],
@@ -250,6 +256,12 @@ def test_outputs_that_would_destroy_an_input(capsys, tmp_path):
         ["girf", "import", g, "-o", g, "--force"],
         ["check", base, "--json", base, "--force"],
         ["diff", base, base, "--json", base, "--force"],
+        # a scanner profile and the GIRF it points at are inputs too
+        ["check", base, "--scanner", prof, "--json", prof, "--force"],
+        ["simulate", base, "--scanner", prof, "--json", g, "--force"],
+        ["predict", base, "--scanner", prof, "--png", prof, "--force"],
+        ["optimize", base, "--scanner", prof, "-o", tmp_path / "o.seq", "--json", g, "--force"],
+        ["identify", base, "--scanner", prof, "-o", prof, "--force"],
     ):
         err = _assert_clean_failure(capsys, tmp_path, argv)
         assert "would overwrite" in err or "given for both" in err, err

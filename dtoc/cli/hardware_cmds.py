@@ -232,11 +232,14 @@ def predict_cmd(
     from dtoc.sim.predict import plot_prediction, predict
 
     _check_device(device)
+    from dtoc.cli import scanner as sc
     from dtoc.util.atomic import check_outputs, outputs_together
 
-    check_outputs({"--png": png, "--json": json_out}, {"SEQ": seq, "--girf": girf, "--model": model}, force)
-    from dtoc.cli import scanner as sc
-
+    check_outputs(
+        {"--png": png, "--json": json_out},
+        {"SEQ": seq, "--girf": girf, "--model": model, **sc.input_paths(scanner)},
+        force,
+    )
     prof = sc.load(scanner)
     m = sc.resolve(prof, girf, model)
     from dtoc.hardware.orientation import RotatedChain, parse_orientation

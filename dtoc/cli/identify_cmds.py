@@ -59,7 +59,9 @@ def identify_cmd(
             sys.stderr.flush()
 
     from dtoc.cli import scanner as sc
+    from dtoc.util.atomic import check_outputs
 
+    check_outputs({"-o": out, "--json": json_out, "--png": png}, sc.input_paths(scanner), force)
     declared = sc.hardware(sc.load(scanner), girf, model)
     res = run_identify(
         measured,

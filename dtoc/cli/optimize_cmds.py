@@ -81,7 +81,11 @@ def optimize_cmd(
         trajectory = out.with_name(out.stem + ".traj.npz")
     if no_trajectory:
         trajectory = None
-    check_run_paths(base, out, json_out, png, force, girf, model, config, resume, checkpoint, trajectory)
+    from dtoc.cli import scanner as sc
+
+    check_run_paths(
+        base, out, json_out, png, force, girf, model, config, resume, checkpoint, trajectory, sc.input_paths(scanner)
+    )
     from dtoc.cli import scanner as sc
 
     prof = sc.load(scanner)

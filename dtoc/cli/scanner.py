@@ -27,6 +27,19 @@ def load(scanner: Path | None):
     return load_profile(scanner)
 
 
+def input_paths(scanner: Path | None) -> dict:
+    """The profile and the hardware files it points at: inputs that no output may overwrite."""
+    if scanner is None:
+        return {}
+    out: dict = {"--scanner": scanner}
+    girfs, model = load(scanner).hardware_files()
+    for i, g in enumerate(girfs or []):
+        out[f"--scanner GIRF[{i}]"] = g
+    if model is not None:
+        out["--scanner model"] = model
+    return out
+
+
 def hardware(prof, girf, model):
     """The profile's hardware model when neither --girf nor --model is given (None otherwise, or without one)."""
     if girf is not None or model is not None or prof is None:

@@ -79,10 +79,10 @@ def check_cmd(
             raise InputError(f"{name} must be a finite number > 0, got {v}")
     if max_rows < 0:
         raise InputError(f"--max-rows must be >= 0, got {max_rows}")
+    from dtoc.cli import scanner as sc
     from dtoc.util.atomic import check_outputs
 
-    check_outputs({"--json": json_out}, {"SEQ": seq, "--system": system}, force)
-    from dtoc.cli import scanner as sc
+    check_outputs({"--json": json_out}, {"SEQ": seq, "--system": system, **sc.input_paths(scanner)}, force)
 
     prof = sc.load(scanner)
     rotation = None

@@ -66,9 +66,11 @@ def simulate_cmd(
     tdtype = torch_dtype(dtype)
     dev = check_device(device)
     phantom_file = phantom if phantom and phantom.endswith(".npz") else None
+    from dtoc.cli import scanner as sc
+
     check_outputs(
         {"--png": png_out, "--json": json_out},
-        {"SEQ": seq, "--girf": girf, "--model": model, "--phantom": phantom_file},
+        {"SEQ": seq, "--girf": girf, "--model": model, "--phantom": phantom_file, **sc.input_paths(scanner)},
         force,
     )
     from dtoc.cli.progress import ProgressReporter
@@ -77,8 +79,6 @@ def simulate_cmd(
     rep = ProgressReporter("dtoc simulate", quiet=quiet)
     ir = load_sequence(seq)
     sequence_notes(ir)
-    from dtoc.cli import scanner as sc
-
     prof = sc.load(scanner)
     hw = sc.resolve(prof, girf, model)
     if field_T is None:

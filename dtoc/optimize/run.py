@@ -220,11 +220,23 @@ def require_hardware(girf, model, ideal: bool) -> None:
 
 
 def check_run_paths(
-    base, out, manifest_path, png_path, force, girf, model, config_path, resume, checkpoint, trajectory=None
+    base,
+    out,
+    manifest_path,
+    png_path,
+    force,
+    girf,
+    model,
+    config_path,
+    resume,
+    checkpoint,
+    trajectory=None,
+    other_inputs: dict | None = None,
 ) -> None:
     """Refuse, before any work, outputs that exist (without ``force``), coincide, or resolve to an input (any
-    ``force``); the checkpoint may be the file resumed from, never the base, a model or another output."""
-    inputs = {"BASE": base, "--girf": girf, "--model": model, "--config": config_path}
+    ``force``); the checkpoint may be the file resumed from, never the base, a model or another output.
+    ``other_inputs``: {option: path} of further inputs (e.g. a scanner profile and the files it names)."""
+    inputs = {"BASE": base, "--girf": girf, "--model": model, "--config": config_path, **(other_inputs or {})}
     check_outputs(
         {"-o": out, "--json": manifest_path, "--png": png_path, "--trajectory": trajectory},
         {**inputs, "--resume": resume, "--checkpoint": checkpoint},
