@@ -27,3 +27,18 @@ class ValidationFailed(DtocError):
     """`dtoc check` / `dtoc diff` style failure (exit 1)."""
 
     exit_code = 1
+
+
+def describe(e: BaseException) -> tuple[str, int]:
+    """(one-line message, exit code) of an error that ends a command (docs/cli.md: 2 bad input or environment,
+    3 internal error): what ``dtoc`` prints after ``dtoc: error:``, and what a ``dtoc batch`` job reports."""
+    if isinstance(e, DtocError):
+        return str(e), e.exit_code
+    if isinstance(e, MemoryError):
+        return "out of memory: the input is larger than this machine can hold (see docs/cli.md, input bounds)", 2
+    if isinstance(e, RecursionError):
+        return "input nested too deeply to parse", 2
+    if isinstance(e, OSError):
+        where = f"{e.filename}: " if e.filename else ""
+        return " ".join(f"{where}{e.strerror or e}".split()), 2
+    return " ".join(f"unexpected {type(e).__name__}: {e}".split()), 3

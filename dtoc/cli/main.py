@@ -41,9 +41,9 @@ def _main(
 
 
 def _register_all():
-    from dtoc.cli import hardware_cmds, identify_cmds, optimize_cmds, seq_cmds, sim_cmds
+    from dtoc.cli import batch_cmds, hardware_cmds, identify_cmds, optimize_cmds, seq_cmds, sim_cmds
 
-    for mod in (seq_cmds, hardware_cmds, sim_cmds, optimize_cmds, identify_cmds):
+    for mod in (seq_cmds, hardware_cmds, sim_cmds, optimize_cmds, identify_cmds, batch_cmds):
         mod.register(app)
 
 
@@ -83,7 +83,7 @@ def _interrupted(e: KeyboardInterrupt) -> None:
 
 def run(argv: list[str] | None = None) -> None:
     """Console-script entry point."""
-    from dtoc.errors import DtocError
+    from dtoc.errors import DtocError, describe
     from dtoc.util import interrupt
 
     interrupt.install()
@@ -94,21 +94,12 @@ def run(argv: list[str] | None = None) -> None:
         if ki is None:
             raise
         _interrupted(ki)
-    except DtocError as e:
-        error_exit(str(e), e.exit_code)
     except KeyboardInterrupt as e:
         _interrupted(e)
-    except MemoryError:
-        error_exit("out of memory: the input is larger than this machine can hold (see docs/cli.md, input bounds)", 2)
-    except RecursionError:
-        error_exit("input nested too deeply to parse", 2)
-    except OSError as e:
-        where = f"{e.filename}: " if e.filename else ""
-        error_exit(f"{where}{e.strerror or e}", 2)
     except Exception as e:  # noqa: BLE001 - last line of defence: one line, never a traceback
-        if os.environ.get("DTOC_DEBUG"):
+        if os.environ.get("DTOC_DEBUG") and not isinstance(e, (DtocError, MemoryError, RecursionError, OSError)):
             raise
-        error_exit(f"unexpected {type(e).__name__}: {e}", 3)
+        error_exit(*describe(e))
 
 
 if __name__ == "__main__":

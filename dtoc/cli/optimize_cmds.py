@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from dtoc.cli.output import Output, json_option, sequence_notes
+from dtoc.cli.output import Output, json_option, note
 from dtoc.cli.scanner import ORIENTATION_HELP, scanner_option
 from dtoc.constants import DEFAULT_B0_T
 from dtoc.util.jsonout import strict_json
@@ -62,98 +62,19 @@ def optimize_cmd(
 ):
     """Digital-twin optimization: write a pre-compensated .seq that stays within the hardware limits."""
     from dtoc.errors import InputError
-    from dtoc.optimize.config import load_config
-    from dtoc.optimize.run import check_run_paths, optimize_sequence, require_hardware
-    from dtoc.seq.load import load_sequence
+    from dtoc.optimize.request import run_request
 
     if method is not None and method not in ("dto", "adam-paper", "warmstart", "preemphasis"):
         raise InputError(f"--method {method!r}: expected dto, adam-paper, warmstart or preemphasis")
-    from dtoc.sim.comparison import check_device
-
-    check_device(device)
-    from dtoc.hardware.orientation import parse_orientation
-
-    R = parse_orientation(orientation)
-    from dtoc.optimize.offcentre import parse_offset
-
-    r0 = parse_offset(offset)
-    if trajectory is None and not no_trajectory:
-        trajectory = out.with_name(out.stem + ".traj.npz")
-    if no_trajectory:
-        trajectory = None
-    from dtoc.cli import scanner as sc
-
-    check_run_paths(
-        base, out, json_out, png, force, girf, model, config, resume, checkpoint, trajectory, sc.input_paths(scanner)
-    )
-    from dtoc.cli import scanner as sc
-
-    prof = sc.load(scanner)
-    hw = sc.hardware(prof, girf, model)
-    if hw is None:
-        require_hardware(girf, model, ideal)
-    elif ideal:
-        raise InputError("give --ideal or a hardware model (--girf / --model / the --scanner profile's), not both")
-    limit_from = {}
-    if prof is not None:
-        p = prof.profile
-        if gmax is None:
-            gmax, limit_from["gmax_mT_per_m"] = p.gmax_min_mT_per_m, f"--scanner {p.name}"
-        if smax is None:
-            smax, limit_from["smax_T_per_m_per_s"] = p.smax_min_T_per_m_per_s, f"--scanner {p.name}"
-        if b0 is None:
-            b0 = p.b0_T
-    if not base.exists():
-        raise InputError(f"{base}: base sequence not found")
-    ir = load_sequence(base)
-    sequence_notes(ir)
-    weights = {k: v for k, v in (("image", w_image), ("kspace", w_k), ("rf", w_rf)) if v is not None}
-    overrides = {
-        "method": method,
-        "gmax_mT_per_m": gmax,
-        "smax_T_per_m_per_s": smax,
-        "iters": iters,
-        "warm_iters": warm_iters,
-        "lr": lr,
-        "augment_rotations": augment,
-        "seed": seed,
-        "b0_T": b0,
-        "threads": threads,
-        "discard": False if no_discard else None,
-        "weights": weights or None,
-    }
-    cfg = load_config(ir.kind, config, overrides)
-    ir.meta.setdefault("spec_path", str(base) if base.suffix.lower() in (".yaml", ".yml") else None)
+    req = request_from_options(
+        base=base, out=out, girf=girf, model=model, ideal=ideal, config=config, json_out=json_out, png=png,
+        force=force, resume=resume, checkpoint=checkpoint, trajectory=trajectory, no_trajectory=no_trajectory,
+        orientation=orientation, scanner=scanner, offset=offset, method=method, gmax=gmax, smax=smax, iters=iters,
+        warm_iters=warm_iters, lr=lr, w_image=w_image, w_k=w_k, w_rf=w_rf, augment=augment, no_discard=no_discard,
+        phantom=phantom, b0=b0, seed=seed, threads=threads, device=device,
+    )  # fmt: skip
     outp = Output(json_out)
-    res = _run_with_progress(
-        quiet,
-        lambda progress: optimize_sequence(
-            ir,
-            out=out,
-            girf=girf,
-            model=model,
-            config=cfg,
-            config_path=config,
-            manifest_path=None if outp.json_to_stdout else json_out,
-            png_path=png,
-            force=force,
-            resume=resume,
-            checkpoint_path=checkpoint,
-            device=device,
-            phantom=phantom,
-            progress=progress,
-            base_path=base,
-            ideal=ideal,
-            trajectory_path=trajectory,
-            orientation=R,
-            hardware=hw,
-            limit_sources=limit_from or None,
-            scanner_path=scanner,
-            safety=None if prof is None else prof.profile.safety_checks(),
-            offset_m=r0,
-        ),
-    )
-    m = res.manifest
+    m = _run_with_progress(quiet, lambda progress: run_request(req, progress, notes=lambda n: note(f"note: {n}")))
     if outp.json_to_stdout:
         outp.write_json(strict_json(m), force)
     _print_summary(m, outp.console())
@@ -161,6 +82,22 @@ def optimize_cmd(
         sys.stderr.write(f"dtoc: warning: {w}\n")
     if m.get("interrupted"):
         interrupted_exit(m)
+
+
+def request_from_options(**options):
+    """The :class:`~dtoc.optimize.request.OptimizeRequest` of the command's options (a validation error of a
+    value the option parser let through becomes one InputError line naming the option)."""
+    from pydantic import ValidationError
+
+    from dtoc.errors import InputError
+    from dtoc.optimize.request import OptimizeRequest
+
+    try:
+        return OptimizeRequest(**options)
+    except ValidationError as e:
+        err = e.errors()[0]
+        opt = "--" + str(err["loc"][0]).replace("_", "-") if err["loc"] else "an option"
+        raise InputError(f"{opt}: {err['msg']}") from None
 
 
 def interrupted_exit(m: dict) -> None:

@@ -29,15 +29,9 @@ def load(scanner: Path | None):
 
 def input_paths(scanner: Path | None) -> dict:
     """The profile and the hardware files it points at: inputs that no output may overwrite."""
-    if scanner is None:
-        return {}
-    out: dict = {"--scanner": scanner}
-    girfs, model = load(scanner).hardware_files()
-    for i, g in enumerate(girfs or []):
-        out[f"--scanner GIRF[{i}]"] = g
-    if model is not None:
-        out["--scanner model"] = model
-    return out
+    from dtoc.hardware.profile import input_files
+
+    return input_files(scanner)
 
 
 def hardware(prof, girf, model):

@@ -196,3 +196,17 @@ def load_profile(path: str | os.PathLike) -> LoadedProfile:
     except ValidationError as e:
         raise InputError(f"{p}: {format_validation_error(e)}") from None
     return LoadedProfile(prof, p)
+
+
+def input_files(path: str | os.PathLike | None) -> dict[str, Path]:
+    """{option label: path} of the profile and the hardware files it names: inputs that no output may overwrite
+    (and that a batch job's key hashes).  Empty for no profile."""
+    if path is None:
+        return {}
+    out: dict[str, Path] = {"--scanner": Path(path)}
+    girfs, model = load_profile(path).hardware_files()
+    for i, g in enumerate(girfs or []):
+        out[f"--scanner GIRF[{i}]"] = g
+    if model is not None:
+        out["--scanner model"] = model
+    return out
