@@ -35,6 +35,7 @@ _EXPORTS = {
     "identify_effects": "dtoc.api",
     "check": "dtoc.api",
     "diff": "dtoc.api",
+    "run_batch": "dtoc.api",
     "SequenceIR": "dtoc.seq.ir",
     "EncodingGeometry": "dtoc.seq.geometry",
     "HardwareModel": "dtoc.hardware.model",

@@ -165,3 +165,17 @@ def diff(path_a: PathLike, path_b: PathLike, rtol: float = 1e-6, atol: float = 1
     from dtoc.seq.diff import diff_files
 
     return diff_files(path_a, path_b, rtol=rtol, atol=atol)
+
+
+def run_batch(
+    plan: PathLike,
+    out: PathLike,
+    engine: str = "local",
+    workers: int | None = None,
+    address: str | None = None,
+) -> dict[str, Any]:
+    """Run a batch plan into the folder ``out``, each job one ``dtoc optimize``, cached by content
+    (``dtoc batch``, docs/batch.md).  Returns the report (one record per job: status, figures, folder)."""
+    from dtoc.batch.run import run_batch as _run
+
+    return _run(plan, out, engine=engine, workers=workers, address=address)

@@ -18,8 +18,9 @@ ALLOWED: dict[str, set[str]] = {
     "sim": {"base", "seq", "hardware", "sim"},
     "identify": {"base", "seq", "hardware", "sim", "identify"},
     "optimize": {"base", "seq", "hardware", "sim", "optimize"},
-    "api": {"base", "seq", "hardware", "sim", "identify", "optimize", "api"},
-    "cli": {"base", "seq", "hardware", "sim", "identify", "optimize", "api", "cli"},
+    "batch": {"base", "seq", "hardware", "optimize", "batch"},
+    "api": {"base", "seq", "hardware", "sim", "identify", "optimize", "batch", "api"},
+    "cli": {"base", "seq", "hardware", "sim", "identify", "optimize", "batch", "api", "cli"},
 }
 
 

@@ -48,7 +48,7 @@ class ProgressReporter:
         self._tasks: dict[str, int] = {}
 
     # ---- iterations ------------------------------------------------------------------------------
-    def update(self, stage: str, it: int, total: int, value: float | None = None) -> None:
+    def update(self, stage: str, it: int, total: int, value: float | str | None = None) -> None:
         if self.quiet:
             return
         now = time.monotonic()
@@ -66,12 +66,12 @@ class ProgressReporter:
         eta = rate_s * max(total - it, 0) if rate_s is not None else None
         parts = [f"{stage} {it}/{total} ({100.0 * it / max(total, 1):.0f} %)"]
         if value is not None:
-            parts.append(f"{self.value_label} {value:.4g}")
+            parts.append(_label(self.value_label, value))
         parts.append(f"elapsed {now - self.t0:.1f} s")
         parts.append("ETA -" if eta is None else f"ETA {eta:.1f} s")
         self._line(", ".join(parts))
 
-    def _update_bar(self, stage: str, it: int, total: int, value: float | None) -> None:
+    def _update_bar(self, stage: str, it: int, total: int, value: float | str | None) -> None:
         from rich.console import Console
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -80,7 +80,7 @@ class ProgressReporter:
                 TextColumn("{task.description}"),
                 BarColumn(),
                 TextColumn("{task.completed}/{task.total}"),
-                TextColumn(self.value_label + " {task.fields[value]}"),
+                TextColumn("{task.fields[value]}"),
                 TimeElapsedColumn(),
                 TextColumn("ETA"),
                 TimeRemainingColumn(),
@@ -89,8 +89,9 @@ class ProgressReporter:
             )
             self._bar.start()
         if stage not in self._tasks:
-            self._tasks[stage] = self._bar.add_task(stage, total=total, value="-")
-        self._bar.update(self._tasks[stage], completed=it, value="-" if value is None else f"{value:.4g}")
+            self._tasks[stage] = self._bar.add_task(stage, total=total, value=_label(self.value_label, "-"))
+        text = _label(self.value_label, "-" if value is None else value)
+        self._bar.update(self._tasks[stage], completed=it, value=text)
 
     # ---- named stages ----------------------------------------------------------------------------
     def step(self, text: str) -> None:
@@ -110,3 +111,10 @@ class ProgressReporter:
         if self._bar is not None:
             self._bar.stop()
             self._bar = None
+
+
+def _label(label: str, value: float | str) -> str:
+    """``loss 0.01234`` for a number, ``loss -`` for none yet; a text (``3 ran, 1 cached``) as it is."""
+    if isinstance(value, str):
+        return f"{label} {value}" if value == "-" else value
+    return f"{label} {value:.4g}"

@@ -76,7 +76,7 @@ class _Staged:
     def commit(self) -> None:
         """Move every staged file into place; on a failure undo the moves already done and re-raise."""
         done: list[tuple[Path, str | None]] = []  # (destination, backup of what it replaced)
-        with _signals_held():
+        with signals_held():
             try:
                 for tmp, dest in self.items:
                     backup = None
@@ -126,7 +126,7 @@ def outputs_together() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def _signals_held() -> Iterator[None]:
+def signals_held() -> Iterator[None]:
     """Block SIGINT/SIGTERM (main thread, POSIX) while the staged files move; delivered right after."""
     can = hasattr(signal, "pthread_sigmask")
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM}) if can else None

@@ -58,7 +58,7 @@ def exit_code(signum: int | None = None) -> int:
 
 
 #: Stages a test can interrupt with ``DTOC_FAULT_SIGNAL=stage:SIGNAME``.
-FAULT_STAGES = ("setup", "warm_start", "full_loss", "export")
+FAULT_STAGES = ("setup", "warm_start", "full_loss", "export", "batch_job")
 
 
 def fault_point(stage: str) -> None:
