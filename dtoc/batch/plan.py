@@ -3,7 +3,7 @@ option sets, as their product or as explicit rows; each job one ``dtoc optimize`
 
 A job's key is the SHA-256 of everything its outputs depend on: the bytes of every input file (sequence,
 GIRF / model, scanner profile and the files it names, config, phantom), the options, the orientation as a
-rotation matrix, and the versions of dtoc, torch, numpy and pypulseq.  Paths and names are not in the key:
+rotation matrix, and the versions of Python, dtoc, torch, numpy, scipy, pypulseq and pydantic.  Paths and names are not in the key:
 moving a library or renaming a job keeps its results; changing one GIRF changes exactly the keys of its jobs.
 """
 
@@ -18,7 +18,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from dtoc.errors import InputError
-from dtoc.optimize.request import OptimizeRequest
+from dtoc.optimize.request import INPUT_FIELDS, OptimizeRequest
 
 #: the options a plan's option set may give (the rest is set by the plan: files, hardware, orientation, outputs)
 OPTION_KEYS = (
@@ -139,25 +139,16 @@ class Job(BaseModel):
 
 def load_plan(path: str | Path) -> BatchPlan:
     """Read and validate a plan YAML (one-line InputError naming the key on any problem)."""
-    import yaml
+    from dtoc.seq.system import load_yaml_model
 
-    from dtoc.seq.system import format_validation_error
-
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: batch plan not found")
-    try:
-        data = yaml.safe_load(p.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise InputError(f"{p}: not a YAML batch plan ({type(e).__name__})") from None
-    if not isinstance(data, dict):
-        raise InputError(
-            f"{p}: a batch plan is a mapping with sequences, hardware, orientations, options (docs/batch.md)"
-        )
-    try:
-        return BatchPlan(**data)
-    except ValidationError as e:
-        raise InputError(f"{p}: {format_validation_error(e)}") from None
+    plan = load_yaml_model(
+        path,
+        BatchPlan,
+        "batch plan",
+        "a batch plan is a mapping with sequences, hardware, orientations, options (docs/batch.md)",
+    )
+    assert isinstance(plan, BatchPlan)
+    return plan
 
 
 def _orient_label(o: str | None) -> str:
@@ -240,40 +231,19 @@ def _job(plan: BatchPlan, root: Path, name: str, r: Row) -> Job:
     return Job(name=name, request=req, key=job_key(req))
 
 
-def _sha(p: Path) -> str:
-    from dtoc.util.atomic import sha256_file
-
-    return sha256_file(p)
-
-
 def job_key(req: OptimizeRequest) -> str:
     """SHA-256 (hex) of everything the job's outputs depend on (module docstring)."""
-    import importlib.metadata as md
-
     from dtoc.hardware.orientation import parse_orientation
-    from dtoc.hardware.profile import input_files
-    from dtoc.version import __version__
+    from dtoc.util.atomic import sha256_file
+    from dtoc.version import package_versions
 
-    versions: dict[str, str | None] = {"dtoc": __version__}
-    for pkg in ("torch", "numpy", "pypulseq"):
-        try:
-            versions[pkg] = md.version(pkg)
-        except md.PackageNotFoundError:
-            versions[pkg] = None
-    files = {f: _sha(getattr(req, f)) for f in ("base", "girf", "model", "config") if getattr(req, f) is not None}
-    files.update({label: _sha(p) for label, p in input_files(req.scanner).items()})
-    ph = req.phantom
-    if ph is not None and ph.lower().endswith(".npz"):
-        files["phantom"] = _sha(Path(ph))
-        ph = "<file>"
+    files = {label: sha256_file(p) for label, p in req.input_files().items()}
     R = parse_orientation(req.orientation)
-    opts = req.model_dump(
-        mode="json",
-        exclude={"base", "girf", "model", "config", "scanner", "resume", "checkpoint", "force", "orientation"},
-    )
-    opts["phantom"] = ph
+    opts = req.model_dump(mode="json", exclude={*INPUT_FIELDS, "checkpoint", "force", "orientation"})
+    if "--phantom" in files:
+        opts["phantom"] = "<file>"  # its bytes are in files
     record = {
-        "versions": versions,
+        "versions": package_versions(),
         "files": files,
         "options": opts,
         "orientation_R": None if R is None else [[round(float(x), 12) for x in row] for row in R.tolist()],

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from dtoc.batch.plan import OUT_MANIFEST, Job, expand, load_plan
 from dtoc.batch.store import Store
+from dtoc.util.interrupt import signals_ignored
 from dtoc.version import __version__
 
 #: per-job figures of the report (from the job's manifest; docs/cli.md report keys)
@@ -42,19 +43,25 @@ def run_batch(
     workers: int | None = None,
     address: str | None = None,
     progress: Callable | None = None,
+    report_path: str | Path | None = None,
+    force: bool = False,
 ) -> dict:
     """Run the plan into ``out_dir``; returns the report (``jobs``: one record per job in plan order, with
     ``status`` ran | cached | failed | interrupted | not_run, ``error``, ``figures``, ``dir``).
 
-    ``progress(stage, done, total, text)`` is called as jobs finish.  Raises KeyboardInterrupt (after the
-    report was stored in ``report_on_interrupt``) when interrupted.
+    ``progress(stage, done, total, text)`` is called as jobs finish.  ``report_path``: where the caller will
+    write the report; refused before any work if it exists (without ``force``) or is one of the plan's inputs.
+    When interrupted, re-raises the KeyboardInterrupt with the report so far as its ``report`` attribute.
     """
     from dtoc.batch.engines import default_workers, make_engine
+    from dtoc.util.atomic import check_outputs
 
     t0 = time.perf_counter()
     plan_path = Path(plan_path)
     plan = load_plan(plan_path)
     jobs = expand(plan, plan_path.resolve().parent)
+    inputs = {f"{j.name} {label}": f for j in jobs for label, f in j.request.input_files().items()}
+    check_outputs({"--json": report_path}, {"PLAN": plan_path, **inputs}, force)
     store = Store.open(out_dir)
     by_key: dict[str, list[Job]] = {}
     for j in jobs:
@@ -124,14 +131,15 @@ def run_batch(
                 fault_point("batch_job")
     except KeyboardInterrupt as e:
         interrupted = e
-        with _signals_ignored():  # a second Ctrl-C does not cut the clean-up short
+        with signals_ignored():  # a second Ctrl-C does not cut the clean-up short
             if eng is not None:
                 eng.abort([f for f, k in futures.items() if k not in status])
             store.close()
     finally:
-        if eng is not None and interrupted is None:
-            eng.close()
-        store.close()
+        if interrupted is None:
+            if eng is not None:
+                eng.close()
+            store.close()
     for k in by_key:
         status.setdefault(k, {"status": "interrupted" if interrupted is not None else "not_run"})
     report["jobs"] = [_job_report(store, j, status[j.key]) for j in jobs]
@@ -186,23 +194,3 @@ def _job_report(store: Store, j: Job, st: dict) -> dict:
         "error": st.get("error"),
     }
     return out
-
-
-class _signals_ignored:
-    """SIGINT/SIGTERM ignored inside the block (main thread; elsewhere a no-op)."""
-
-    def __enter__(self) -> None:
-        import signal
-
-        self._old = {}
-        try:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._old[sig] = signal.signal(sig, signal.SIG_IGN)
-        except ValueError:
-            pass
-
-    def __exit__(self, *exc) -> None:
-        import signal
-
-        for sig, h in self._old.items():
-            signal.signal(sig, h)

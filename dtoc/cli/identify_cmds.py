@@ -62,7 +62,9 @@ def identify_cmd(
     from dtoc.util.atomic import check_outputs
 
     check_outputs({"-o": out, "--json": json_out, "--png": png}, sc.input_paths(scanner), force)
-    declared = sc.hardware(sc.load(scanner), girf, model)
+    from dtoc.hardware.profile import profile_hardware
+
+    declared = profile_hardware(sc.load(scanner), girf, model)
     res = run_identify(
         measured,
         girf=girf,

@@ -34,16 +34,11 @@ def input_paths(scanner: Path | None) -> dict:
     return input_files(scanner)
 
 
-def hardware(prof, girf, model):
-    """The profile's hardware model when neither --girf nor --model is given (None otherwise, or without one)."""
-    if girf is not None or model is not None or prof is None:
-        return None
-    return prof.hardware_model()
-
-
 def resolve(prof, girf, model):
     """The model a command plays: --girf / --model, else the profile's, else ideal hardware."""
-    hw = hardware(prof, girf, model)
+    from dtoc.hardware.profile import profile_hardware
+
+    hw = profile_hardware(prof, girf, model)
     if hw is not None:
         return hw
     from dtoc.hardware.model import resolve_model

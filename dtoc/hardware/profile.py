@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from dtoc.errors import InputError
 from dtoc.seq.pns import SafeModel
@@ -178,24 +178,21 @@ class LoadedProfile:
 
 def load_profile(path: str | os.PathLike) -> LoadedProfile:
     """Read and validate a scanner profile YAML (one-line InputError naming the key on any problem)."""
-    import yaml
+    from dtoc.seq.system import load_yaml_model
 
-    from dtoc.seq.system import format_validation_error
+    prof = load_yaml_model(
+        path, ScannerProfile, "scanner profile", "a scanner profile is a mapping (name, b0_T, gmax_mT_per_m, ...)"
+    )
+    assert isinstance(prof, ScannerProfile)
+    return LoadedProfile(prof, Path(path))
 
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: scanner profile not found")
-    try:
-        data = yaml.safe_load(p.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise InputError(f"{p}: not a YAML scanner profile ({type(e).__name__})") from None
-    if not isinstance(data, dict):
-        raise InputError(f"{p}: a scanner profile is a mapping (name, b0_T, gmax_mT_per_m, ...)")
-    try:
-        prof = ScannerProfile(**data)
-    except ValidationError as e:
-        raise InputError(f"{p}: {format_validation_error(e)}") from None
-    return LoadedProfile(prof, p)
+
+def profile_hardware(prof: LoadedProfile | None, girf, model):
+    """The profile's hardware model when neither ``--girf`` nor ``--model`` is given (None otherwise, or for no
+    profile or a profile without one): explicit options override the profile."""
+    if girf is not None or model is not None or prof is None:
+        return None
+    return prof.hardware_model()
 
 
 def input_files(path: str | os.PathLike | None) -> dict[str, Path]:

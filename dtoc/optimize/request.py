@@ -15,10 +15,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict
 
-#: options of :class:`OptimizeRequest` that name input files (hashed into a batch job's key)
+#: options of :class:`OptimizeRequest` that name input files
 INPUT_FIELDS = ("base", "girf", "model", "config", "scanner", "resume")
-#: options that name outputs
-OUTPUT_FIELDS = ("out", "json_out", "png", "trajectory", "checkpoint")
 
 
 class OptimizeRequest(BaseModel):
@@ -70,6 +68,18 @@ class OptimizeRequest(BaseModel):
             return None
         return self.trajectory if self.trajectory is not None else self.out.with_name(self.out.stem + ".traj.npz")
 
+    def input_files(self) -> dict[str, Path]:
+        """{label: path} of every file the run reads: the base, GIRF, model, config, checkpoint resumed from,
+        the scanner profile and each file it names, a phantom ``.npz`` (labels as the options)."""
+        from dtoc.hardware.profile import input_files
+
+        out = {f"--{f}" if f != "base" else "BASE": getattr(self, f) for f in INPUT_FIELDS if f != "scanner"}
+        out = {k: v for k, v in out.items() if v is not None}
+        out.update(input_files(self.scanner))
+        if self.phantom is not None and self.phantom.lower().endswith(".npz"):
+            out["--phantom"] = Path(self.phantom)
+        return out
+
     def manifest_path(self) -> str | None:
         """The manifest file (None: not written to a file)."""
         return None if self.json_out in (None, "-") else self.json_out
@@ -87,7 +97,7 @@ def run_request(
     """
     from dtoc.errors import InputError
     from dtoc.hardware.orientation import parse_orientation
-    from dtoc.hardware.profile import input_files, load_profile
+    from dtoc.hardware.profile import input_files, load_profile, profile_hardware
     from dtoc.optimize.config import load_config
     from dtoc.optimize.offcentre import parse_offset
     from dtoc.optimize.run import check_run_paths, optimize_sequence, require_hardware
@@ -114,7 +124,7 @@ def run_request(
         input_files(req.scanner),
     )
     prof = None if req.scanner is None else load_profile(req.scanner)
-    hw = None if (req.girf is not None or req.model is not None or prof is None) else prof.hardware_model()
+    hw = profile_hardware(prof, req.girf, req.model)
     if hw is None:
         require_hardware(req.girf, req.model, req.ideal)
     elif req.ideal:

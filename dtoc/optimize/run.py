@@ -12,7 +12,6 @@ import dataclasses
 import json
 import math
 import os
-import platform
 import tempfile
 import time
 from collections.abc import Callable
@@ -45,7 +44,7 @@ from dtoc.util.atomic import (
 )
 from dtoc.util.interrupt import deferred, fault_point
 from dtoc.util.jsonout import strict_json
-from dtoc.version import __version__
+from dtoc.version import package_versions
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -253,18 +252,6 @@ class RunOutputs:
     manifest: dict
     ir_out: SequenceIR
     figures: dict
-
-
-def _versions() -> dict:
-    import importlib.metadata as md
-
-    out: dict[str, str | None] = {"python": platform.python_version(), "dtoc": __version__}
-    for pkg in ("torch", "numpy", "scipy", "pypulseq", "pydantic"):
-        try:
-            out[pkg] = md.version(pkg)
-        except md.PackageNotFoundError:
-            out[pkg] = None
-    return out
 
 
 def optimize_sequence(
@@ -540,7 +527,7 @@ def optimize_sequence(
                 "dk_rad_per_m": [float(x) for x in ctx.dk_rad_per_m.cpu().numpy()],
                 "dk_source": "grid (2 pi / FOV)" if ir.dk_rad_per_m is not None else "sampling step of the readouts",
             },
-            "versions": _versions(),
+            "versions": package_versions(),
             "device": str(device),
             "phantom": _phantom_record(phantom),
             "before": metrics.report_figures(before),

@@ -9,9 +9,12 @@ scanner that needs it.  Units are in the field names.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from dtoc.constants import GAMMA_HZ_PER_T
+from dtoc.errors import InputError
 
 
 class SystemSpec(BaseModel):
@@ -77,6 +80,27 @@ class SystemSpec(BaseModel):
             adc_dead_time=self.adc_dead_time_s,
             gamma=GAMMA_HZ_PER_T,
         )
+
+
+def load_yaml_model(path, model: type[BaseModel], what: str, mapping_hint: str) -> BaseModel:
+    """Read a YAML file into the pydantic ``model``; every problem is one :class:`InputError` line:
+    ``<path>: <what> not found``, ``not a YAML <what>``, ``<mapping_hint>`` (not a mapping), or the first
+    offending key (:func:`format_validation_error`)."""
+    import yaml
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: {what} not found")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise InputError(f"{p}: not a YAML {what} ({type(e).__name__})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{p}: {mapping_hint}")
+    try:
+        return model(**data)
+    except ValidationError as e:
+        raise InputError(f"{p}: {format_validation_error(e)}") from None
 
 
 def format_validation_error(e: ValidationError) -> str:

@@ -73,6 +73,26 @@ def fault_point(stage: str) -> None:
     os.kill(os.getpid(), getattr(signal, name))
 
 
+class signals_ignored:
+    """Context manager: SIGINT/SIGTERM ignored inside the block (for a clean-up that a second Ctrl-C must not
+    cut short; unlike :class:`deferred`, nothing is raised afterwards).  Main thread only; elsewhere a no-op."""
+
+    def __init__(self) -> None:
+        self._old: dict[int, object] = {}
+
+    def __enter__(self) -> signals_ignored:
+        try:
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self._old[s] = signal.signal(s, signal.SIG_IGN)
+        except ValueError:  # not the main thread
+            self._old.clear()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for s, h in self._old.items():
+            signal.signal(s, h)  # type: ignore[arg-type]
+
+
 class deferred:
     """Context manager: SIGINT/SIGTERM received inside the block are held until its end, then raised as
     :class:`Interrupted` (so that a block that writes outputs finishes them).  Main thread only; elsewhere
