@@ -56,12 +56,18 @@ class LocalEngine:
         return as_completed(list(futures))
 
     def abort(self, futures: Iterable) -> None:
-        """Cancel what has not started and stop the workers (their jobs are lost; nothing of them is kept)."""
-        for f in futures:
-            f.cancel()
-        for p in multiprocessing.active_children():
-            p.terminate()
-        self.pool.shutdown(wait=False, cancel_futures=True)
+        """Stop the workers: their jobs are lost (nothing of them is kept) and the pool marks every job not yet
+        finished as failed.  SIGKILL, not SIGTERM: a job may hold SIGTERM back (an optimization defers it while it
+        writes its outputs, then ends as 'interrupted' and the worker takes the next job); a killed worker can
+        leave only files in its working folder, which the batch removes.  No future is cancelled here: the pool's
+        own clean-up after its workers died sets an exception on each pending one, which fails on a cancelled
+        future (CPython 3.11)."""
+        children = multiprocessing.active_children()
+        for p in children:
+            p.kill()
+        for p in children:  # gone before the batch removes their working folders
+            p.join(timeout=10)
+        self.pool.shutdown(wait=True)
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
@@ -87,7 +93,9 @@ class DaskEngine:
             except OSError as e:
                 raise InputError(f"--address {address}: no Dask scheduler reachable ({e})") from None
         else:
-            env = {k: str(threads) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+            from dtoc.batch.worker import THREAD_ENV
+
+            env = {k: str(threads) for k in THREAD_ENV}
             self.cluster = LocalCluster(
                 n_workers=workers,
                 threads_per_worker=1,

@@ -28,18 +28,15 @@ THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 def init_worker(threads: int) -> None:
     """Process-pool initializer: SIGINT ignored (the batch process decides what an interrupt does; a terminal's
-    Ctrl-C reaches the whole process group), SIGTERM ends the job cleanly, numeric libraries limited to
+    Ctrl-C reaches the whole process group), SIGTERM the default action (a worker sent SIGTERM by someone else
+    ends at once, without a Python exception surfacing half-way through an import), numeric libraries limited to
     ``threads`` threads, and the signals the parent held back while starting us released."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, _terminate)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     for k in THREAD_ENV:
         os.environ[k] = str(threads)
     if hasattr(signal, "pthread_sigmask"):
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
-
-
-def _terminate(signum, frame) -> None:
-    raise SystemExit(128 + signum)
 
 
 def run_job(payload: dict) -> dict:
@@ -50,7 +47,6 @@ def run_job(payload: dict) -> dict:
     line), ``exit_code``, ``seconds``, ``worker`` (host:pid) and ``peak_rss_mb`` (the worker process's so far).
     """
     from dtoc.errors import describe
-    from dtoc.optimize.request import OptimizeRequest
 
     t0 = time.perf_counter()
     out: dict = {"key": payload["key"], "worker": f"{os.uname().nodename}:{os.getpid()}"}
@@ -59,7 +55,7 @@ def run_job(payload: dict) -> dict:
         old = os.getcwd()
         try:
             os.chdir(work)
-            from dtoc.optimize.request import run_request
+            from dtoc.optimize.request import OptimizeRequest, run_request
 
             manifest = run_request(OptimizeRequest(**payload["request"]))
             if manifest.get("interrupted"):

@@ -27,31 +27,31 @@ def batch_cmd(
     jobs are kept; run again to do the rest)."""
     from dtoc.batch.run import run_batch
     from dtoc.cli.progress import ProgressReporter
-    from dtoc.util.atomic import check_outputs
     from dtoc.util.jsonout import strict_json
 
     outp = Output(json_out)
-    if not outp.json_to_stdout:
-        check_outputs({"--json": json_out}, {"PLAN": plan}, force)
     rep = ProgressReporter("dtoc batch", quiet=quiet, value_label="jobs")
     try:
-        report = run_batch(plan, out, engine=engine, workers=workers, address=address, progress=rep.update)
-    except KeyboardInterrupt as e:
-        r = getattr(e, "report", None)
-        if r is None:
-            raise
-        rep.close()
-        from dtoc.util.interrupt import exit_code, signal_name
-
-        signum = getattr(e, "signum", None)
-        outp.write_json(strict_json(r), force)
-        note(
-            f"dtoc: interrupted by {signal_name(signum)}: {r['n_ran'] + r['n_cached']} of {r['n_jobs']} jobs finished "
-            f"and kept in {out}; run the same command again to do the rest"
+        report = run_batch(
+            plan,
+            out,
+            engine=engine,
+            workers=workers,
+            address=address,
+            progress=rep.update,
+            report_path=json_out,
+            force=force,
         )
-        raise SystemExit(exit_code(signum)) from None
+    except KeyboardInterrupt as e:
+        if getattr(e, "report", None) is None:
+            raise
+        stopped: KeyboardInterrupt | None = e
+    else:
+        stopped = None
     finally:
         rep.close()
+    if stopped is not None:  # outside the except block: the exit carries no interrupt as its context
+        _interrupted_exit(stopped, outp, out, force)
     outp.write_json(strict_json(report), force)
     _print_table(report, outp.console())
     for w in report["warnings"]:
@@ -62,6 +62,21 @@ def batch_cmd(
     )
     if report["n_failed"]:
         raise SystemExit(1)
+
+
+def _interrupted_exit(e: KeyboardInterrupt, outp: Output, out: Path, force: bool) -> None:
+    """The report so far, one line, exit 130 (SIGINT) / 143 (SIGTERM)."""
+    from dtoc.util.interrupt import exit_code, signal_name
+    from dtoc.util.jsonout import strict_json
+
+    r = e.report  # type: ignore[attr-defined]
+    signum = getattr(e, "signum", None)
+    outp.write_json(strict_json(r), force)
+    note(
+        f"dtoc: interrupted by {signal_name(signum)}: {r['n_ran'] + r['n_cached']} of {r['n_jobs']} jobs finished "
+        f"and kept in {out}; run the same command again to do the rest"
+    )
+    raise SystemExit(exit_code(signum))
 
 
 def _print_table(report: dict, con) -> None:
