@@ -8,7 +8,19 @@ import scipy.signal
 import torch
 
 from dtoc.errors import InputError
-from dtoc.hardware.effects import B0Eddy, CrossEddy, Delay, ExpEddy, Gain, Girf, Lti, Offset, SlewLimit
+from dtoc.hardware.effects import (
+    B0Eddy,
+    CrossEddy,
+    Delay,
+    ExpEddy,
+    Gain,
+    Girf,
+    Lti,
+    Offset,
+    Resonance,
+    SlewLimit,
+    TimeBase,
+)
 from dtoc.hardware.recursion import exp_response
 
 F64 = torch.float64
@@ -253,10 +265,12 @@ def _all_effects(dt):
         Girf(rng.normal(0, 0.1, (3, 3, L)), 0.7 * dt, -1.3 * dt),  # resampled path
         Lti(rng.normal(0, 0.05, (3, 5)), dt, -dt),
         SlewLimit(2.0),
+        Resonance(3.1e3, 12.0, 0.05, -0.7, axis="y"),
+        TimeBase(3000.0),
     ]
 
 
-@pytest.mark.parametrize("idx", range(12))
+@pytest.mark.parametrize("idx", range(14))
 def test_gradcheck_every_effect(idx):
     dt = 1e-5
     eff = _all_effects(dt)[idx]
@@ -290,3 +304,51 @@ def test_float32_and_dtype_preserved():
             assert G.dtype == torch.float32 and b0.dtype == torch.float32 and G.shape == g.shape
             G64, _ = eff(g.double(), torch.zeros(1, 64, dtype=F64), dt)
             assert float((G.double() - G64).abs().max()) < 1e-4 * max(1.0, float(G64.abs().max()))
+
+
+def test_resonance_step_response_is_a_damped_cosine():
+    """A step of height dG at t = 0 rings as amplitude dG exp(-w0 t / 2Q) cos(w_d t + phase), exactly."""
+    dt, f0, q, amp, ph = 1e-5, 1.7e3, 20.0, 0.04, 0.6
+    T = 2000
+    g = torch.zeros(1, 3, T, dtype=F64)
+    g[:, 2] = 5.0
+    G, _ = Resonance(f0, q, amp, ph, axis="z")(g, torch.zeros(1, T, dtype=F64), dt)
+    t = np.arange(T) * dt
+    w0 = 2 * math.pi * f0
+    wd = w0 * math.sqrt(1 - 1 / (4 * q * q))
+    ring = amp * 5.0 * np.exp(-w0 * t / (2 * q)) * np.cos(wd * t + ph)
+    np.testing.assert_allclose(G[0, 2].detach().numpy() - 5.0, ring, atol=1e-12)
+    np.testing.assert_array_equal(G[0, :2].detach().numpy(), 0.0)
+
+
+def test_resonance_of_a_trapezoid_matches_quadrature():
+    """Independent check on a ramp: Re(e^{i phase} int g'(s) e^{p (t - s)} ds) by fine numerical quadrature."""
+    dt, f0, q, amp, ph = 1e-5, 2.3e3, 8.0, 0.1, -1.1
+    g = np.concatenate([np.linspace(0, 10, 21), np.full(30, 10.0), np.linspace(10, 0, 21), np.zeros(60)])
+    G, _ = Resonance(f0, q, amp, ph)(torch.as_tensor(g[None, None].repeat(3, 1)), torch.zeros(1, g.size, dtype=F64), dt)
+    w0 = 2 * math.pi * f0
+    p = complex(-w0 / (2 * q), w0 * math.sqrt(1 - 1 / (4 * q * q)))
+    sub = 400
+    ts = np.arange((g.size - 1) * sub + 1) * dt / sub
+    slope = np.repeat(np.diff(g) / dt, sub)  # g' on each sub-step
+    mid = ts[:-1] + 0.5 * dt / sub
+    for n in (25, 50, 70, 100, 130):
+        tn = n * dt
+        m = mid < tn
+        val = np.sum(slope[m] * np.exp(p * (tn - mid[m]))) * dt / sub
+        ref = amp * (np.exp(1j * ph) * val).real
+        assert abs(float(G[0, 0, n].detach()) - g[n] - ref) < 2e-5 * 10 * amp + 1e-9
+
+
+def test_time_base_scales_the_time_axis():
+    """A clock running ppm fast samples a ramp c t at t (1 + ppm 1e-6): exact for a PWL ramp; zero after the end."""
+    dt, T, ppm = 1e-5, 500, 2000.0
+    c = 0.01
+    g = torch.zeros(1, 3, T, dtype=F64)
+    g[:, 1] = c * torch.arange(T, dtype=F64)
+    G, _ = TimeBase(ppm, axis="y")(g, torch.zeros(1, T, dtype=F64), dt)
+    n = np.arange(T)
+    pos = n * (1 + ppm * 1e-6)
+    inside = pos <= T - 1
+    np.testing.assert_allclose(G[0, 1].detach().numpy()[inside], (c * pos)[inside], rtol=0, atol=1e-12)
+    assert np.all(G[0, 1].detach().numpy()[~inside] == 0)

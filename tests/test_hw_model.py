@@ -63,10 +63,10 @@ def test_chain_order_and_json_roundtrip(tmp_path):
     assert [e.kind for e in m.effects] == [e["kind"] for e in spec["effects"]]
     g = torch.randn(2, 3, 400, dtype=torch.float64).cumsum(-1) * 0.1
     G, b0 = m(g, 1e-5)
-    # chain = effects applied one after the other
+    # chain = effects applied one after the other; eddy kinds driven by the demanded g (docs/contracts.md §3)
     Gr, br = g, torch.zeros(2, 400, dtype=torch.float64)
     for e in m.effects:
-        Gr, br = e(Gr, br, 1e-5)
+        Gr, br = e(Gr, br, 1e-5, demand=g) if e.kind.endswith("eddy") else e(Gr, br, 1e-5)
     torch.testing.assert_close(G, Gr)
     torch.testing.assert_close(b0, br)
     assert float(b0.detach().abs().max()) > 0
@@ -240,3 +240,55 @@ def test_bad_measurement_files(tmp_path, mutate, match):
     with pytest.raises(InputError, match=match) as ei:
         load_measurement(tmp_path / "m.npz")
     assert "\n" not in str(ei.value)
+
+
+def _exp_conv_slew(x: np.ndarray, dt: float, tau: float) -> np.ndarray:
+    """Independent reference: dx/dt conv exp(-t/tau) at the samples of the piecewise-linear x (zero before
+    t = 0), by dense quadrature of the analytic segment integrals (not the twin's recursion)."""
+    N = x.shape[-1]
+    t = np.arange(N) * dt
+    out = np.zeros_like(x)
+    # the jump at t = 0 (x is zero before it) and the constant slew of each segment
+    out += x[..., :1] * np.exp(-t / tau)
+    s = np.diff(x, axis=-1) / dt
+    for j in range(N - 1):  # segment [t_j, t_j+1]: integral of s_j exp(-(t - u)/tau) du for u < t
+        t0, t1 = j * dt, (j + 1) * dt
+        live = t > t0
+        hi = np.minimum(t, t1)
+        val = s[..., j : j + 1] * tau * (np.exp(-(t - hi) / tau) - np.exp(-(t - t0) / tau))
+        out += np.where(live, val, 0.0)
+    return out
+
+
+def test_eddy_kinds_are_driven_by_the_demanded_waveform(tmp_path):
+    """After a GIRF, exp_eddy / cross_eddy / b0_eddy follow docs/contracts.md §3: the slew of the *demanded*
+    g drives them (G = GIRF(g) - alpha dg/dt conv exp); the *_chain variants are driven by the GIRF's output."""
+    save_girf(_girf(), tmp_path / "h.npz")
+    dt, tau, alpha, beta, c0 = 1e-5, 3e-4, 0.08, 0.03, 0.2
+    rng = np.random.default_rng(3)
+    g = np.cumsum(rng.normal(size=(1, 3, 300)), -1) * 0.2
+    gt = torch.as_tensor(g)
+    girf_only = load_model_from(tmp_path, [{"kind": "girf", "file": "h.npz"}])
+    P, P0 = (v.detach().numpy() for v in girf_only(gt, dt))
+    eddies = [
+        {"kind": "girf", "file": "h.npz"},
+        {"kind": "exp_eddy", "axis": "x", "params": {"alpha": alpha, "tau_s": tau}},
+        {"kind": "cross_eddy", "axis": "z", "input_axis": "y", "params": {"alpha": beta, "tau_s": tau}},
+        {"kind": "b0_eddy", "input_axis": "y", "params": {"alpha_uT_per_mT_per_m": c0, "tau_s": tau}},
+    ]
+    for suffix, src in (("", g), ("_chain", P)):
+        spec = [dict(e, kind=e["kind"] + suffix) if "eddy" in e["kind"] else e for e in eddies]
+        G, b0 = (v.detach().numpy() for v in load_model_from(tmp_path, spec, f"m{suffix}.json")(gt, dt))
+        np.testing.assert_allclose(G[0, 0], P[0, 0] - alpha * _exp_conv_slew(src[0, 0], dt, tau), atol=1e-10)
+        np.testing.assert_allclose(G[0, 1], P[0, 1], atol=1e-12)
+        np.testing.assert_allclose(G[0, 2], P[0, 2] - beta * _exp_conv_slew(src[0, 1], dt, tau), atol=1e-10)
+        np.testing.assert_allclose(b0[0], P0[0] - c0 * _exp_conv_slew(src[0, 1], dt, tau), atol=1e-10)
+    # the two drives differ measurably behind a GIRF (its ~group delay and band limit)
+    Gd = load_model_from(tmp_path, eddies, "d.json")(gt, dt)[0].detach().numpy()
+    Gc = load_model_from(tmp_path, spec, "c.json")(gt, dt)[0].detach().numpy()
+    assert np.abs(Gd - Gc).max() > 1e-3
+
+
+def load_model_from(folder, effects, name="m.json"):
+    (folder / name).write_text(json.dumps({"effects": effects}))
+    return load_model(folder / name)

@@ -14,7 +14,7 @@ import typer
 
 from dtoc.cli.scanner import scanner_option
 
-KINDS = ("delay", "gain", "offset", "exp_eddy", "cross_eddy", "b0_eddy", "lti", "slew_limit")
+KINDS = ("delay", "gain", "offset", "exp_eddy", "cross_eddy", "b0_eddy", "resonance", "time_base", "lti", "slew_limit")
 
 
 def identify_cmd(
@@ -23,7 +23,12 @@ def identify_cmd(
     ),
     girf: Path | None = typer.Option(None, "--girf", help="declared model: a GIRF .npz"),
     model: Path | None = typer.Option(None, "--model", help="declared model: a model JSON file"),
-    out: Path = typer.Option(..., "-o", "--out", help="updated model JSON (declared model + effects found)"),
+    out: Path = typer.Option(
+        ...,
+        "-o",
+        "--out",
+        help="updated model JSON (declared model + effects adopted); not written when nothing is adopted",
+    ),
     json_out: str | None = typer.Option(
         None,
         "--json",
@@ -87,8 +92,11 @@ def identify_cmd(
 
         outp.write_json(report_json(res), force)
     print_table(res, console=outp.console())
-    written = [str(p) for p in (out, json_out, png) if p is not None and str(p) != "-"]
-    progress("wrote " + ", ".join(written))
+    written = [str(p) for p in (out if res.adopted else None, json_out, png) if p is not None and str(p) != "-"]
+    if written:
+        progress("wrote " + ", ".join(written))
+    if not res.adopted:
+        progress(f"no model written to {out}: no effect beyond the declared model was adopted")
 
 
 def register(app: typer.Typer) -> None:

@@ -28,7 +28,7 @@ from torch import nn
 from dtoc.constants import AXES
 from dtoc.errors import InputError
 from dtoc.hardware.convolution import fft_convolve, kernel_spectrum, resample_kernel
-from dtoc.hardware.recursion import exp_response
+from dtoc.hardware.recursion import exp_response, pole_response
 
 
 def axis_index(name: str | None, what: str = "axis") -> int | None:
@@ -180,6 +180,15 @@ class _ExpBase(Effect):
         setattr(self, self.alpha_name, a)
         self.tau_s = t
 
+    #: True: driven by the demanded waveform (the chain's input); False (``*_chain`` kinds): by the
+    #: output of the effects before it.
+    driven_by_demand = True
+
+    def _drive(self, g: torch.Tensor, demand: torch.Tensor | None) -> torch.Tensor:
+        """The waveform whose slew drives the eddy currents: ``demand`` for the contract's kinds (``g``
+        when the effect is used alone), ``g`` (the previous effect's output) for the ``*_chain`` kinds."""
+        return demand if (self.driven_by_demand and demand is not None) else g
+
     def _eddy(self, src: torch.Tensor, dt_s: float) -> torch.Tensor:
         """sum_n alpha_n (dsrc/dt conv exp(-t/tau_n)); src (B, A, T) -> (B, A, T)."""
         alpha = self._p(self.alpha_name, src).reshape(-1, 1)
@@ -191,10 +200,13 @@ class _ExpBase(Effect):
 class ExpEddy(_ExpBase):
     """``exp_eddy`` {alpha, tau_s} (self term, paper Eq. 1), on ``axis`` (None: all three axes).
 
-    ``G(t) = g(t) - sum_n alpha_n * (dg/dt conv H(t) exp(-t/tau_n))(t)``; alpha dimensionless (> 0 lowers
-    the realized gradient after a ramp-up), tau in s; several time constants as lists.  Exact for the PWL
-    waveform by the recursive update of :mod:`dtoc.hardware.recursion`; a step of height g from t = 0
-    gives ``g (1 - alpha exp(-t/tau))``.
+    ``G(t) = G_prev(t) - sum_n alpha_n * (dg/dt conv H(t) exp(-t/tau_n))(t)`` with ``g`` the **demanded**
+    waveform (the chain's input, docs/contracts.md §3) and ``G_prev`` the output of the effects before it
+    (``g`` itself when it comes first); alpha dimensionless (> 0 lowers the realized gradient after a
+    ramp-up), tau in s; several time constants as lists.  Exact for the PWL waveform by the recursive
+    update of :mod:`dtoc.hardware.recursion`; a step of height g from t = 0 gives ``g (1 - alpha exp(-t/tau))``.
+    The variant ``exp_eddy_chain`` is driven by ``G_prev`` instead (eddy currents induced by the field the
+    chain has produced so far, e.g. after a GIRF).
     """
 
     kind = "exp_eddy"
@@ -202,27 +214,28 @@ class ExpEddy(_ExpBase):
     def __init__(self, alpha, tau_s, axis: str | None = None):
         super().__init__(alpha, tau_s, axis)
 
-    def forward(self, g, b0, dt_s):
-        x = self._sel(g)
-        return self._replace_axes(g, x - self._eddy(x, dt_s)), b0
+    def forward(self, g, b0, dt_s, demand=None):
+        src = self._sel(self._drive(g, demand))
+        return self._replace_axes(g, self._sel(g) - self._eddy(src, dt_s)), b0
 
 
 class CrossEddy(_ExpBase):
     """``cross_eddy`` {alpha, tau_s}: ``G[axis] -= sum_n alpha_n (dg[input_axis]/dt conv H(t) exp(-t/tau_n))``.
 
-    Same sign convention as ``exp_eddy``; alpha dimensionless ((mT/m) on ``axis`` per (mT/m) on
-    ``input_axis``), tau in s.  ``axis`` and ``input_axis`` are required.
+    Same sign convention and drive as ``exp_eddy`` (the demanded ``g``; ``cross_eddy_chain``: the output
+    of the effects before it); alpha dimensionless ((mT/m) on ``axis`` per (mT/m) on ``input_axis``), tau
+    in s.  ``axis`` and ``input_axis`` are required.
     """
 
     kind = "cross_eddy"
 
     def __init__(self, alpha, tau_s, axis: str, input_axis: str):
         if axis is None or input_axis is None:
-            raise InputError("effect 'cross_eddy' needs both 'axis' and 'input_axis'")
+            raise InputError(f"effect {self.kind!r} needs both 'axis' and 'input_axis'")
         super().__init__(alpha, tau_s, axis, input_axis)
 
-    def forward(self, g, b0, dt_s):
-        src = g[:, self._in : self._in + 1]
+    def forward(self, g, b0, dt_s, demand=None):
+        src = self._drive(g, demand)[:, self._in : self._in + 1]
         tgt = g[:, self._ax : self._ax + 1]
         return self._replace_axes(g, tgt - self._eddy(src, dt_s)), b0
 
@@ -230,8 +243,9 @@ class CrossEddy(_ExpBase):
 class B0Eddy(_ExpBase):
     """``b0_eddy`` {alpha_uT_per_mT_per_m, tau_s}: ``b0 -= sum_n alpha_n (dg[input_axis]/dt conv H(t) exp(-t/tau_n))``.
 
-    A spatially uniform field (uT) driven by the gradient on ``input_axis``; alpha in uT per (mT/m),
-    tau in s; same sign convention as ``exp_eddy``.  ``axis`` must be None.
+    A spatially uniform field (uT) driven by the demanded gradient on ``input_axis`` (``b0_eddy_chain``:
+    by the output of the effects before it); alpha in uT per (mT/m), tau in s; same sign convention as
+    ``exp_eddy``.  ``axis`` must be None.
     """
 
     kind = "b0_eddy"
@@ -240,12 +254,99 @@ class B0Eddy(_ExpBase):
 
     def __init__(self, alpha_uT_per_mT_per_m, tau_s, input_axis: str, axis: str | None = None):
         if input_axis is None or axis is not None:
-            raise InputError("effect 'b0_eddy' needs 'input_axis' and no 'axis'")
+            raise InputError(f"effect {self.kind!r} needs 'input_axis' and no 'axis'")
         super().__init__(alpha_uT_per_mT_per_m, tau_s, None, input_axis)
 
-    def forward(self, g, b0, dt_s):
-        src = g[:, self._in : self._in + 1]
+    def forward(self, g, b0, dt_s, demand=None):
+        src = self._drive(g, demand)[:, self._in : self._in + 1]
         return g, b0 - self._eddy(src, dt_s)[:, 0]
+
+
+class ExpEddyChain(ExpEddy):
+    """``exp_eddy_chain``: as ``exp_eddy``, driven by the output of the effects before it."""
+
+    kind = "exp_eddy_chain"
+    driven_by_demand = False
+
+
+class CrossEddyChain(CrossEddy):
+    """``cross_eddy_chain``: as ``cross_eddy``, driven by the output of the effects before it."""
+
+    kind = "cross_eddy_chain"
+    driven_by_demand = False
+
+
+class B0EddyChain(B0Eddy):
+    """``b0_eddy_chain``: as ``b0_eddy``, driven by the output of the effects before it."""
+
+    kind = "b0_eddy_chain"
+    driven_by_demand = False
+
+
+class Resonance(Effect):
+    """``resonance`` {f0_hz, q, amplitude, phase_rad}: a damped mechanical resonance of the gradient coil,
+    driven by the slew of the demanded waveform, on ``axis`` (None: all three axes).
+
+    ``G[a](t) = G_prev[a](t) + amplitude * Re(exp(i phase) * (dg_a/dt conv H(t) exp(p t)))`` with the pole
+    ``p = -w0/(2q) + i w0 sqrt(1 - 1/(4 q^2))``, ``w0 = 2 pi f0_hz``: a step of height ``dG`` rings as
+    ``amplitude * dG * exp(-w0 t / 2q) cos(w_d t + phase)``.  ``f0_hz`` (Hz) > 0, ``q`` > 0.5 (underdamped),
+    ``amplitude`` dimensionless, ``phase_rad`` (rad).  Exact for the PWL waveform
+    (:func:`dtoc.hardware.recursion.pole_response`).
+    """
+
+    kind = "resonance"
+    param_names = ("f0_hz", "q", "amplitude", "phase_rad")
+    driven_by_demand = True
+
+    def __init__(self, f0_hz, q, amplitude, phase_rad=0.0, axis: str | None = None):
+        super().__init__(axis)
+        self.f0_hz = _to_param("f0_hz", f0_hz, self.kind, positive=True)
+        self.q = _to_param("q", q, self.kind, positive=True)
+        if float(self.q.detach()) <= 0.5:
+            raise InputError(f"effect 'resonance': q must be > 0.5 (underdamped), got {q!r}")
+        self.amplitude = _to_param("amplitude", amplitude, self.kind)
+        self.phase_rad = _to_param("phase_rad", phase_rad, self.kind)
+
+    def pole(self, like: torch.Tensor) -> torch.Tensor:
+        """The complex pole p (1/s)."""
+        w0 = 2 * math.pi * self._p("f0_hz", like)
+        q = self._p("q", like)
+        return torch.complex(-w0 / (2 * q), w0 * torch.sqrt(1 - 1 / (4 * q * q)))
+
+    def forward(self, g, b0, dt_s, demand=None):
+        src = self._sel(demand if demand is not None else g)
+        r = pole_response(src, dt_s, self.pole(src))
+        ph = self._p("phase_rad", src)
+        ring = self._p("amplitude", src) * (torch.cos(ph) * r.real - torch.sin(ph) * r.imag)
+        return self._replace_axes(g, self._sel(g) + ring.to(g.dtype)), b0
+
+
+class TimeBase(Effect):
+    """``time_base`` {ppm}: the *measurement's* clock runs off by ``ppm`` parts per million, so the field is
+    sampled at ``t_n (1 + ppm 1e-6)`` instead of ``t_n``: ``G[a](t_n) = G_prev[a](t_n (1 + ppm 1e-6))``, a
+    delay that grows linearly with time (-ppm 1e-6 t).  Linear interpolation of the PWL waveform, on every
+    axis (``axis`` None) or one.  A property of the measuring device (field camera, ADC), not of the
+    gradient chain: ``dtoc identify`` applies it to the measurement and never writes it into a hardware model.
+    """
+
+    kind = "time_base"
+    param_names = ("ppm",)
+
+    def __init__(self, ppm: float, axis: str | None = None):
+        super().__init__(axis)
+        self.ppm = _to_param("ppm", ppm, self.kind)
+
+    def forward(self, g, b0, dt_s):
+        x = self._sel(g)
+        T = x.shape[-1]
+        n = torch.arange(T, dtype=x.dtype, device=x.device)
+        pos = n * (1 + self._p("ppm", x) * 1e-6)  # sample position (units of dt) actually measured
+        i0 = torch.clamp(torch.floor(pos.detach()).long(), 0, T - 1)
+        i1 = torch.clamp(i0 + 1, 0, T - 1)
+        f = pos - i0.to(x.dtype)
+        out = (1 - f) * x[..., i0] + f * x[..., i1]
+        out = torch.where(pos <= T - 1, out, torch.zeros_like(out))  # zero after the last sample
+        return self._replace_axes(g, out), b0
 
 
 class SlewLimit(Effect):
@@ -465,5 +566,24 @@ class Lti(Effect):
 
 #: kind -> class; the model file's "kind" picks one.
 EFFECTS: dict[str, type[Effect]] = {
-    c.kind: c for c in (Delay, Gain, Offset, ExpEddy, CrossEddy, B0Eddy, Girf, Lti, SlewLimit)
+    c.kind: c
+    for c in (
+        Delay,
+        Gain,
+        Offset,
+        ExpEddy,
+        CrossEddy,
+        B0Eddy,
+        ExpEddyChain,
+        CrossEddyChain,
+        B0EddyChain,
+        Girf,
+        Lti,
+        SlewLimit,
+        Resonance,
+        TimeBase,
+    )
 }
+
+#: The eddy-current kinds (parameters alpha-like and ``tau_s``), demanded-driven and chain-driven.
+EDDY_KINDS = ("exp_eddy", "cross_eddy", "b0_eddy", "exp_eddy_chain", "cross_eddy_chain", "b0_eddy_chain")

@@ -10,7 +10,10 @@ Model file (JSON, validated with pydantic)::
     ]}
 
 Effects act in the listed order, each on the output of the previous one (see
-:mod:`dtoc.hardware.effects`); an empty list is ideal hardware.  ``--girf h.npz`` is the shortcut for a
+:mod:`dtoc.hardware.effects`), except that the eddy-current kinds ``exp_eddy``, ``cross_eddy`` and ``b0_eddy``
+are driven by the slew of the *demanded* waveform (the chain's input, as docs/contracts.md §3 defines them)
+and subtract their field from the output of the effects before them; their ``*_chain`` variants are driven by
+that output instead.  An empty list is ideal hardware.  ``--girf h.npz`` is the shortcut for a
 model with the single effect ``girf``.
 """
 
@@ -94,9 +97,7 @@ def build_effect(
         unknown = set(params) - set(cls.param_names)
     if unknown:
         raise InputError(f"effect {kind!r}: unknown parameter(s) {sorted(unknown)}")
-    if kind in ("cross_eddy",):
-        kwargs.update(axis=axis, input_axis=input_axis)
-    elif kind == "b0_eddy":
+    if kind in ("cross_eddy", "b0_eddy", "cross_eddy_chain", "b0_eddy_chain"):
         kwargs.update(axis=axis, input_axis=input_axis)
     else:
         if input_axis is not None:
@@ -125,7 +126,10 @@ class HardwareModel(nn.Module):
         self.effects = nn.ModuleList(effects or [])
         self.description = description
 
-    def forward(self, g: torch.Tensor, dt_s: float, b0: torch.Tensor | None = None):
+    def forward(self, g: torch.Tensor, dt_s: float, b0: torch.Tensor | None = None, demand: torch.Tensor | None = None):
+        """``demand``: the demanded waveform that drives the eddy-current effects when ``g`` is not it
+        (e.g. ``g`` is the output of an earlier part of the chain that was evaluated separately); default
+        ``g``."""
         if not isinstance(g, torch.Tensor):
             g = torch.as_tensor(np.asarray(g, dtype=np.float64))
         squeeze = g.ndim == 2
@@ -137,9 +141,16 @@ class HardwareModel(nn.Module):
             b0 = torch.zeros(g.shape[0], g.shape[2], dtype=g.dtype, device=g.device)
         elif squeeze and b0.ndim == 1:
             b0 = b0.unsqueeze(0)
+        if demand is None:
+            demand = g
+        elif squeeze and demand.ndim == 2:
+            demand = demand.unsqueeze(0)
         G = g
         for eff in self.effects:
-            G, b0 = eff(G, b0, dt_s)
+            if getattr(eff, "driven_by_demand", False):
+                G, b0 = eff(G, b0, dt_s, demand=demand)
+            else:
+                G, b0 = eff(G, b0, dt_s)
         if squeeze:
             return G[0], b0[0]
         return G, b0
@@ -200,7 +211,11 @@ PLAUSIBLE = {
     ("b0_eddy", "alpha_uT_per_mT_per_m"): (-100.0, 100.0, "uT per mT/m"),
     ("b0_eddy", "tau_s"): (1e-7, 10.0, "s"),
     ("slew_limit", "max_slew_T_per_m_per_s"): (1.0, 1e5, "T/m/s"),
+    ("resonance", "f0_hz"): (0.1, 1e6, "Hz"),
+    ("resonance", "q"): (0.5, 1e6, "dimensionless"),
+    ("resonance", "amplitude"): (-10.0, 10.0, "dimensionless"),
 }
+PLAUSIBLE.update({(k + "_chain", n): v for (k, n), v in list(PLAUSIBLE.items()) if k.endswith("eddy")})
 
 
 def check_plausible_spec(ms: ModelSpec, where: str = "model") -> None:

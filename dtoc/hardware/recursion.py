@@ -31,14 +31,15 @@ def linear_scan(u: torch.Tensor, log_a: torch.Tensor) -> torch.Tensor:
 
     Args:
         u: (..., T) inputs.
-        log_a: per-channel log decay factor (<= 0), broadcastable to ``u[..., :1]``.
+        log_a: per-channel log decay factor (real part <= 0; complex for a damped oscillation),
+            broadcastable to ``u[..., :1]``.
     Returns:
         (..., T) states ``x``, differentiable w.r.t. ``u`` and ``log_a``.
     """
     T = u.shape[-1]
     x = u
     s = 1
-    max_log_a = float(log_a.detach().max()) if log_a.numel() else 0.0
+    max_log_a = float(log_a.detach().real.max()) if log_a.numel() else 0.0
     while s < T:
         if max_log_a * s < -69.0:  # exp(-69) ~ 1e-30: further contributions are below round-off
             break
@@ -66,3 +67,26 @@ def exp_response(g: torch.Tensor, dt_s: float, tau_s: torch.Tensor) -> torch.Ten
     dg = torch.diff(g, dim=-1)
     u = torch.cat([g[..., :1].expand(torch.broadcast_shapes(g[..., :1].shape, b.shape)), b * dg], dim=-1)
     return linear_scan(u, log_a)
+
+
+def pole_response(g: torch.Tensor, dt_s: float, pole_per_s: torch.Tensor) -> torch.Tensor:
+    """Exact ``r = g' conv H(t) exp(p t)`` of a PWL waveform for a complex pole ``p`` (Re p < 0).
+
+    The same update as :func:`exp_response` with ``-1/tau`` replaced by ``p``: ``r[0] = g[0]``,
+    ``r[n+1] = a r[n] + b (g[n+1] - g[n])``, ``a = exp(p dt)``, ``b = (a - 1) / (p dt)``; a damped
+    oscillation ``exp(-sigma t) (cos + i sin)(omega_d t)`` for ``p = -sigma + i omega_d``.
+
+    Args:
+        g: (..., T) real waveform samples at ``t_n = n*dt``.
+        pole_per_s: complex pole(s), 1/s, broadcastable against ``g[..., :1]``.
+    Returns:
+        (..., T) complex ``r`` in the unit of ``g``.
+    """
+    cdt = torch.complex128 if g.dtype == torch.float64 else torch.complex64
+    p = pole_per_s.to(dtype=cdt, device=g.device)
+    z = p * dt_s
+    b = torch.expm1(z) / z
+    gc = g.to(cdt)
+    dg = torch.diff(gc, dim=-1)
+    u = torch.cat([gc[..., :1].expand(torch.broadcast_shapes(gc[..., :1].shape, b.shape)), b * dg], dim=-1)
+    return linear_scan(u, z)

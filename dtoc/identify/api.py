@@ -71,6 +71,9 @@ def run_identify(
 ) -> IdentifyResult:
     """Identify missing effects in ``measured`` against the declared model and write the outputs.
 
+    The updated model (``out_model``) is written only when the adoption gate kept at least one effect
+    (``res.adopted``); otherwise no model file is written and an existing one is left untouched.
+
     Returns:
         The :class:`dtoc.identify.search.IdentifyResult`.
     """
@@ -91,7 +94,7 @@ def run_identify(
     png = residual_png(res) if png_out is not None else None
     updated = res.updated_model()
     with outputs_together():
-        if out_model is not None:
+        if out_model is not None and res.adopted:  # docs/identify.md: no model file unless an effect is adopted
             save_model(updated, out_model, force=force)
         if json_out is not None and str(json_out) != "-":
             atomic_write_text(json_out, text, force=force)

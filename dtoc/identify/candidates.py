@@ -1,7 +1,8 @@
 """The library of candidate effects and their linearised, cross-validated screening.
 
 Every candidate is an effect appended to the current model (declared chain + effects found so far), acting
-on that model's output P (realized gradient, mT/m; ``slew_limit`` acts on the demanded input instead).
+on that model's output P (realized gradient, mT/m); the eddy-current kinds are driven by the slew of the
+demanded waveform g (docs/contracts.md §3) and add their field to P; ``slew_limit`` acts on the demanded input.
 Screening fits the candidate's parameters to the current residual in the cheapest exact or linearised form
 and scores it on held-out units (:func:`dtoc.identify.workspace.cross_validate`):
 
@@ -10,11 +11,13 @@ and scores it on held-out units (:func:`dtoc.identify.workspace.cross_validate`)
 | ``delay`` {seconds} | P(t - tau) - P(t) (PWL shift), one axis or all | grid of exact shifts around the linearised estimate |
 | ``gain`` {factor} | (factor - 1) * P_a | linear |
 | ``offset`` {mT_per_m} | constant on axis a | linear |
-| ``exp_eddy`` {alpha, tau_s} | -alpha * (dP_a/dt conv exp(-t/tau)) | linear in alpha on a log grid of tau, refined |
-| ``cross_eddy`` {alpha, tau_s} | -alpha * (dP_i/dt conv exp(-t/tau)) on axis o | as exp_eddy |
-| ``b0_eddy`` {alpha_uT_per_mT_per_m, tau_s} | B0 -= alpha * (dP_i/dt conv exp(-t/tau)) | as exp_eddy (needs measured b0) |
+| ``exp_eddy`` {alpha, tau_s} | -alpha * (dg_a/dt conv exp(-t/tau)) | linear in alpha on a log grid of tau, refined |
+| ``cross_eddy`` {alpha, tau_s} | -alpha * (dg_i/dt conv exp(-t/tau)) on axis o | as exp_eddy |
+| ``b0_eddy`` {alpha_uT_per_mT_per_m, tau_s} | B0 -= alpha * (dg_i/dt conv exp(-t/tau)) | as exp_eddy (needs measured b0) |
 | ``lti`` {taps} | sum_j c_j P_a(t - (j + j0) dt) (FIR correction) | linear in the taps |
-| ``slew_limit`` {max_slew_T_per_m_per_s} | model(limit(g)) - model(g) | grid of limits |
+| ``slew_limit`` {max_slew_T_per_m_per_s}, all axes or one | model(limit(g)) - model(g) | grid of limits |
+| ``time_base`` {ppm} (measurement clock) | P(t (1 + ppm 1e-6)) - P(t) | grid of exact values around the linearised estimate |
+| ``resonance`` {f0_hz, q, amplitude, phase_rad} | A Re(e^{i phase} dg_a/dt conv e^{pt}) | f0 grid (10 %, then 1 %) x q grid, A cos / A sin linear |
 
 The score is a held-out information criterion: the decrease of the cross-validated chi-square (each fold
 fitted on the others) minus ``n_params * ln(n)`` (BIC penalty, n = measured samples).  Positive scores mean
@@ -176,13 +179,13 @@ def _screen_exp_family(ws: Workspace, ctx: Context, out_axis: int | None, in_axi
 
     def stats(taus, cache_key=None):
         if cache_key is not None and cache_key not in ctx.cache:
-            ctx.cache[cache_key] = -exp_columns(ctx.P[:, in_axis], ws.data.dt_s, taus)
+            ctx.cache[cache_key] = -exp_columns(ctx.g[:, in_axis], ws.data.dt_s, taus)
 
         def make(ms):
             if cache_key is not None:
                 E = ctx.cache[cache_key][:, ms]
             else:
-                E = -exp_columns(ctx.P[ms, in_axis], ws.data.dt_s, taus)  # (K, Mc, N)
+                E = -exp_columns(ctx.g[ms, in_axis], ws.data.dt_s, taus)  # (K, Mc, N)
             if out_axis is None:
                 return None, E
             return {out_axis: E}, None
@@ -217,6 +220,65 @@ def screen_cross_eddy(ws: Workspace, ctx: Context, axis: str, input_axis: str) -
 def screen_b0_eddy(ws: Workspace, ctx: Context, input_axis: str) -> Proposal:
     alpha, tau, res = _screen_exp_family(ws, ctx, None, _axis_index(input_axis))
     return _finish(ws, "b0_eddy", None, input_axis, {"alpha_uT_per_mT_per_m": alpha, "tau_s": tau}, 2, res)
+
+
+def resonance_columns(g_src: np.ndarray, dt_s: float, f0_hz: float, q: float) -> np.ndarray:
+    """(2, ..., N) columns of a ``resonance`` at (f0, q): Re and -Im of ``dg/dt conv exp(p t)`` (exact for
+    PWL g, the recursion of :func:`dtoc.hardware.recursion.pole_response` as an IIR filter); amplitude
+    cos(phase) and amplitude sin(phase) are their coefficients."""
+    from scipy.signal import lfilter
+
+    w0 = 2.0 * math.pi * f0_hz
+    p = complex(-w0 / (2.0 * q), w0 * math.sqrt(1.0 - 1.0 / (4.0 * q * q)))
+    z = p * dt_s
+    a = np.exp(z)
+    bb = np.expm1(z) / z
+    x = np.asarray(g_src, dtype=np.float64)
+    u = np.concatenate([x[..., :1].astype(complex), bb * np.diff(x, axis=-1)], axis=-1)
+    r = lfilter([1.0], [1.0, -a], u, axis=-1)
+    return np.stack([r.real, -r.imag])
+
+
+#: Quality factors screened for a resonance (LM refines): light to strong ring-down.
+RESONANCE_Q = (3.0, 10.0, 30.0, 100.0)
+
+
+def screen_resonance(ws: Workspace, ctx: Context, axis: str) -> Proposal | None:
+    """Damped resonance on one axis, driven by the demanded slew: f0 on a log grid (10 % steps, from 4 cycles
+    per record to 0.4 / dt) at q = 30, then a 1 % grid over +-10 % around the best f0 for each q of
+    :data:`RESONANCE_Q`; (amplitude cos, amplitude sin) linear (two columns per option)."""
+    a = _axis_index(axis)
+    dt = ws.data.dt_s
+    T = ws.data.N * dt
+    lo, hi = 4.0 / T, 0.4 / dt
+    if hi <= lo:
+        return None
+
+    def evaluate(options):
+        P = 2 * len(options)
+        U = len(ws.folds.units)
+        A = np.zeros((U, P, P))
+        b = np.zeros((U, P))
+        for j, (f0, q) in enumerate(options):
+
+            def make(ms, f0=f0, q=q):
+                return {a: resonance_columns(ctx.g[ms, a], dt, f0, q)}, None
+
+            Aj, bj = ws.unit_stats(make, 2, chunk=max(1, ws.data.M), full=True)
+            A[:, 2 * j : 2 * j + 2, 2 * j : 2 * j + 2] = Aj
+            b[:, 2 * j : 2 * j + 2] = bj
+        return cross_validate(A, b, ws.c_units, ws.folds, [[2 * j, 2 * j + 1] for j in range(len(options))], True)
+
+    coarse = [(float(f), 30.0) for f in np.exp(np.arange(math.log(lo), math.log(hi), math.log(1.1)))]
+    r1 = evaluate(coarse)
+    f_best = coarse[r1.option][0]
+    fine = [(float(f), q) for q in RESONANCE_Q for f in f_best * np.linspace(0.9, 1.1, 21)]
+    r2 = evaluate(fine)
+    best, opts = (r2, fine) if r2.full_chi2 <= r1.full_chi2 else (r1, coarse)
+    f0, q = opts[best.option]
+    c, s_ = float(best.theta[0]), float(best.theta[1])
+    amp, ph = math.hypot(c, s_), math.atan2(s_, c)
+    return _finish(ws, "resonance", axis, None, {"f0_hz": f0, "q": q, "amplitude": amp, "phase_rad": ph}, 4, best)
 
 
 # -- delay --------------------------------------------------------------------------------------------
@@ -256,6 +318,51 @@ def screen_delay(ws: Workspace, ctx: Context, axis: str | None) -> Proposal:
     A, b = grid_stats(fine)
     res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(fine))], free=False)
     return _finish(ws, "delay", axis, None, {"seconds": float(fine[res.option])}, 1, res)
+
+
+# -- time base of the measurement (clock error) ------------------------------------------------------
+def screen_time_base(ws: Workspace, ctx: Context) -> Proposal | None:
+    """Clock error of the measuring device: the field sampled at t (1 + ppm 1e-6) on every axis, a delay
+    growing linearly with time.  Linearised estimate (r ~ ppm 1e-6 t dP/dt), then a grid of exact values
+    (:class:`dtoc.hardware.effects.TimeBase`) around it.  Position "meas": applied to the prediction of the
+    measurement, never written into the hardware model."""
+    import torch
+
+    from dtoc.hardware.effects import TimeBase
+
+    dt = ws.data.dt_s
+    t = np.arange(ws.data.N) * dt
+
+    def make_lin(ms):
+        return {a: (1e-6 * t * np.gradient(ctx.P[ms, a], dt, axis=-1))[None] for a in range(3)}, None
+
+    A, b = ws.unit_stats(make_lin, 1)
+    den = A[:, 0].sum()
+    if den <= 0:
+        return None
+    ppm0 = float(b[:, 0].sum() / den)
+
+    def exact(ppm, ms):
+        with torch.no_grad():
+            P = torch.as_tensor(ctx.P[ms])
+            out, _ = TimeBase(ppm)(P, torch.zeros(P.shape[0], P.shape[-1], dtype=P.dtype), dt)
+        return out.numpy() - ctx.P[ms]
+
+    def grid_stats(vals):
+        def make(ms):
+            d = np.stack([exact(v, ms) for v in vals])  # (p, Mc, 3, N)
+            return {a: d[:, :, a] for a in range(3)}, None
+
+        return ws.unit_stats(make, len(vals))
+
+    width = max(0.5 * abs(ppm0), 1e-3)
+    vals = ppm0 + width * np.linspace(-1.0, 1.0, 11)
+    A, b = grid_stats(vals)
+    res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(vals))], free=False)
+    fine = vals[res.option] + (vals[1] - vals[0]) * np.linspace(-1.0, 1.0, 11)
+    A, b = grid_stats(fine)
+    res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(fine))], free=False)
+    return _finish(ws, "time_base", None, None, {"ppm": float(fine[res.option])}, 1, res, position="meas")
 
 
 # -- lti (non-parametric FIR correction) -------------------------------------------------------------
@@ -374,11 +481,14 @@ def lti_features(taps: np.ndarray, first_lag: int, dt_s: float, fmax_hz: float |
 
 
 # -- slew limit (non-linear, on the demanded input) --------------------------------------------------
-def screen_slew_limit(ws: Workspace, ctx: Context) -> Proposal | None:
+def screen_slew_limit(ws: Workspace, ctx: Context, axis: str | None = None) -> Proposal | None:
+    """Slew-rate limit of the amplifier on one axis (``axis``) or one limit shared by all axes (None):
+    a grid of limits between 0.2 and 0.98 of the demanded peak slew on those axes, refined."""
     if ctx.chain is None or ctx.slew_limit is None:
         return None
     dt = ws.data.dt_s
-    smax = float(np.max(np.abs(np.diff(ctx.g, axis=-1)))) / dt  # mT/m/s
+    sel = ctx.g if axis is None else ctx.g[:, _axis_index(axis) : _axis_index(axis) + 1]
+    smax = float(np.max(np.abs(np.diff(sel, axis=-1)))) / dt  # mT/m/s
     if smax <= 0:
         return None
     base = ctx.P
@@ -389,7 +499,7 @@ def screen_slew_limit(ws: Workspace, ctx: Context) -> Proposal | None:
             dG = np.zeros((len(limits_T_per_m_per_s), len(ms), 3, ws.data.N))
             db0 = np.zeros((len(limits_T_per_m_per_s), len(ms), ws.data.N))
             for j, s in enumerate(limits_T_per_m_per_s):
-                pred = ctx.chain(ctx.slew_limit(ctx.g[ms], s))
+                pred = ctx.chain(ctx.slew_limit(ctx.g[ms], s, axis))
                 dG[j] = pred.G - base[ms]
                 if pred.b0 is not None and base_b0 is not None:
                     db0[j] = pred.b0 - base_b0[ms]
@@ -409,7 +519,7 @@ def screen_slew_limit(ws: Workspace, ctx: Context) -> Proposal | None:
     res2 = cross_validate(A2, b2, ws.c_units, ws.folds, [[j] for j in range(len(fine))], free=False)
     best = res2 if res2.full_chi2 <= res.full_chi2 else res
     val = fine[res2.option] if best is res2 else coarse[res.option]
-    return _finish(ws, "slew_limit", None, None, {"max_slew_T_per_m_per_s": float(val)}, 1, best, position="pre")
+    return _finish(ws, "slew_limit", axis, None, {"max_slew_T_per_m_per_s": float(val)}, 1, best, position="pre")
 
 
 # -- the whole library -----------------------------------------------------------------------------
@@ -419,11 +529,25 @@ def screen_all(ws: Workspace, ctx: Context, kinds=None, exclude=()) -> list[Prop
     ``exclude``: names (:attr:`Proposal.name`) already in the model, not proposed again.
     """
     kinds = (
-        set(kinds) if kinds else {"delay", "gain", "offset", "exp_eddy", "cross_eddy", "b0_eddy", "lti", "slew_limit"}
+        set(kinds)
+        if kinds
+        else {
+            "delay",
+            "gain",
+            "offset",
+            "exp_eddy",
+            "cross_eddy",
+            "b0_eddy",
+            "lti",
+            "slew_limit",
+            "resonance",
+            "time_base",
+        }
     )
     props: list[Proposal] = []
     measured_axes = [AXES[a] for a in range(3) if ws.data.axes_measured[:, a].any()]
     active_in = [AXES[a] for a in range(3) if np.any(ctx.P[:, a] != 0)]
+    driven = [AXES[a] for a in range(3) if np.any(ctx.g[:, a] != 0)]  # demanded axes: sources of eddy terms
     if "delay" in kinds:
         if len(measured_axes) > 1:
             props.append(screen_delay(ws, ctx, None))
@@ -433,17 +557,24 @@ def screen_all(ws: Workspace, ctx: Context, kinds=None, exclude=()) -> list[Prop
     if "offset" in kinds:
         props += [screen_offset(ws, ctx, ax) for ax in measured_axes]
     if "exp_eddy" in kinds:
-        props += [screen_exp_eddy(ws, ctx, ax) for ax in measured_axes if ax in active_in]
+        props += [screen_exp_eddy(ws, ctx, ax) for ax in measured_axes if ax in driven]
     if "cross_eddy" in kinds:
-        props += [screen_cross_eddy(ws, ctx, o, i) for o in measured_axes for i in active_in if i != o]
+        props += [screen_cross_eddy(ws, ctx, o, i) for o in measured_axes for i in driven if i != o]
     if "b0_eddy" in kinds and ws.data.b0 is not None:
-        props += [screen_b0_eddy(ws, ctx, i) for i in active_in]
-    if "lti" in kinds:
-        props += [screen_lti(ws, ctx, ax) for ax in measured_axes if ax in active_in]
-    if "slew_limit" in kinds:
-        p = screen_slew_limit(ws, ctx)
+        props += [screen_b0_eddy(ws, ctx, i) for i in driven]
+    if "resonance" in kinds:
+        props += [p for p in (screen_resonance(ws, ctx, ax) for ax in measured_axes if ax in driven) if p is not None]
+    if "time_base" in kinds:
+        p = screen_time_base(ws, ctx)
         if p is not None:
             props.append(p)
+    if "lti" in kinds:
+        props += [screen_lti(ws, ctx, ax) for ax in measured_axes if ax in active_in]
+    if "slew_limit" in kinds:  # one limit for all axes, and one per axis (amplifiers differ)
+        for ax in [None, *(measured_axes if len(measured_axes) > 1 else [])]:
+            p = screen_slew_limit(ws, ctx, ax)
+            if p is not None:
+                props.append(p)
     props = [p for p in props if p.name not in set(exclude)]
     props.sort(key=lambda p: -p.score)
     return props

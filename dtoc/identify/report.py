@@ -5,7 +5,9 @@ JSON keys (minimum, exactly as the contract): ``before``, ``after``, ``heldout_b
 ``effects`` (kind, axis, input_axis, params, stderr, score; in the order added), ``explained``,
 ``remaining``.  Extras: ``relative_to_noise`` (every rmse divided by its noise floor), ``per_axis``
 (rmse per axis), ``noise_method``, ``heldout`` (how folds were made), ``declared`` (description),
-``screening`` (top candidates per round with their scores), ``n_samples``, ``dtoc_version``.
+``screening`` (top candidates per round with their scores), ``n_samples``, ``dtoc_version``, ``adopted``
+(true when the updated model holds at least one found effect and was therefore written), ``rejected`` (effects
+the adoption gate removed: name, kind, axes, params, score, reasons; docs/identify.md).
 Units: G mT/m, k rad/m, b0 uT; scores in chi-square units (held-out BIC decrease).
 """
 
@@ -90,6 +92,8 @@ def report_dict(r: IdentifyResult) -> dict:
         or ("ideal hardware" if not r.twin.declared.effects else "declared model"),
         "screening": [[{"candidate": n, "score": s} for n, s in rnd] for rnd in r.history],
         "n_samples": int(sum(np.sum(r.data.mask(c) > 0) for c in r.data.channels())),
+        "adopted": bool(r.adopted),
+        "rejected": [{**x, "params": {k: v for k, v in x["params"].items() if k != "taps"}} for x in r.rejected],
         "dtoc_version": __version__,
     }
 
@@ -153,7 +157,7 @@ def print_table(r: IdentifyResult, console=None) -> None:
     for col in ("#", "kind", "axis", "input", "parameters ± stderr", "score"):
         e.add_column(col)
     for i, entry in enumerate(d["effects"]):
-        axis = "b0" if entry["kind"] == "b0_eddy" else (entry["axis"] or "all")
+        axis = "b0" if entry["kind"].startswith("b0_eddy") else (entry["axis"] or "all")
         e.add_row(
             str(i + 1),
             entry["kind"],
@@ -163,8 +167,14 @@ def print_table(r: IdentifyResult, console=None) -> None:
             f"{entry['score']:.4g}",
         )
     if not d["effects"]:
-        e.add_row("—", "none", "", "", "no candidate is significant", "")
+        e.add_row("—", "none", "", "", "no candidate is both significant and adopted", "")
     con.print(e)
+    for x in d["rejected"]:
+        con.print(f"not adopted: {x['effect']}: {'; '.join(x['reasons'])}", markup=False, soft_wrap=True)
+    if not d["adopted"]:
+        con.print(
+            "no updated model: nothing beyond the declared model is supported by the data (no model file written)"
+        )
     con.print(f"explained: {'yes' if d['explained'] else 'NO'}")
     for note in d["remaining"]:
         con.print(f"  - {note}", markup=False, soft_wrap=True)  # one line per note (grep-able)

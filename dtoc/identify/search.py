@@ -29,7 +29,7 @@ from dtoc.constants import AXES
 from dtoc.errors import InputError
 from dtoc.hardware.effects import SlewLimit
 from dtoc.hardware.model import HardwareModel
-from dtoc.identify import diagnostics
+from dtoc.identify import adopt, diagnostics
 from dtoc.identify.candidates import Context, Proposal, excited_band_hz, lti_features, screen_all
 from dtoc.identify.data import IdentData
 from dtoc.identify.folds import Folds, make_folds, waveform_groups
@@ -41,8 +41,12 @@ from dtoc.identify.workspace import Workspace
 #: correlated differences; measured on pure noise: 1.1-1.5).
 DIFF_REL_SE = 1.5
 
-#: Kinds that may be added more than once on the same axes (multi-exponential eddy currents).
-REPEATABLE = {"exp_eddy", "cross_eddy", "b0_eddy"}
+#: Rounds of search + adoption gate: after the gate removes an effect, the search resumes without it.
+GATE_ATTEMPTS = 3
+
+#: Kinds that may be added more than once on the same axes (multi-exponential eddy currents, several
+#: mechanical resonances).
+REPEATABLE = {"exp_eddy", "cross_eddy", "b0_eddy", "resonance"}
 
 
 @dataclass
@@ -62,16 +66,24 @@ class IdentifyResult:
     residual_before: dict
     residual_after: dict
     history: list = field(default_factory=list)  # per round: list of (name, score) of the top proposals
+    rejected: list = field(default_factory=list)  # effects the adoption gate removed, with the reasons
+
+    @property
+    def adopted(self) -> bool:
+        """True when at least one found *hardware* effect passed the adoption gate (an updated model exists;
+        a measurement-side effect such as ``time_base`` alone changes no hardware model)."""
+        return any(f.position != "meas" for f in self.twin.found)
 
     def updated_model(self) -> HardwareModel:
         return self.twin.updated_model()
 
 
 def _slew_limit_fn(dt_s: float):
-    """callable(g (M, 3, N) ndarray, max_slew T/m/s) -> slew-limited g, via the twin's SlewLimit effect."""
+    """callable(g (M, 3, N) ndarray, max_slew T/m/s, axis=None) -> slew-limited g (one axis or all), via the
+    twin's SlewLimit effect."""
 
-    def fn(g: np.ndarray, max_slew: float) -> np.ndarray:
-        eff = SlewLimit(max_slew)
+    def fn(g: np.ndarray, max_slew: float, axis: str | None = None) -> np.ndarray:
+        eff = SlewLimit(max_slew, axis=axis)
         with torch.no_grad():
             gt = torch.as_tensor(g, dtype=torch.float64)
             G, _ = eff(gt, torch.zeros(g.shape[0], g.shape[-1], dtype=torch.float64), dt_s)
@@ -171,96 +183,90 @@ def _identify(
     ws = Workspace(data, sigma, folds, pred0)
     res_before = ws.res
     history = []
-    for rnd in range(max_effects):
-        ctx = Context(
-            dt_s=data.dt_s,
-            g=data.g,
-            P=ws.pred.G,
-            P_b0=ws.pred.b0,
-            chain=twin.predict_fn(),
-            slew_limit=_slew_limit_fn(data.dt_s),
-        )
-        props = screen_all(ws, ctx, kinds=kinds, exclude=_excluded(twin))
-        if any(f.effect.kind == "slew_limit" for f in twin.found):
-            props = [p for p in props if p.kind != "slew_limit"]
-        history.append([(p.name, round(p.score, 2)) for p in props[:5]])
-        if not props:
-            break
-        best = props[0]
-        say(
-            f"round {rnd + 1}: best {best.name} score {best.score:.1f}"
-            + (f", next {props[1].name} {props[1].score:.1f}" if len(props) > 1 else "")
-        )
-        if best.score < threshold:
-            break
-        chi_old = _chi2(ws)
-        saved = [copy.deepcopy(f.effect.state_dict()) for f in twin.found]
-        twin.add(best.kind, best.axis, best.input_axis, best.params, best.score, best.position, best.notes)
-        twin.refit()
-        pred = twin.predict()
-        ws_new = Workspace(data, sigma, folds, pred)
-        if not (_chi2(ws_new) < chi_old - threshold):
-            say(f"  {best.name} rejected after the non-linear refit (chi2 {chi_old:.1f} -> {_chi2(ws_new):.1f})")
-            twin.found.pop()
-            for fo, st in zip(twin.found, saved):
-                fo.effect.load_state_dict(st)
-            break
-        ws = ws_new
-    # Final full-data refit and standard errors.
-    fit = twin.refit()
-    twin.set_stderr(fit)
-    ws = Workspace(data, sigma, folds, twin.predict())
-    res_after = ws.res
-    # The difference estimator is only ever biased upwards by model error left in the residual, so the
-    # estimate from the final (smaller) residual is the better one when it is lower.
-    for c in list(noise):
-        if noise[c].method.startswith("difference"):
-            # The final residual on *all* samples: when the model now fits, it is noise everywhere and this
-            # estimate is the most precise one (many more samples than the corner-free subset); adopt it unless
-            # it is significantly above the first estimate (model error left at the corners) while the final
-            # residual's plain RMS is not white-noise-like either.  Taking simply
-            # the lower of two noisy estimates would bias the floor low (measured: -10 % for b0 with 2,200
-            # corner-free samples).
-            first = noise[c]
-            note = first.method[first.method.index(" (the file") :] if " (the file" in first.method else ""
-            re_all = difference_sigma(res_after[c], data.mask(c))
-            rel_se = DIFF_REL_SE / np.sqrt(max(first.n_samples, 1))
-            mk = data.mask(c)
-            rms_after = float(np.sqrt(np.sum((res_after[c] * mk) ** 2) / max(mk.sum(), 1)))
-            white = re_all is not None and rms_after <= re_all.sigma * (
-                1.0 + 3.0 * DIFF_REL_SE / np.sqrt(re_all.n_samples)
+    eddy_cache: dict = {}  # eddy columns are driven by the demanded g: the same in every round
+    heldout_before = diagnostics.rmse(data, res_before)
+    noise_first = dict(noise)
+    rejected: list[dict] = []
+    gate_excluded: set = set()
+    for _attempt in range(GATE_ATTEMPTS):
+        # Forward stepwise search from the current (possibly pruned) model.
+        ws = Workspace(data, sigma, folds, twin.predict())
+        while len(twin.found) < max_effects:
+            ctx = Context(
+                dt_s=data.dt_s,
+                g=data.g,
+                P=ws.pred.G,
+                P_b0=ws.pred.b0,
+                chain=twin.predict_fn(),
+                slew_limit=_slew_limit_fn(data.dt_s),
+                cache=eddy_cache,
             )
-            if re_all is not None and (white or re_all.sigma <= first.sigma * (1.0 + 3.0 * rel_se)):
-                noise[c] = NoiseEstimate(re_all.sigma, re_all.method + ", final residual" + note, re_all.n_samples)
-            else:
-                q = quiet_samples(data.g)
-                re = difference_sigma(res_after[c], data.mask(c), quiet=q.all(axis=1) if c == "b0" else q)
-                if re is not None and re.sigma < first.sigma:
-                    noise[c] = NoiseEstimate(re.sigma, re.method + ", final residual" + note, re.n_samples)
-            sigma[c] = noise[c].sigma
+            props = screen_all(ws, ctx, kinds=kinds, exclude=_excluded(twin) | gate_excluded)
+            limited = [f.effect.axis for f in twin.found if f.effect.kind == "slew_limit"]
+            if limited:  # a shared limit excludes per-axis ones and vice versa
+                props = [p for p in props if p.kind != "slew_limit" or (None not in limited and p.axis is not None)]
+            history.append([(p.name, round(p.score, 2)) for p in props[:5]])
+            if not props:
+                break
+            best = props[0]
+            say(
+                f"round {len(history)}: best {best.name} score {best.score:.1f}"
+                + (f", next {props[1].name} {props[1].score:.1f}" if len(props) > 1 else "")
+            )
+            if best.score < threshold:
+                break
+            chi_old = _chi2(ws)
+            saved = [copy.deepcopy(f.effect.state_dict()) for f in twin.found]
+            twin.add(best.kind, best.axis, best.input_axis, best.params, best.score, best.position, best.notes)
+            twin.refit()
+            ws_new = Workspace(data, sigma, folds, twin.predict())
+            if not (_chi2(ws_new) < chi_old - threshold):
+                say(f"  {best.name} rejected after the non-linear refit (chi2 {chi_old:.1f} -> {_chi2(ws_new):.1f})")
+                twin.found.pop()
+                for fo, st in zip(twin.found, saved):
+                    fo.effect.load_state_dict(st)
+                break
+            ws = ws_new
+        # Final full-data refit, standard errors, noise floors and held-out errors; then the adoption gate
+        # (dtoc.identify.adopt): effects the data do not support are removed one at a time and the rest
+        # refitted; the search then resumes without them (another effect may explain what they could not).
+        n_rejected = len(rejected)
+        while True:
+            fit, noise, res_after, heldout_after = _evaluate(twin, data, noise_first, folds)
+            if not twin.found:
+                break
+            problems = adopt.bound_problems(twin.found, data.dt_s) + adopt.identification_problems(
+                twin.found, fit.get("at_bound", [])
+            )
+            problems += adopt.heldout_problems(heldout_before, heldout_after, data.channels())
+            if not problems:
+                rt = adopt.roundtrip_problem(twin.updated_model(), data.g, data.dt_s)
+                problems = [rt] if rt is not None else []
+            if not problems:
+                break
+            i = adopt.pick_offender(problems, twin.found)
+            f = twin.found[i]
+            reasons = [p.reason for p in problems if p.index == i] or [p.reason for p in problems]
+            rejected.append(
+                {
+                    "effect": adopt.effect_name(f.effect),
+                    "kind": f.effect.kind,
+                    "axis": f.effect.axis,
+                    "input_axis": f.effect.input_axis,
+                    "params": f.effect.params_dict(),
+                    "score": float(f.score),
+                    "reasons": reasons,
+                }
+            )
+            say(f"  {adopt.effect_name(f.effect)} not adopted: {'; '.join(reasons)}")
+            gate_excluded.add(adopt.effect_name(f.effect))
+            twin.found.pop(i)
+        if len(rejected) == n_rejected:
+            break
+    sigma = {c: noise[c].sigma for c in noise}
+    twin.sigma = sigma
     before = diagnostics.rmse(data, res_before)
     after = diagnostics.rmse(data, res_after)
-    # Held-out: each fold refitted on its training samples, residual on its test samples.
-    held_sq = {c: np.zeros_like(res_after[c]) for c in res_after}
-    if twin.found:
-        state = [copy.deepcopy(f.effect.state_dict()) for f in twin.found]
-        for k in range(folds.K):
-            twin.heldout_refit(fit, folds.sample_mask(k, train=True))
-            r = Workspace(data, sigma, folds, twin.predict()).res
-            test = folds.sample_mask(k, train=False)
-            for c in r:
-                t = test[:, None, :] if c != "b0" else test
-                held_sq[c] += r[c] * t
-            for fo, st in zip(twin.found, state):
-                fo.effect.load_state_dict(st)
-        held_res = held_sq
-    else:
-        held_res = res_after
-    heldout_after = diagnostics.rmse(data, held_res)
-    for c in data.channels():
-        if heldout_after[c] is None or not np.isfinite(heldout_after[c]):
-            heldout_after[c] = float("inf")  # a held-out refit failed: never "explained"
-    heldout_before = diagnostics.rmse(data, res_before)
     # Explained?
     remaining = []
     explained = True
@@ -301,7 +307,24 @@ def _identify(
             explained = False
     for fo in twin.found:
         if fo.effect.kind == "slew_limit":
-            remaining.append("a non-linear slew-rate limit was modelled: the amplifier cannot follow the demanded slew")
+            remaining.append(
+                "a non-linear slew-rate limit was modelled"
+                + (f" on {fo.effect.axis}" if fo.effect.axis else "")
+                + ": the amplifier cannot follow the demanded slew"
+            )
+        if fo.effect.kind == "time_base":
+            ppm = float(fo.effect.ppm.detach())
+            remaining.append(
+                f"the measurement's time base is off by {ppm:+.2f} ppm (a delay growing linearly with time: "
+                f"{-ppm * 1e-6 * data.N * data.dt_s * 1e6:+.3f} us at the end of the record): a clock error of the "
+                "measuring device, applied to the measurement, not written into the hardware model"
+            )
+        if fo.effect.kind == "resonance":
+            e = fo.effect
+            remaining.append(
+                f"a damped mechanical resonance was modelled on {e.axis or 'all axes'}: f0 {float(e.f0_hz.detach()):.1f}"
+                f" Hz, Q {float(e.q.detach()):.1f}, amplitude {float(e.amplitude.detach()):.3g} per mT/m of ramp"
+            )
         if fo.effect.kind == "lti":
             e = fo.effect
             band = excited_band_hz(data.g[:, e._ax][data.axes_measured[:, e._ax]], data.dt_s)
@@ -320,6 +343,8 @@ def _identify(
         )
     if len(twin.found) >= max_effects:
         remaining.append(f"stopped at the cap of {max_effects} added effects")
+    for r in rejected:
+        remaining.append(f"not adopted: {'; '.join(r['reasons'])}")
     say("done")
     return IdentifyResult(
         data,
@@ -335,4 +360,71 @@ def _identify(
         res_before,
         res_after,
         history,
+        rejected,
     )
+
+
+def _refined_noise(noise_first: dict, res_after: dict, data: IdentData) -> dict:
+    """Noise floors re-estimated on the final residual where that is the better estimate.
+
+    The difference estimator is only ever biased upwards by model error left in the residual.  The final
+    residual on *all* samples is adopted when it is white-noise-like (its plain RMS agrees with its
+    difference estimate: the model now fits, and there are many more samples than the corner-free subset)
+    or when it is not significantly above the first estimate; otherwise the corner-free estimate on the
+    final residual replaces the first one only if lower.  (Taking simply the lower of two noisy estimates
+    would bias the floor low: measured -10 % for b0 with 2,200 corner-free samples.)
+    """
+    noise = dict(noise_first)
+    for c in list(noise):
+        if not noise[c].method.startswith("difference"):
+            continue
+        first = noise[c]
+        note = first.method[first.method.index(" (the file") :] if " (the file" in first.method else ""
+        re_all = difference_sigma(res_after[c], data.mask(c))
+        rel_se = DIFF_REL_SE / np.sqrt(max(first.n_samples, 1))
+        mk = data.mask(c)
+        rms_after = float(np.sqrt(np.sum((res_after[c] * mk) ** 2) / max(mk.sum(), 1)))
+        white = re_all is not None and rms_after <= re_all.sigma * (1.0 + 3.0 * DIFF_REL_SE / np.sqrt(re_all.n_samples))
+        if re_all is not None and (white or re_all.sigma <= first.sigma * (1.0 + 3.0 * rel_se)):
+            noise[c] = NoiseEstimate(re_all.sigma, re_all.method + ", final residual" + note, re_all.n_samples)
+        else:
+            q = quiet_samples(data.g)
+            re = difference_sigma(res_after[c], data.mask(c), quiet=q.all(axis=1) if c == "b0" else q)
+            if re is not None and re.sigma < first.sigma:
+                noise[c] = NoiseEstimate(re.sigma, re.method + ", final residual" + note, re.n_samples)
+    return noise
+
+
+def _evaluate(twin: Twin, data: IdentData, noise_first: dict, folds: Folds):
+    """Full-data refit (standard errors stored on the twin), refined noise floors, final residual and the
+    held-out RMS (each fold refitted on its training samples, residual on its test samples).
+
+    Returns:
+        (fit, noise, res_after, heldout_after)
+    """
+    fit = twin.refit()
+    twin.set_stderr(fit)
+    sigma = {c: noise_first[c].sigma for c in noise_first}
+    res_after = Workspace(data, sigma, folds, twin.predict()).res
+    noise = _refined_noise(noise_first, res_after, data)
+    sigma = {c: noise[c].sigma for c in noise}
+    held_sq = {c: np.zeros_like(res_after[c]) for c in res_after}
+    if twin.found:
+        state = [copy.deepcopy(f.effect.state_dict()) for f in twin.found]
+        for k in range(folds.K):
+            twin.heldout_refit(fit, folds.sample_mask(k, train=True))
+            r = Workspace(data, sigma, folds, twin.predict()).res
+            test = folds.sample_mask(k, train=False)
+            for c in r:
+                t = test[:, None, :] if c != "b0" else test
+                held_sq[c] += r[c] * t
+            for fo, st in zip(twin.found, state):
+                fo.effect.load_state_dict(st)
+        held_res = held_sq
+    else:
+        held_res = res_after
+    heldout_after = diagnostics.rmse(data, held_res)
+    for c in data.channels():
+        if heldout_after[c] is None or not np.isfinite(heldout_after[c]):
+            heldout_after[c] = float("inf")  # a held-out refit failed: never "explained"
+    return fit, noise, res_after, heldout_after

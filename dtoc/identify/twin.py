@@ -3,7 +3,8 @@
 Order of the chain (``dtoc.hardware.model.HardwareModel``): ``slew_limit`` effects first (the amplifier
 cannot follow the demand; they act on the demanded input), then the declared effects (fixed: they are
 what the user declared), then the found parametric effects in the order they were added, then found
-``lti`` corrections last.  Every found parametric effect is then refitted jointly by Levenberg-Marquardt
+``lti`` corrections, then measurement-side effects (``time_base``: the measuring device's clock), which
+predict the measurement but are not part of the updated hardware model.  Every found parametric effect is then refitted jointly by Levenberg-Marquardt
 on the whitened residual of all measured channels, with the Jacobian taken through the differentiable
 twin by forward-mode automatic differentiation (``torch.func.jvp``; central differences if an operation
 lacks a forward-mode rule).  Positive parameters (time constants, slew limits) are fitted as logarithms,
@@ -28,7 +29,7 @@ from dtoc.hardware.model import HardwareModel, build_effect
 from dtoc.identify.data import IdentData
 from dtoc.identify.workspace import Prediction
 
-_LOG_PARAMS = {"tau_s", "max_slew_T_per_m_per_s"}
+_LOG_PARAMS = {"tau_s", "max_slew_T_per_m_per_s", "f0_hz", "q"}
 
 
 # Large products are taken with einsum rather than BLAS: identify runs on a few cores shared with other
@@ -71,13 +72,15 @@ class Twin:
         self.g = torch.as_tensor(data.g, dtype=torch.float64)
 
     # -- assembly ---------------------------------------------------------------------------------
-    def chain(self, include=None) -> HardwareModel:
-        """The full chain (optionally only the found effects in ``include``)."""
+    def chain(self, include=None, hardware_only: bool = False) -> HardwareModel:
+        """The full chain (optionally only the found effects in ``include``); ``hardware_only`` leaves out the
+        measurement-side effects (position "meas", e.g. ``time_base``), which are not part of the scanner."""
         fs = self.found if include is None else include
         pre = [f.effect for f in fs if f.position == "pre"]
         post = [f.effect for f in fs if f.position == "post"]
         lti = [f.effect for f in fs if f.position == "lti"]
-        return HardwareModel([*pre, *self.declared.effects, *post, *lti])
+        meas = [] if hardware_only else [f.effect for f in fs if f.position == "meas"]
+        return HardwareModel([*pre, *self.declared.effects, *post, *lti, *meas])
 
     def add(self, kind: str, axis, input_axis, params: dict, score: float, position: str, notes=None) -> Found:
         eff = build_effect(kind, params, axis=axis, input_axis=input_axis)
@@ -87,7 +90,8 @@ class Twin:
         return f
 
     def updated_model(self) -> HardwareModel:
-        m = self.chain()
+        """Declared + found hardware effects (measurement-side effects such as ``time_base`` left out)."""
+        m = self.chain(hardware_only=True)
         base = self.declared.description or ("declared model" if self.declared.effects else "ideal hardware")
         m.description = base + (" + identified effects" if self.found else "")
         return m
@@ -107,10 +111,10 @@ class Twin:
         if any(f.position == "pre" for f in fs):
             model = self.chain(fs)
             return model, lambda m: m(self.g, self.data.dt_s)
-        post = [f.effect for f in fs if f.position == "post"] + [f.effect for f in fs if f.position == "lti"]
+        post = [f.effect for pos in ("post", "lti", "meas") for f in fs if f.position == pos]
         model = HardwareModel(post)
         Gd, b0d = self._declared_out()
-        return model, lambda m: m(Gd, self.data.dt_s, b0=b0d)
+        return model, lambda m: m(Gd, self.data.dt_s, b0=b0d, demand=self.g)
 
     @torch.no_grad()
     def predict(self, g: np.ndarray | None = None, include=None) -> Prediction:
@@ -176,6 +180,10 @@ class Twin:
         T = self.data.N * self.data.dt_s
         if t == "log" and name == "tau_s":
             return math.log(self.data.dt_s / 4), math.log(100.0 * T)
+        if t == "log" and name == "f0_hz":
+            return math.log(1.0 / T), math.log(0.5 / self.data.dt_s)
+        if t == "log" and name == "q":
+            return math.log(0.51), math.log(1e4)
         if t == "log":
             return math.log(1e-3), math.log(1e6)
         if t == "dt":
@@ -404,8 +412,8 @@ class _Override(torch.nn.Module):
         self.model = model
         self.over = over
 
-    def forward(self, g, dt_s, b0=None):
-        return torch.func.functional_call(self.model, self.over, (g, dt_s), {"b0": b0}, strict=False)
+    def forward(self, g, dt_s, b0=None, demand=None):
+        return torch.func.functional_call(self.model, self.over, (g, dt_s), {"b0": b0, "demand": demand}, strict=False)
 
-    def __call__(self, g, dt_s, b0=None):
-        return self.forward(g, dt_s, b0)
+    def __call__(self, g, dt_s, b0=None, demand=None):
+        return self.forward(g, dt_s, b0, demand)
