@@ -35,8 +35,9 @@ def machine_line() -> str:
     )
 
 
-def write_section(name: str, title: str, body_md: str, command: str) -> Path:
-    """Replace (or append) the section ``name`` of docs/benchmarks.md."""
+def write_section(name: str, title: str, body_md: str, command: str, doc: Path = DOC) -> Path:
+    """Replace (or append) the section ``name`` of ``doc`` (default docs/benchmarks.md)."""
+    DOC = doc
     text = DOC.read_text() if DOC.exists() else HEADER
     block = (
         f"<!-- bench:{name} -->\n## {title}\n\nCommand: `{command}`. {machine_line()}\n\n{body_md.strip()}\n"

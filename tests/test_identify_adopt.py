@@ -223,3 +223,27 @@ def test_cli_writes_no_model_when_nothing_is_adopted(tmp_path, capsys):
     code, out, err = run_cli(capsys, *args, "--force", "-q")
     assert code == 0, err
     assert (tmp_path / "u.json").read_text() == "keep me\n"
+
+
+@pytest.mark.parametrize(
+    "truth, kind, param, true, tol",
+    [
+        (dict(kind="delay", params={"seconds": 3.3e-6}, axis="y"), "delay", "seconds", 3.3e-6, 0.05e-6),
+        (dict(kind="exp_eddy", params={"alpha": 0.03, "tau_s": 1e-4}, axis="x"), "exp_eddy", "tau_s", 1e-4, 5e-6),
+    ],
+)
+def test_an_lti_equivalent_to_a_physical_effect_is_reported_as_that_effect(truth, kind, param, true, tol):
+    """An lti fitted (here: the library restricted to lti) to what is a plain delay / short eddy current is
+    replaced by that physical effect, with its parameter, when the information criterion says they are
+    equivalent within noise."""
+    from dtoc.identify.search import ltis_to_physical
+
+    decl = HardwareModel([girf_effect(lowpass_girf(DT))])
+    g = probe_waveforms(6, 3000, DT, seed=3)
+    data = simulate_measurement(HardwareModel([*decl.effects, build_effect(**truth)]), g, DT, seed=5)
+    r = identify(data, decl, kinds=["lti", "offset"])
+    assert [f.effect.kind for f in r.twin.found] == ["lti"]
+    ltis_to_physical(r.twin, data, r.twin.sigma, r.folds, None, lambda s: None)
+    (f,) = r.twin.found
+    assert f.effect.kind == kind and f.effect.axis == truth["axis"]
+    assert abs(float(getattr(f.effect, param).detach()) - true) < tol

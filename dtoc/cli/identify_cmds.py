@@ -14,7 +14,19 @@ import typer
 
 from dtoc.cli.scanner import scanner_option
 
-KINDS = ("delay", "gain", "offset", "exp_eddy", "cross_eddy", "b0_eddy", "resonance", "time_base", "lti", "slew_limit")
+KINDS = (
+    "delay",
+    "delay_bandlimited",
+    "gain",
+    "offset",
+    "exp_eddy",
+    "cross_eddy",
+    "b0_eddy",
+    "resonance",
+    "time_base",
+    "lti",
+    "slew_limit",
+)
 
 
 def identify_cmd(

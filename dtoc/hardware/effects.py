@@ -165,6 +165,27 @@ class Delay(Effect):
         return self._replace_axes(g, out), b0
 
 
+class DelayBandlimited(Delay):
+    """``delay_bandlimited`` {seconds}: ``G[a](t) = g[a](t - seconds)`` for a *band-limited* waveform (the
+    samples of a smooth field, e.g. a field-camera measurement of sinusoidal or filtered waveforms): the
+    Fourier shift ``exp(-2 pi i f seconds)`` on a zero-padded (2T) record, exact for a waveform band-limited
+    below Nyquist that is zero outside the record.  ``delay`` (linear interpolation) is exact for the
+    piecewise-linear waveforms a Pulseq interpreter plays; this one for smooth data.
+    """
+
+    kind = "delay_bandlimited"
+
+    def forward(self, g, b0, dt_s):
+        x = self._sel(g)
+        T = x.shape[-1]
+        n = 2 * T
+        f = torch.fft.rfftfreq(n, d=dt_s, dtype=x.dtype, device=x.device)
+        X = torch.fft.rfft(x, n=n)
+        ph = torch.exp(-2j * math.pi * f * self._p("seconds", x))
+        out = torch.fft.irfft(X * ph, n=n)[..., :T]
+        return self._replace_axes(g, out), b0
+
+
 class _ExpBase(Effect):
     """Shared exponential machinery: ``alpha`` and ``tau_s`` are numbers or equal-length lists."""
 
@@ -569,6 +590,7 @@ EFFECTS: dict[str, type[Effect]] = {
     c.kind: c
     for c in (
         Delay,
+        DelayBandlimited,
         Gain,
         Offset,
         ExpEddy,

@@ -203,6 +203,7 @@ def model_from_spec(
 PLAUSIBLE = {
     ("gain", "factor"): (0.1, 10.0, "dimensionless"),
     ("delay", "seconds"): (-1e-3, 1e-3, "s"),
+    ("delay_bandlimited", "seconds"): (-1e-3, 1e-3, "s"),
     ("offset", "mT_per_m"): (-100.0, 100.0, "mT/m"),
     ("exp_eddy", "alpha"): (-1.0, 1.0, "dimensionless"),
     ("exp_eddy", "tau_s"): (1e-7, 10.0, "s"),

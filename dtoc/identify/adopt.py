@@ -35,6 +35,7 @@ import torch
 #: the bound applies to |value|.  ``dt`` in a bound means the measurement's sample interval.
 PHYSICAL_BOUNDS: dict[tuple[str, str], tuple[float | str, float, str, bool]] = {
     ("delay", "seconds"): (0.0, 100e-6, "s", True),
+    ("delay_bandlimited", "seconds"): (0.0, 100e-6, "s", True),
     ("gain", "factor"): (0.5, 1.5, "", False),
     ("offset", "mT_per_m"): (0.0, 2.0, "mT/m", True),
     ("exp_eddy", "alpha"): (0.0, 1.0, "", True),

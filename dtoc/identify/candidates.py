@@ -9,6 +9,7 @@ and scores it on held-out units (:func:`dtoc.identify.workspace.cross_validate`)
 | kind | change of the prediction | screening |
 |---|---|---|
 | ``delay`` {seconds} | P(t - tau) - P(t) (PWL shift), one axis or all | grid of exact shifts around the linearised estimate |
+| ``delay_bandlimited`` {seconds} | the same with a Fourier shift (smooth data) | as delay |
 | ``gain`` {factor} | (factor - 1) * P_a | linear |
 | ``offset`` {mT_per_m} | constant on axis a | linear |
 | ``exp_eddy`` {alpha, tau_s} | -alpha * (dg_a/dt conv exp(-t/tau)) | linear in alpha on a log grid of tau, refined |
@@ -212,6 +213,47 @@ def screen_exp_eddy(ws: Workspace, ctx: Context, axis: str) -> Proposal:
     return _finish(ws, "exp_eddy", axis, None, {"alpha": alpha, "tau_s": tau}, 2, res)
 
 
+#: Smallest ratio of the two time constants of a screened bi-exponential.
+PAIR_MIN_RATIO = 5.0
+
+
+def screen_exp_eddy_pair(ws: Workspace, ctx: Context, axis: str) -> Proposal | None:
+    """Two exponentials on one axis at once (a bi-exponential eddy current): every pair of time constants of
+    the coarse grid, both alphas linear (the full Gram of the coarse columns gives every pair's 2x2 system).
+    Added as two ``exp_eddy`` effects; a single-step search would otherwise let a non-parametric ``lti``
+    absorb the short term and part of the long one.  ``notes['second']`` holds the second term."""
+    a = _axis_index(axis)
+    coarse = _tau_grid(ws)
+    key = ("exp_coarse", a)
+    if key not in ctx.cache:
+        ctx.cache[key] = -exp_columns(ctx.g[:, a], ws.data.dt_s, coarse)
+    gkey = ("exp_coarse_gram", a)
+    if gkey not in ctx.cache:  # the columns depend on the demanded g only: one Gram per identify and axis
+
+        def make(ms):
+            return {a: ctx.cache[key][:, ms]}, None
+
+        ctx.cache[gkey] = ws.unit_stats(make, len(coarse), full=True)
+    A, _ = ctx.cache[gkey]
+
+    def make_b(ms):
+        return {a: ctx.cache[key][:, ms]}, None
+
+    _, b = ws.unit_stats(make_b, len(coarse))  # projections on the current residual
+    K = len(coarse)
+    # Time constants at least PAIR_MIN_RATIO apart: two close ones would only mimic one exponential between
+    # the grid points (the single-exponential screen refines tau on a fine grid; the LM refit does too).
+    step = max(1, math.ceil(math.log(PAIR_MIN_RATIO) / math.log(coarse[1] / coarse[0])))
+    pairs = [[i, j] for i in range(K) for j in range(i + step, K)]
+    if not pairs:
+        return None
+    res = cross_validate(A, b, ws.c_units, ws.folds, pairs, free=True)
+    i, j = pairs[res.option]
+    first = {"alpha": float(res.theta[0]), "tau_s": float(coarse[i])}
+    second = {"alpha": float(res.theta[1]), "tau_s": float(coarse[j])}
+    return _finish(ws, "exp_eddy", axis, None, first, 4, res, notes={"second": second})
+
+
 def screen_cross_eddy(ws: Workspace, ctx: Context, axis: str, input_axis: str) -> Proposal:
     alpha, tau, res = _screen_exp_family(ws, ctx, _axis_index(axis), _axis_index(input_axis))
     return _finish(ws, "cross_eddy", axis, input_axis, {"alpha": alpha, "tau_s": tau}, 2, res)
@@ -272,6 +314,11 @@ def screen_resonance(ws: Workspace, ctx: Context, axis: str) -> Proposal | None:
     coarse = [(float(f), 30.0) for f in np.exp(np.arange(math.log(lo), math.log(hi), math.log(1.1)))]
     r1 = evaluate(coarse)
     f_best = coarse[r1.option][0]
+    p1 = _finish(ws, "resonance", axis, None, {}, 4, r1)
+    if p1.score <= 0:  # nothing resonant on this axis: the fine grid cannot make it significant
+        c, s_ = float(r1.theta[0]), float(r1.theta[1])
+        params = {"f0_hz": f_best, "q": 30.0, "amplitude": math.hypot(c, s_), "phase_rad": math.atan2(s_, c)}
+        return _finish(ws, "resonance", axis, None, params, 4, r1)
     fine = [(float(f), q) for q in RESONANCE_Q for f in f_best * np.linspace(0.9, 1.1, 21)]
     r2 = evaluate(fine)
     best, opts = (r2, fine) if r2.full_chi2 <= r1.full_chi2 else (r1, coarse)
@@ -282,11 +329,23 @@ def screen_resonance(ws: Workspace, ctx: Context, axis: str) -> Proposal | None:
 
 
 # -- delay --------------------------------------------------------------------------------------------
-def screen_delay(ws: Workspace, ctx: Context, axis: str | None) -> Proposal:
-    """Delay of one axis (or all axes when ``axis`` is None): exact PWL shifts on a grid."""
+def fourier_shift(x: np.ndarray, tau_s: float, dt_s: float) -> np.ndarray:
+    """x(t - tau) of a band-limited waveform zero outside its record (the convention of
+    :class:`dtoc.hardware.effects.DelayBandlimited`): Fourier shift on a 2N zero-padded record."""
+    N = x.shape[-1]
+    f = np.fft.rfftfreq(2 * N, dt_s)
+    return np.fft.irfft(np.fft.rfft(x, 2 * N, axis=-1) * np.exp(-2j * np.pi * f * tau_s), 2 * N, axis=-1)[..., :N]
+
+
+def screen_delay(ws: Workspace, ctx: Context, axis: str | None, bandlimited: bool = False) -> Proposal:
+    """Delay of one axis (or all axes when ``axis`` is None): exact shifts on a grid, piecewise-linear
+    (``delay``) or band-limited (``delay_bandlimited``, Fourier shift)."""
     dt = ws.data.dt_s
     axes = [0, 1, 2] if axis is None else [_axis_index(axis)]
-    shift = ctx.shift or (lambda x, tau: pwl_shift(x, tau, dt))
+    if bandlimited:
+        shift = lambda x, tau: fourier_shift(x, tau, dt)  # noqa: E731
+    else:
+        shift = ctx.shift or (lambda x, tau: pwl_shift(x, tau, dt))
 
     # Linearised estimate: r ~ -tau dP/dt.
     def make_lin(ms):
@@ -317,7 +376,8 @@ def screen_delay(ws: Workspace, ctx: Context, axis: str | None) -> Proposal:
     fine = taus[res.option] + step * np.linspace(-1.0, 1.0, 11)
     A, b = grid_stats(fine)
     res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(fine))], free=False)
-    return _finish(ws, "delay", axis, None, {"seconds": float(fine[res.option])}, 1, res)
+    kind = "delay_bandlimited" if bandlimited else "delay"
+    return _finish(ws, kind, axis, None, {"seconds": float(fine[res.option])}, 1, res)
 
 
 # -- time base of the measurement (clock error) ------------------------------------------------------
@@ -522,6 +582,21 @@ def screen_slew_limit(ws: Workspace, ctx: Context, axis: str | None = None) -> P
     return _finish(ws, "slew_limit", axis, None, {"max_slew_T_per_m_per_s": float(val)}, 1, best, position="pre")
 
 
+def _slew_dependent(ws: Workspace, ctx: Context, axis: str) -> bool:
+    """Cheap pre-test for a per-axis slew-limit screen: does the residual power on ``axis`` grow with the
+    demanded slew on that axis (top decile vs lower half, > 1.5x and z > 3)?  Without a measured G channel
+    the screen always runs."""
+    from dtoc.identify.diagnostics import power_growth
+
+    if "G" not in ws.z:
+        return True
+    a = _axis_index(axis)
+    x = np.abs(np.diff(ctx.g[:, a], axis=-1, prepend=ctx.g[:, a, :1]))
+    m = np.broadcast_to(ws.data.axes_measured[:, a, None], x.shape)
+    r = power_growth(x, ws.z["G"][:, a], m)
+    return r is not None and r[0] > 1.5 and r[1] > 3.0
+
+
 # -- the whole library -----------------------------------------------------------------------------
 def screen_all(ws: Workspace, ctx: Context, kinds=None, exclude=()) -> list[Proposal]:
     """Screen every candidate of the library (optionally only ``kinds``); best score first.
@@ -533,6 +608,7 @@ def screen_all(ws: Workspace, ctx: Context, kinds=None, exclude=()) -> list[Prop
         if kinds
         else {
             "delay",
+            "delay_bandlimited",
             "gain",
             "offset",
             "exp_eddy",
@@ -548,16 +624,18 @@ def screen_all(ws: Workspace, ctx: Context, kinds=None, exclude=()) -> list[Prop
     measured_axes = [AXES[a] for a in range(3) if ws.data.axes_measured[:, a].any()]
     active_in = [AXES[a] for a in range(3) if np.any(ctx.P[:, a] != 0)]
     driven = [AXES[a] for a in range(3) if np.any(ctx.g[:, a] != 0)]  # demanded axes: sources of eddy terms
-    if "delay" in kinds:
-        if len(measured_axes) > 1:
-            props.append(screen_delay(ws, ctx, None))
-        props += [screen_delay(ws, ctx, ax) for ax in measured_axes]
+    for bl, name in ((False, "delay"), (True, "delay_bandlimited")):
+        if name in kinds:
+            if len(measured_axes) > 1:
+                props.append(screen_delay(ws, ctx, None, bl))
+            props += [screen_delay(ws, ctx, ax, bl) for ax in measured_axes]
     if "gain" in kinds:
         props += [screen_gain(ws, ctx, ax) for ax in measured_axes]
     if "offset" in kinds:
         props += [screen_offset(ws, ctx, ax) for ax in measured_axes]
     if "exp_eddy" in kinds:
         props += [screen_exp_eddy(ws, ctx, ax) for ax in measured_axes if ax in driven]
+        props += [p for p in (screen_exp_eddy_pair(ws, ctx, ax) for ax in measured_axes if ax in driven) if p]
     if "cross_eddy" in kinds:
         props += [screen_cross_eddy(ws, ctx, o, i) for o in measured_axes for i in driven if i != o]
     if "b0_eddy" in kinds and ws.data.b0 is not None:
@@ -571,10 +649,12 @@ def screen_all(ws: Workspace, ctx: Context, kinds=None, exclude=()) -> list[Prop
     if "lti" in kinds:
         props += [screen_lti(ws, ctx, ax) for ax in measured_axes if ax in active_in]
     if "slew_limit" in kinds:  # one limit for all axes, and one per axis (amplifiers differ)
-        for ax in [None, *(measured_axes if len(measured_axes) > 1 else [])]:
-            p = screen_slew_limit(ws, ctx, ax)
-            if p is not None:
-                props.append(p)
+        dependent = [ax for ax in measured_axes if _slew_dependent(ws, ctx, ax)]
+        shared = screen_slew_limit(ws, ctx, None) if dependent else None  # no slew-dependent residual: skip
+        if shared is not None:
+            props.append(shared)
+        if len(measured_axes) > 1:
+            props += [p for p in (screen_slew_limit(ws, ctx, ax) for ax in dependent) if p is not None]
     props = [p for p in props if p.name not in set(exclude)]
     props.sort(key=lambda p: -p.score)
     return props

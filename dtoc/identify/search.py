@@ -100,11 +100,13 @@ def _excluded(twin: Twin) -> set:
         if e.kind in REPEATABLE:
             continue
         names.add(Proposal(e.kind, e.axis, e.input_axis, {}, 0, 0.0, 0.0, 0.0).name)
-        if e.kind == "delay":
-            if e.axis is None:
-                names.update(f"delay[{a}]" for a in AXES)
-            else:
-                names.add("delay")
+        if e.kind in ("delay", "delay_bandlimited"):  # one delay per axis, whichever interpolation
+            for k in ("delay", "delay_bandlimited"):
+                names.add(k if e.axis is None else f"{k}[{e.axis}]")
+                if e.axis is None:
+                    names.update(f"{k}[{a}]" for a in AXES)
+                else:
+                    names.add(k)
     return names
 
 
@@ -217,16 +219,41 @@ def _identify(
                 break
             chi_old = _chi2(ws)
             saved = [copy.deepcopy(f.effect.state_dict()) for f in twin.found]
-            twin.add(best.kind, best.axis, best.input_axis, best.params, best.score, best.position, best.notes)
+            second = best.notes.get("second")
+            twin.add(
+                best.kind,
+                best.axis,
+                best.input_axis,
+                best.params,
+                best.score,
+                best.position,
+                {k: v for k, v in best.notes.items() if k != "second"},
+            )
+            if second is not None:  # a pair of exponentials is added as two effects
+                twin.add(best.kind, best.axis, best.input_axis, second, best.score, best.position)
             twin.refit()
+            if second is not None:  # keep the second exponential only if the refitted pair beats one term
+                chi_pair = _chi2(Workspace(data, sigma, folds, twin.predict()))
+                pair_state = [copy.deepcopy(f.effect.state_dict()) for f in twin.found]
+                last = twin.found.pop()
+                twin.refit()
+                if _chi2(Workspace(data, sigma, folds, twin.predict())) > chi_pair + threshold:
+                    twin.found.append(last)
+                    for fo, st in zip(twin.found, pair_state):
+                        fo.effect.load_state_dict(st)
+                else:
+                    second = None
             ws_new = Workspace(data, sigma, folds, twin.predict())
             if not (_chi2(ws_new) < chi_old - threshold):
                 say(f"  {best.name} rejected after the non-linear refit (chi2 {chi_old:.1f} -> {_chi2(ws_new):.1f})")
                 twin.found.pop()
+                if second is not None:
+                    twin.found.pop()
                 for fo, st in zip(twin.found, saved):
                     fo.effect.load_state_dict(st)
                 break
             ws = ws_new
+        ltis_to_physical(twin, data, sigma, folds, kinds, say)
         # Final full-data refit, standard errors, noise floors and held-out errors; then the adoption gate
         # (dtoc.identify.adopt): effects the data do not support are removed one at a time and the rest
         # refitted; the search then resumes without them (another effect may explain what they could not).
@@ -428,3 +455,58 @@ def _evaluate(twin: Twin, data: IdentData, noise_first: dict, folds: Folds):
         if heldout_after[c] is None or not np.isfinite(heldout_after[c]):
             heldout_after[c] = float("inf")  # a held-out refit failed: never "explained"
     return fit, noise, res_after, heldout_after
+
+
+#: Parametric kinds an ``lti`` correction is tested against (the physical effects a FIR often stands for).
+LTI_EQUIVALENTS = ("delay", "delay_bandlimited", "gain", "exp_eddy", "resonance")
+
+
+def ltis_to_physical(twin: Twin, data: IdentData, sigma: dict, folds: Folds, kinds, say) -> None:
+    """Replace every found ``lti`` that is equivalent within noise to one physical effect on its axis.
+
+    For each lti: the model without it is the base; every kind of :data:`LTI_EQUIVALENTS` allowed by
+    ``kinds`` is screened on the lti's axis against that base, the best one is added and refitted with the
+    rest, and it replaces the lti when its information criterion is no worse: chi2_param + p ln n <=
+    chi2_lti + L ln n (p its parameters, L the taps).  The report then names the physical effect (with its
+    parameters and errors) instead of a filter.  Otherwise the lti is restored unchanged.
+    """
+    from dtoc.identify.candidates import screen_delay, screen_exp_eddy, screen_gain, screen_resonance
+
+    allowed = [k for k in LTI_EQUIVALENTS if not kinds or k in kinds]
+    for f in [f for f in twin.found if f.position == "lti"]:
+        if f not in twin.found:
+            continue
+        ax = f.effect.axis
+        state = [copy.deepcopy(x.effect.state_dict()) for x in twin.found]
+        order = list(twin.found)
+        ws_lti = Workspace(data, sigma, folds, twin.predict())
+        n = ws_lti.n_samples
+        L = int(f.effect.taps.numel())
+        ic_lti = _chi2(ws_lti) + L * np.log(n)
+        twin.found.remove(f)
+        twin.refit()
+        ws = Workspace(data, sigma, folds, twin.predict())
+        ctx = Context(dt_s=data.dt_s, g=data.g, P=ws.pred.G, P_b0=ws.pred.b0)
+        screens = {
+            "delay": (screen_delay, {}),
+            "delay_bandlimited": (screen_delay, {"bandlimited": True}),
+            "gain": (screen_gain, {}),
+            "exp_eddy": (screen_exp_eddy, {}),
+            "resonance": (screen_resonance, {}),
+        }
+        props = [p for p in (screens[k][0](ws, ctx, ax, **screens[k][1]) for k in allowed) if p is not None]
+        best = max(props, key=lambda p: p.score) if props else None
+        replaced = False
+        if best is not None:
+            g = twin.add(best.kind, best.axis, best.input_axis, best.params, best.score, best.position, best.notes)
+            twin.refit()
+            ic = _chi2(Workspace(data, sigma, folds, twin.predict())) + best.n_params * np.log(n)
+            if ic <= ic_lti:
+                say(f"  lti[{ax}] is equivalent within noise to {best.name}: replaced")
+                replaced = True
+            else:
+                twin.found.remove(g)
+        if not replaced:
+            twin.found[:] = order
+            for x, st in zip(twin.found, state):
+                x.effect.load_state_dict(st)
