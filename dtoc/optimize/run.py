@@ -336,7 +336,7 @@ def optimize_sequence(
             f"{base if isinstance(base, (str, os.PathLike)) else 'sequence'}: has no ADC event: nothing to optimize for"
         )
     cfg = config if config is not None else load_config(ir.kind, config_path)
-    O.set_deterministic(cfg.seed, cfg.threads)
+    O.set_deterministic(cfg.seed, cfg.threads, device)
     if hardware is None:
         from dtoc.hardware.model import resolve_model
 
