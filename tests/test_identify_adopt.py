@@ -247,3 +247,12 @@ def test_an_lti_equivalent_to_a_physical_effect_is_reported_as_that_effect(truth
     (f,) = r.twin.found
     assert f.effect.kind == kind and f.effect.axis == truth["axis"]
     assert abs(float(getattr(f.effect, param).detach()) - true) < tol
+
+
+def test_a_model_file_refuses_the_measurement_clock(tmp_path):
+    """time_base belongs to the measurement: a hardware model file holding it is refused with one line."""
+    from dtoc.errors import InputError
+
+    (tmp_path / "m.json").write_text(json.dumps({"effects": [{"kind": "time_base", "params": {"ppm": 50.0}}]}))
+    with pytest.raises(InputError, match=r"effects\[0\] \(time_base\): describes the measuring device"):
+        load_model(tmp_path / "m.json")

@@ -219,9 +219,19 @@ PLAUSIBLE = {
 PLAUSIBLE.update({(k + "_chain", n): v for (k, n), v in list(PLAUSIBLE.items()) if k.endswith("eddy")})
 
 
+#: Kinds that describe the measuring device, not the gradient chain: refused in a model file.
+MEASUREMENT_KINDS = ("time_base",)
+
+
 def check_plausible_spec(ms: ModelSpec, where: str = "model") -> None:
-    """Reject model-file parameters outside :data:`PLAUSIBLE` (one line naming ``effects[i]``)."""
+    """Reject model-file parameters outside :data:`PLAUSIBLE` and measurement-side kinds (one line naming
+    ``effects[i]``)."""
     for i, es in enumerate(ms.effects):
+        if es.kind in MEASUREMENT_KINDS:
+            raise InputError(
+                f"{where}: effects[{i}] ({es.kind}): describes the measuring device's clock, not the gradient "
+                "chain; it cannot be part of a hardware model (dtoc identify applies it to the measurement only)"
+            )
         for name, value in es.params.items():
             rng = PLAUSIBLE.get((es.kind, name))
             if rng is None:
