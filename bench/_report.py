@@ -37,15 +37,14 @@ def machine_line() -> str:
 
 def write_section(name: str, title: str, body_md: str, command: str, doc: Path = DOC) -> Path:
     """Replace (or append) the section ``name`` of ``doc`` (default docs/benchmarks.md)."""
-    DOC = doc
-    text = DOC.read_text() if DOC.exists() else HEADER
+    text = doc.read_text() if doc.exists() else HEADER
     block = (
         f"<!-- bench:{name} -->\n## {title}\n\nCommand: `{command}`. {machine_line()}\n\n{body_md.strip()}\n"
         f"<!-- /bench:{name} -->\n"
     )
     pat = re.compile(rf"<!-- bench:{re.escape(name)} -->.*?<!-- /bench:{re.escape(name)} -->\n", re.S)
     text = pat.sub(lambda _m: block, text) if pat.search(text) else text.rstrip("\n") + "\n\n" + block
-    tmp = DOC.with_suffix(".md.tmp")
+    tmp = doc.with_suffix(".md.tmp")
     tmp.write_text(text)
-    os.replace(tmp, DOC)
-    return DOC
+    os.replace(tmp, doc)
+    return doc

@@ -34,6 +34,7 @@ from dtoc.hardware.effects import TimeBase
 from dtoc.hardware.model import HardwareModel, build_effect, girf_effect
 from dtoc.identify.candidates import fourier_shift
 from dtoc.identify.data import IdentData
+from dtoc.identify.kinds import effect_name
 from dtoc.identify.search import identify
 from dtoc.identify.synth import lowpass_girf, probe_waveforms, simulate_measurement
 
@@ -329,13 +330,22 @@ def score(case: Case, r) -> tuple[bool, str]:
     return True, "right kind and parameters, held-out at the noise"
 
 
-def _fmt_found(r) -> str:
+def fmt_found(r, lti_features: bool = False) -> str:
+    """The adopted effects of an identify result, one ``name (param value ± stderr, ...)`` each; an ``lti`` as
+    its tap count (with ``lti_features``: also its peak |dH|, frequency and DC change)."""
     out = []
     for f in r.twin.found:
         e = f.effect
-        name = e.kind + (f"[{e.axis}]" if e.axis else "") + (f"<-{e.input_axis}" if e.input_axis else "")
+        name = effect_name(e)
         if e.kind == "lti":
-            out.append(f"{name} ({e.taps.shape[-1]} taps)")
+            ft = (f.notes or {}).get("features", {})
+            extra = (
+                f", peak dH {ft.get('peak_abs', float('nan')):.3g} at {ft.get('peak_hz', float('nan')) / 1e3:.1f} kHz, "
+                f"DC {ft.get('dc_change', float('nan')):+.4f}"
+                if lti_features
+                else ""
+            )
+            out.append(f"{name} ({e.taps.shape[-1]} taps{extra})")
             continue
         ps = []
         for n in e.param_names:
@@ -355,7 +365,7 @@ def run_case(case: Case) -> dict:
     return {
         "case": case.name,
         "truth": case.truth,
-        "found": _fmt_found(r),
+        "found": fmt_found(r),
         "heldout_G_over_noise": r.heldout_after["G"] / SIGMA_G,
         "declared_G_over_noise": r.heldout_before["G"] / SIGMA_G,
         "explained": r.explained,

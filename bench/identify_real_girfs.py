@@ -60,27 +60,9 @@ def cases() -> list[tuple[str, str, HardwareModel, HardwareModel]]:
     ]
 
 
-def _found(r) -> str:
-    out = []
-    for f in r.twin.found:
-        e = f.effect
-        name = adopt.effect_name(e)
-        if e.kind == "lti":
-            ft = (f.notes or {}).get("features", {})
-            out.append(
-                f"{name} (48 taps, peak dH {ft.get('peak_abs', float('nan')):.3g} at "
-                f"{ft.get('peak_hz', float('nan')) / 1e3:.1f} kHz, DC {ft.get('dc_change', float('nan')):+.4f})"
-            )
-            continue
-        ps = ", ".join(
-            f"{n} {float(getattr(e, n).detach()):.4g} ± {f.stderr.get(n, float('nan')):.2g}" for n in e.param_names
-        )
-        out.append(f"{name} ({ps})")
-    return "; ".join(out) or "none"
-
-
 def main(argv=None) -> None:
     from bench._report import DOC, write_section
+    from bench.identify_corpus import fmt_found
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--write-docs", action="store_true")
@@ -104,7 +86,7 @@ def main(argv=None) -> None:
         notes = [n for n in r.remaining if not n.startswith("not adopted")]
         rej = "; ".join(f"{x['effect']}: {x['reasons'][0].split(': ', 1)[-1]}" for x in r.rejected) or "none"
         rows.append(
-            f"| {name}: {what} | {_found(r)} | {rej} | {r.heldout_before['G'] / SIGMA:.2f} -> "
+            f"| {name}: {what} | {fmt_found(r, lti_features=True)} | {rej} | {r.heldout_before['G'] / SIGMA:.2f} -> "
             f"{r.heldout_after['G'] / SIGMA:.2f} | {'yes' if ok else 'NO'} | {'yes' if r.explained else 'no'} | "
             f"{' / '.join(notes) or '-'} | {sec:.1f} |"
         )

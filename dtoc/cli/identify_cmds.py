@@ -13,20 +13,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.scanner import scanner_option
-
-KINDS = (
-    "delay",
-    "delay_bandlimited",
-    "gain",
-    "offset",
-    "exp_eddy",
-    "cross_eddy",
-    "b0_eddy",
-    "resonance",
-    "time_base",
-    "lti",
-    "slew_limit",
-)
+from dtoc.identify.kinds import CANDIDATE_KINDS as KINDS
 
 
 def identify_cmd(

@@ -606,6 +606,3 @@ EFFECTS: dict[str, type[Effect]] = {
         TimeBase,
     )
 }
-
-#: The eddy-current kinds (parameters alpha-like and ``tau_s``), demanded-driven and chain-driven.
-EDDY_KINDS = ("exp_eddy", "cross_eddy", "b0_eddy", "exp_eddy_chain", "cross_eddy_chain", "b0_eddy_chain")

@@ -49,6 +49,16 @@ def linear_scan(u: torch.Tensor, log_a: torch.Tensor) -> torch.Tensor:
     return x
 
 
+def _pole_scan(g: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """The exact PWL update ``r[0] = g[0]``, ``r[n+1] = a r[n] + b (g[n+1] - g[n])`` with ``a = exp(z)``,
+    ``b = (a - 1) / z``, ``z = p dt`` (real for an exponential, complex for a damped oscillation); ``g``
+    already in the dtype of ``z``."""
+    b = torch.expm1(z) / z
+    dg = torch.diff(g, dim=-1)
+    u = torch.cat([g[..., :1].expand(torch.broadcast_shapes(g[..., :1].shape, b.shape)), b * dg], dim=-1)
+    return linear_scan(u, z)
+
+
 def exp_response(g: torch.Tensor, dt_s: float, tau_s: torch.Tensor) -> torch.Tensor:
     """Exact ``e = g' conv H(t) exp(-t/tau)`` of a PWL waveform at its sample times.
 
@@ -61,20 +71,14 @@ def exp_response(g: torch.Tensor, dt_s: float, tau_s: torch.Tensor) -> torch.Ten
         (..., T) ``e`` in the unit of ``g`` (broadcast shape of ``g`` and ``tau``).
     """
     tau = tau_s.to(dtype=g.dtype, device=g.device)
-    r = dt_s / tau  # dt/tau
-    log_a = -r
-    b = -torch.expm1(-r) / r  # (tau/dt)(1 - a), accurate for small dt/tau
-    dg = torch.diff(g, dim=-1)
-    u = torch.cat([g[..., :1].expand(torch.broadcast_shapes(g[..., :1].shape, b.shape)), b * dg], dim=-1)
-    return linear_scan(u, log_a)
+    return _pole_scan(g, -dt_s / tau)  # b = (tau/dt)(1 - a), accurate for small dt/tau via expm1
 
 
 def pole_response(g: torch.Tensor, dt_s: float, pole_per_s: torch.Tensor) -> torch.Tensor:
     """Exact ``r = g' conv H(t) exp(p t)`` of a PWL waveform for a complex pole ``p`` (Re p < 0).
 
-    The same update as :func:`exp_response` with ``-1/tau`` replaced by ``p``: ``r[0] = g[0]``,
-    ``r[n+1] = a r[n] + b (g[n+1] - g[n])``, ``a = exp(p dt)``, ``b = (a - 1) / (p dt)``; a damped
-    oscillation ``exp(-sigma t) (cos + i sin)(omega_d t)`` for ``p = -sigma + i omega_d``.
+    The same update as :func:`exp_response` with ``-1/tau`` replaced by ``p``; a damped oscillation
+    ``exp(-sigma t) (cos + i sin)(omega_d t)`` for ``p = -sigma + i omega_d``.
 
     Args:
         g: (..., T) real waveform samples at ``t_n = n*dt``.
@@ -83,10 +87,4 @@ def pole_response(g: torch.Tensor, dt_s: float, pole_per_s: torch.Tensor) -> tor
         (..., T) complex ``r`` in the unit of ``g``.
     """
     cdt = torch.complex128 if g.dtype == torch.float64 else torch.complex64
-    p = pole_per_s.to(dtype=cdt, device=g.device)
-    z = p * dt_s
-    b = torch.expm1(z) / z
-    gc = g.to(cdt)
-    dg = torch.diff(gc, dim=-1)
-    u = torch.cat([gc[..., :1].expand(torch.broadcast_shapes(gc[..., :1].shape, b.shape)), b * dg], dim=-1)
-    return linear_scan(u, z)
+    return _pole_scan(g.to(cdt), pole_per_s.to(dtype=cdt, device=g.device) * dt_s)

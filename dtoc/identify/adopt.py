@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dtoc.identify.kinds import effect_name
+
 #: (kind, parameter) -> (low, high, unit, absolute?) physical range of an adopted parameter; ``absolute``:
 #: the bound applies to |value|.  ``dt`` in a bound means the measurement's sample interval.
 PHYSICAL_BOUNDS: dict[tuple[str, str], tuple[float | str, float, str, bool]] = {
@@ -66,15 +68,6 @@ class Problem:
 
     index: int | None
     reason: str
-
-
-def effect_name(e) -> str:
-    s = e.kind
-    if e.axis is not None:
-        s += f"[{e.axis}]"
-    if e.input_axis is not None:
-        s += f"<-{e.input_axis}"
-    return s
 
 
 def _scalar(p: torch.Tensor) -> float | None:

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dtoc.constants import AXES
+from dtoc.identify.kinds import CANDIDATE_KINDS, effect_name
 from dtoc.identify.workspace import Workspace, cross_validate
 
 
@@ -54,12 +55,7 @@ class Proposal:
 
     @property
     def name(self) -> str:
-        s = self.kind
-        if self.axis is not None:
-            s += f"[{self.axis}]"
-        if self.input_axis is not None:
-            s += f"<-{self.input_axis}"
-        return s
+        return effect_name(self)
 
 
 @dataclass
@@ -105,7 +101,7 @@ def exp_columns(P_src: np.ndarray, dt_s: float, taus_s: np.ndarray) -> np.ndarra
 
     The same exact recursion as :func:`dtoc.hardware.recursion.exp_response` (e[0] = P[0];
     e[n+1] = a e[n] + b (P[n+1] - P[n]), a = exp(-dt/tau), b = (tau/dt)(1 - a)), evaluated as an IIR filter
-    (scipy.signal.lfilter) for speed; tests check the two agree.
+    (:func:`pole_filter`) for speed; tests check the two agree.
 
     Args:
         P_src: (..., N) source waveform(s).
@@ -113,18 +109,25 @@ def exp_columns(P_src: np.ndarray, dt_s: float, taus_s: np.ndarray) -> np.ndarra
     Returns:
         (K, ..., N) responses, in the unit of P.
     """
-    from scipy.signal import lfilter
-
     P = np.asarray(P_src, dtype=np.float64)
-    d = np.diff(P, axis=-1)
     out = np.empty((len(taus_s),) + P.shape)
     for i, tau in enumerate(np.asarray(taus_s, dtype=np.float64)):
-        r = dt_s / tau
-        a = math.exp(-r)
-        bb = -math.expm1(-r) / r
-        u = np.concatenate([P[..., :1], bb * d], axis=-1)
-        out[i] = lfilter([1.0], [1.0, -a], u, axis=-1)
+        out[i] = pole_filter(P, -dt_s / tau)
     return out
+
+
+def pole_filter(x: np.ndarray, z: complex | float) -> np.ndarray:
+    """The exact PWL recursion of :mod:`dtoc.hardware.recursion` (``r[0] = x[0]``,
+    ``r[n+1] = a r[n] + b (x[n+1] - x[n])``, ``a = exp(z)``, ``b = (a - 1)/z``, ``z = p dt``) as an IIR filter
+    (scipy.signal.lfilter) along the last axis; real for a real ``z`` (an exponential), complex otherwise."""
+    from scipy.signal import lfilter
+
+    if isinstance(z, complex):
+        a, bb = np.exp(z), np.expm1(z) / z
+    else:
+        a, bb = math.exp(z), math.expm1(z) / z
+    u = np.concatenate([x[..., :1].astype(type(a)), bb * np.diff(x, axis=-1)], axis=-1)
+    return lfilter([1.0], [1.0, -a], u, axis=-1)
 
 
 def _penalty(n_params: int, n: int) -> float:
@@ -266,18 +269,11 @@ def screen_b0_eddy(ws: Workspace, ctx: Context, input_axis: str) -> Proposal:
 
 def resonance_columns(g_src: np.ndarray, dt_s: float, f0_hz: float, q: float) -> np.ndarray:
     """(2, ..., N) columns of a ``resonance`` at (f0, q): Re and -Im of ``dg/dt conv exp(p t)`` (exact for
-    PWL g, the recursion of :func:`dtoc.hardware.recursion.pole_response` as an IIR filter); amplitude
+    PWL g, :func:`pole_filter`, the recursion of :func:`dtoc.hardware.recursion.pole_response`); amplitude
     cos(phase) and amplitude sin(phase) are their coefficients."""
-    from scipy.signal import lfilter
-
     w0 = 2.0 * math.pi * f0_hz
     p = complex(-w0 / (2.0 * q), w0 * math.sqrt(1.0 - 1.0 / (4.0 * q * q)))
-    z = p * dt_s
-    a = np.exp(z)
-    bb = np.expm1(z) / z
-    x = np.asarray(g_src, dtype=np.float64)
-    u = np.concatenate([x[..., :1].astype(complex), bb * np.diff(x, axis=-1)], axis=-1)
-    r = lfilter([1.0], [1.0, -a], u, axis=-1)
+    r = pole_filter(np.asarray(g_src, dtype=np.float64), p * dt_s)
     return np.stack([r.real, -r.imag])
 
 
@@ -362,22 +358,33 @@ def screen_delay(ws: Workspace, ctx: Context, axis: str | None, bandlimited: boo
 
         return ws.unit_stats(make, len(taus))
 
-    width = max(0.5 * abs(tau0), 0.1 * dt)
-    taus = tau0 + width * np.linspace(-1.0, 1.0, 11)
-    for _ in range(3):  # recentre while the optimum sits on the grid's edge
-        A, b = grid_stats(taus)
-        res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(taus))], free=False)
-        if 0 < res.option < len(taus) - 1:
+    tau, res = _exact_grid_search(ws, grid_stats, tau0, max(0.5 * abs(tau0), 0.1 * dt), recentre=2)
+    kind = "delay_bandlimited" if bandlimited else "delay"
+    return _finish(ws, kind, axis, None, {"seconds": tau}, 1, res)
+
+
+def _exact_grid_search(ws: Workspace, grid_stats, center: float, width: float, recentre: int):
+    """Best of a set of exact, fixed changes (one parameter value each): an 11-point grid of +-``width``
+    around ``center``, moved (``recentre`` times at most, doubling the width) while the optimum sits on its
+    edge, then an 11-point grid of one step either side of the best value.
+
+    Args:
+        grid_stats: callable(values) -> per-unit statistics (A, b) of the changes at those values.
+    Returns:
+        (best value, :class:`OptionResult` of the fine grid).
+    """
+    vals = center + width * np.linspace(-1.0, 1.0, 11)
+    for k in range(recentre + 1):
+        A, b = grid_stats(vals)
+        res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(vals))], free=False)
+        if 0 < res.option < len(vals) - 1 or k == recentre:
             break
-        taus = taus[res.option] + width * np.linspace(-1.0, 1.0, 11)
+        vals = vals[res.option] + width * np.linspace(-1.0, 1.0, 11)
         width *= 2.0
-    # Fine grid around the best value.
-    step = taus[1] - taus[0]
-    fine = taus[res.option] + step * np.linspace(-1.0, 1.0, 11)
+    fine = vals[res.option] + (vals[1] - vals[0]) * np.linspace(-1.0, 1.0, 11)
     A, b = grid_stats(fine)
     res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(fine))], free=False)
-    kind = "delay_bandlimited" if bandlimited else "delay"
-    return _finish(ws, kind, axis, None, {"seconds": float(fine[res.option])}, 1, res)
+    return float(fine[res.option]), res
 
 
 # -- time base of the measurement (clock error) ------------------------------------------------------
@@ -415,14 +422,8 @@ def screen_time_base(ws: Workspace, ctx: Context) -> Proposal | None:
 
         return ws.unit_stats(make, len(vals))
 
-    width = max(0.5 * abs(ppm0), 1e-3)
-    vals = ppm0 + width * np.linspace(-1.0, 1.0, 11)
-    A, b = grid_stats(vals)
-    res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(vals))], free=False)
-    fine = vals[res.option] + (vals[1] - vals[0]) * np.linspace(-1.0, 1.0, 11)
-    A, b = grid_stats(fine)
-    res = cross_validate(A, b, ws.c_units, ws.folds, [[j] for j in range(len(fine))], free=False)
-    return _finish(ws, "time_base", None, None, {"ppm": float(fine[res.option])}, 1, res, position="meas")
+    ppm, res = _exact_grid_search(ws, grid_stats, ppm0, max(0.5 * abs(ppm0), 1e-3), recentre=0)
+    return _finish(ws, "time_base", None, None, {"ppm": ppm}, 1, res, position="meas")
 
 
 # -- lti (non-parametric FIR correction) -------------------------------------------------------------
@@ -603,23 +604,7 @@ def screen_all(ws: Workspace, ctx: Context, kinds=None, exclude=()) -> list[Prop
 
     ``exclude``: names (:attr:`Proposal.name`) already in the model, not proposed again.
     """
-    kinds = (
-        set(kinds)
-        if kinds
-        else {
-            "delay",
-            "delay_bandlimited",
-            "gain",
-            "offset",
-            "exp_eddy",
-            "cross_eddy",
-            "b0_eddy",
-            "lti",
-            "slew_limit",
-            "resonance",
-            "time_base",
-        }
-    )
+    kinds = set(kinds) if kinds else set(CANDIDATE_KINDS)
     props: list[Proposal] = []
     measured_axes = [AXES[a] for a in range(3) if ws.data.axes_measured[:, a].any()]
     active_in = [AXES[a] for a in range(3) if np.any(ctx.P[:, a] != 0)]

@@ -20,6 +20,7 @@ import numpy as np
 
 from dtoc.constants import AXES
 from dtoc.identify.candidates import lti_features
+from dtoc.identify.kinds import effect_name
 from dtoc.identify.search import IdentifyResult
 from dtoc.util.figures import png_bytes
 from dtoc.version import __version__
@@ -266,14 +267,6 @@ def residual_png(r: IdentifyResult) -> bytes:
         if r.explained
         else "NOT explained: " + "; ".join(n[:90] for n in r.remaining[:2])
     )
-    found = (
-        ", ".join(
-            f.effect.kind
-            + (f"[{f.effect.axis}]" if f.effect.axis else "")
-            + (f"<-{f.effect.input_axis}" if f.effect.input_axis else "")
-            for f in r.twin.found
-        )
-        or "none"
-    )
+    found = ", ".join(effect_name(f.effect) for f in r.twin.found) or "none"
     fig.suptitle(f"dtoc identify residuals: effects added: {found}\n{verdict}", fontsize=10)
     return png_bytes(fig, dpi=80)

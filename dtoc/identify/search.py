@@ -30,9 +30,10 @@ from dtoc.errors import InputError
 from dtoc.hardware.effects import SlewLimit
 from dtoc.hardware.model import HardwareModel
 from dtoc.identify import adopt, diagnostics
-from dtoc.identify.candidates import Context, Proposal, excited_band_hz, lti_features, screen_all
+from dtoc.identify.candidates import Context, excited_band_hz, lti_features, screen_all
 from dtoc.identify.data import IdentData
 from dtoc.identify.folds import Folds, make_folds, waveform_groups
+from dtoc.identify.kinds import effect_name
 from dtoc.identify.noise import NoiseEstimate, difference_sigma, estimate_sigma, quiet_samples
 from dtoc.identify.twin import Twin
 from dtoc.identify.workspace import Workspace
@@ -99,7 +100,7 @@ def _excluded(twin: Twin) -> set:
         e = f.effect
         if e.kind in REPEATABLE:
             continue
-        names.add(Proposal(e.kind, e.axis, e.input_axis, {}, 0, 0.0, 0.0, 0.0).name)
+        names.add(effect_name(e))
         if e.kind in ("delay", "delay_bandlimited"):  # one delay per axis, whichever interpolation
             for k in ("delay", "delay_bandlimited"):
                 names.add(k if e.axis is None else f"{k}[{e.axis}]")
@@ -276,7 +277,7 @@ def _identify(
             reasons = [p.reason for p in problems if p.index == i] or [p.reason for p in problems]
             rejected.append(
                 {
-                    "effect": adopt.effect_name(f.effect),
+                    "effect": effect_name(f.effect),
                     "kind": f.effect.kind,
                     "axis": f.effect.axis,
                     "input_axis": f.effect.input_axis,
@@ -285,8 +286,8 @@ def _identify(
                     "reasons": reasons,
                 }
             )
-            say(f"  {adopt.effect_name(f.effect)} not adopted: {'; '.join(reasons)}")
-            gate_excluded.add(adopt.effect_name(f.effect))
+            say(f"  {effect_name(f.effect)} not adopted: {'; '.join(reasons)}")
+            gate_excluded.add(effect_name(f.effect))
             twin.found.pop(i)
         if len(rejected) == n_rejected:
             break
@@ -362,12 +363,6 @@ def _identify(
                 f"{n['peak_hz'] / 1e3:.2f} kHz within the excited band 0-{band / 1e3:.1f} kHz, DC change "
                 f"{n['dc_change']:+.4f} (a linear response no parametric effect explained)"
             )
-    for i, n in fit.get("at_bound", []):
-        e = twin.found[i].effect
-        remaining.append(
-            f"{e.kind} ({e.axis or ''}{'<-' + e.input_axis if e.input_axis else ''}) parameter {n} ended at "
-            f"its bound: the data call for a term outside the modelled range"
-        )
     if len(twin.found) >= max_effects:
         remaining.append(f"stopped at the cap of {max_effects} added effects")
     for r in rejected:
