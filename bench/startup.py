@@ -39,6 +39,27 @@ def _commands(tmp: Path) -> list[tuple[str, list[str]]]:
         ("dtoc check epi_small.seq", ["check", "sequences/epi_small.seq"]),
         ("dtoc diff epi_small.seq gre_small.seq", ["diff", "sequences/epi_small.seq", "sequences/gre_small.seq"]),
         ("dtoc build epi_small.yaml", ["build", "sequences/epi_small.yaml", "-o", str(tmp / "b.seq"), "--force"]),
+        (
+            "dtoc optimize epi_small.yaml, 1 + 1 iterations (fixed cost of an optimize)",
+            [
+                "optimize",
+                "sequences/epi_small.yaml",
+                "--girf",
+                "girf/example_7T.npz",
+                "--b0",
+                "7",
+                "-o",
+                str(tmp / "o.seq"),
+                "--warm-iters",
+                "1",
+                "--iters",
+                "1",
+                "--threads",
+                "1",
+                "--force",
+                "-q",
+            ],
+        ),
     ]
 
 
