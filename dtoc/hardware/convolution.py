@@ -95,10 +95,23 @@ def _shift_slice(c: torch.Tensor, start: int, T: int) -> torch.Tensor:
     return c[..., s : s + T]
 
 
+#: waveforms longer than this are convolved by overlap-add in blocks of OLA_BLOCK samples (memory and time
+#: linear in the length: a 5-minute sequence at 5 us is 6e7 samples); shorter ones by one FFT
+OLA_MIN = 1 << 21
+OLA_BLOCK = 1 << 18
+
+
+def _pow2(n: int) -> int:
+    return 1 << max(1, (n - 1).bit_length())  # power of two: torch's FFTs are slowest on 5-smooth sizes
+
+
 def conv_length(T: int, L: int) -> tuple[int, int]:
-    """(full linear-convolution length N = T + L - 1, FFT length >= N)."""
+    """(full linear-convolution length N = T + L - 1, FFT length: >= N, or >= OLA_BLOCK + L - 1 for
+    overlap-add of a long waveform)."""
     N = T + L - 1
-    return N, 1 << max(1, (N - 1).bit_length())  # power of two: torch's FFTs are slowest on 5-smooth sizes
+    if T > OLA_MIN and L - 1 <= OLA_BLOCK:
+        return N, _pow2(OLA_BLOCK + L - 1)
+    return N, _pow2(N)
 
 
 def kernel_spectrum(h: torch.Tensor, T: int) -> torch.Tensor:
@@ -119,9 +132,22 @@ def fft_convolve(g: torch.Tensor, h: torch.Tensor, shift: int, spectrum: torch.T
         (..., O, T) with ``out[o, n] = sum_i sum_j h[o, i, j] g[i, n - j - shift]``.
     """
     T = g.shape[-1]
-    N, nfft = conv_length(T, h.shape[-1])
-    Gf = torch.fft.rfft(g, n=nfft)
+    L = h.shape[-1]
+    N, nfft = conv_length(T, L)
     Hf = torch.fft.rfft(h.to(g.dtype), n=nfft) if spectrum is None else spectrum
+    if nfft < N:  # overlap-add: blocks of OLA_BLOCK samples, each tail (L - 1 <= OLA_BLOCK) added to the next
+        pieces, tail = [], None
+        for s in range(0, T, OLA_BLOCK):
+            seg = g[..., s : s + OLA_BLOCK]
+            n = seg.shape[-1]
+            y = torch.fft.irfft((torch.fft.rfft(seg, n=nfft).unsqueeze(-3) * Hf).sum(-2), n=nfft)[..., : n + L - 1]
+            if tail is not None:
+                y = y + torch.nn.functional.pad(tail, (0, y.shape[-1] - tail.shape[-1]))
+            pieces.append(y[..., :n])
+            tail = y[..., n:]
+        c = torch.cat(pieces + [tail], dim=-1)[..., :N]
+        return _shift_slice(c, -shift, T)
+    Gf = torch.fft.rfft(g, n=nfft)
     Cf = (Gf.unsqueeze(-3) * Hf).sum(-2)  # (..., O, F); elementwise (an einsum here becomes F tiny matmuls)
     c = torch.fft.irfft(Cf, n=nfft)[..., :N]
     return _shift_slice(c, -shift, T)

@@ -75,6 +75,14 @@ class OptimizeConfig(BaseModel):
         seed: random seed (augmentation angles).
         threads: torch threads (fixed for reproducibility).
         checkpoint_every: iterations between checkpoints when a checkpoint path is set.
+        windowed: long sequences (docs/optimize.md, "Long sequences"): 'auto' = solve the warm start one
+            excitation period at a time (:mod:`dtoc.optimize.windowed`; k-space terms only, no image term,
+            no discarding) when the sequence is longer than ``window_auto_s`` and the hardware chain is
+            affine; 'on' = always (an error when impossible); 'off' (default until its cost with measured
+            GIRFs is benchmarked, see docs/optimize.md) = never.
+        window_auto_s: sequence duration above which 'auto' windows, s.
+        window_horizon_max_s: cap of the history / lookahead kept around each period, s (default: the
+            hardware's memory, :func:`dtoc.hardware.memory.memory_s`, up to this cap).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -104,6 +112,9 @@ class OptimizeConfig(BaseModel):
     seed: int = 0
     threads: int = Field(1, ge=1)
     checkpoint_every: int = Field(20, ge=1)
+    windowed: Literal["auto", "on", "off"] = "off"
+    window_auto_s: float = Field(4.0, gt=0)
+    window_horizon_max_s: float = Field(0.5, gt=0)
 
 
 #: Defaults per sequence kind, applied below the config file.

@@ -243,6 +243,8 @@ class EdgeProjector:
         is_t = isinstance(edges, torch.Tensor)
         x = edges.detach().cpu().numpy().astype(np.float64) if is_t else np.asarray(edges, dtype=np.float64)
         x = np.where(self.free, x, self.base)
+        if self.is_feasible(x, tol=0.0):  # already in the set: the projection is the identity (bit for bit)
+            return torch.as_tensor(x, dtype=edges.dtype, device=edges.device) if is_t else x
         x = self._dykstra(x, n_iter)
         if exact:
             x = self.repair(x)

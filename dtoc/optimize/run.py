@@ -167,6 +167,44 @@ def quality(twin: EdgeTwin, imager: Imager | None, ctx, edges, keep_mask=None, p
     return out
 
 
+def _window_plan(ir, hardware, cfg: OptimizeConfig, free) -> dict | None:
+    """Whether to solve period by period (:mod:`dtoc.optimize.windowed`) and with which horizon; None = whole."""
+    from dtoc.hardware.memory import is_affine, memory_s
+
+    if cfg.windowed == "off" or (cfg.windowed == "auto" and ir.duration_s <= cfg.window_auto_s):
+        return None
+    why = None
+    if cfg.method not in ("dto", "warmstart"):
+        why = f"method {cfg.method!r} has no windowed form"
+    elif not is_affine(hardware):
+        why = "the hardware chain is not affine (e.g. slew_limit)"
+    elif not any(r.excites for r in ir.rf):
+        why = "the sequence has no excitation to cut it at"
+    else:
+        from dtoc.optimize.windowed import DENSE_MAX, period_free_counts
+
+        n = int(period_free_counts(ir, free).max())
+        if n > DENSE_MAX:
+            why = f"an excitation period has {n} free variables (> {DENSE_MAX}: long echo trains are solved whole)"
+    if why is not None:
+        if cfg.windowed == "on":
+            raise InputError(f"windowed optimization impossible: {why}")
+        return None
+    causal, acausal = memory_s(hardware)
+    cap = cfg.window_horizon_max_s
+    note = (
+        f"long sequence ({ir.duration_s:.3g} s): optimized one excitation period at a time, history "
+        f"{min(causal, cap) * 1e3:.3g} ms / lookahead {min(acausal, cap) * 1e3:.3g} ms (hardware memory "
+        f"{causal * 1e3:.3g} / {acausal * 1e3:.3g} ms); k-space terms only, no image term (docs/optimize.md)"
+    )
+    return {
+        "horizon_s": min(causal, cap),
+        "lookahead_s": min(acausal, cap),
+        "memory_s": [causal, acausal],
+        "note": note,
+    }
+
+
 # ---------------------------------------------------------------------------------------------------
 # checkpoints
 # ---------------------------------------------------------------------------------------------------
@@ -373,6 +411,14 @@ def optimize_sequence(
     dtype = torch.float64
     twin = EdgeTwin(ir, hardware, projector, dtype=dtype, device=device)
     ctx = L.build_context(ir, limits, dtype=dtype, device=device)
+    window = _window_plan(ir, hardware, cfg, free)
+    if window is not None:  # long sequence: period by period, k-space terms only
+        if with_image:
+            raise InputError(
+                "a windowed (long-sequence) optimization has no image term; give windowed: off in --config"
+            )
+        with_image = False
+        ir.meta.setdefault("notes", []).append(window["note"])
     if with_image is None:
         with_image = ir.geometry is not None  # no grid (non-Cartesian): the k-space term alone
     if not with_image:
@@ -419,6 +465,27 @@ def optimize_sequence(
             x = torch.as_tensor(pe["edges"], dtype=dtype)
             keep = pe["keep_mask"]
             extra["preemphasis"] = pe["report"]
+        elif window is not None:
+            from dtoc.optimize.windowed import windowed_warm_start
+
+            t0 = time.time()
+            e, wst = windowed_warm_start(
+                ir,
+                hardware,
+                limits,
+                free,
+                cfg.weights,
+                ctx.dk_rad_per_m.cpu().numpy(),
+                ctx.rf_mask.cpu().numpy(),
+                horizon_s=window["horizon_s"],
+                lookahead_s=window["lookahead_s"],
+                dtype=dtype,
+                device=device,
+                progress=report,
+            )
+            x = torch.as_tensor(e, dtype=dtype, device=device)
+            stage_times["windowed_s"] = time.time() - t0
+            extra["windowed"] = {"memory_s": window["memory_s"], **wst.as_dict()}
         else:
             if x is None:
                 if cfg.method in ("dto", "warmstart"):

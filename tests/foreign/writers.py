@@ -427,3 +427,55 @@ def gre_multislice_labels(n: int = 16, slices: int = 3, fov: float = 0.22, gap: 
             seq.add_block(spoil, gyr)
             seq.add_block(pp.make_delay(2e-3))
     return _bytes(seq)
+
+
+def mprage(
+    n: int = 32,
+    nz: int = 4,
+    fov: float = 0.22,
+    fovz: float = 0.16,
+    tr: float = 8e-3,
+    ti: float = 0.4,
+    tr_shot: float = 1.0,
+    shots: int | None = None,
+) -> bytes:
+    """3D MPRAGE-like: per shot (one partition kz) an adiabatic-like inversion (hard 180, use 'inversion'),
+    TI, then a train of ``n`` spoiled GRE readouts (phase y, partition z), then the recovery delay to
+    ``tr_shot``.  ``shots`` (default ``nz``) sets the duration: shot s encodes partition s mod nz; a long
+    protocol is many shots.  RF of the train with use undefined, as users write it."""
+    import pypulseq as pp
+
+    sys = _system(pp)
+    seq = pp.Sequence(sys)
+    inv = pp.make_block_pulse(flip_angle=math.pi, duration=1e-3, system=sys, delay=sys.rf_dead_time, use="inversion")
+    inv_spoil = pp.make_trapezoid("z", area=8 / fovz * 4, duration=3e-3, system=sys)
+    rf, gz, gzr = _sinc(pp, sys, 8, fovz, 1.2e-3)
+    dk, dkz = 1 / fov, 1 / fovz
+    gx = pp.make_trapezoid("x", flat_area=n * dk, flat_time=1.28e-3, system=sys)
+    adc = pp.make_adc(n, duration=gx.flat_time, delay=gx.rise_time, system=sys)
+    gxpre = pp.make_trapezoid("x", area=-gx.area / 2, duration=1.0e-3, system=sys)
+    spoil = pp.make_trapezoid("x", area=2 * n * dk, system=sys)
+    t_rf = pp.calc_duration(rf, gz)
+    t_inv = pp.calc_duration(inv) + pp.calc_duration(inv_spoil)
+    fill_tr = tr - t_rf - 2.0e-3 - pp.calc_duration(gx) - pp.calc_duration(spoil)
+    fill_ti = ti - t_inv - (n // 2) * tr
+    fill_shot = tr_shot - t_inv - fill_ti - n * tr
+    if min(fill_tr, fill_ti, fill_shot) < 0:
+        raise ValueError("mprage: timing does not fit (tr, ti or tr_shot too short)")
+    for s in range(nz if shots is None else shots):
+        kz = s % nz - nz // 2
+        seq.add_block(inv)
+        seq.add_block(inv_spoil)
+        seq.add_block(_fill(pp, sys, fill_ti))
+        for ky in np.arange(n) - n // 2:
+            gy = pp.make_trapezoid("y", area=ky * dk, duration=1.0e-3, system=sys)
+            gzp = pp.make_trapezoid("z", area=kz * dkz + gzr.area, duration=1.0e-3, system=sys)
+            seq.add_block(rf, gz)
+            seq.add_block(gxpre, gy, gzp)
+            seq.add_block(gx, adc)
+            gyr = pp.make_trapezoid("y", area=-ky * dk, duration=1.0e-3, system=sys)
+            gzr2 = pp.make_trapezoid("z", area=-kz * dkz, duration=1.0e-3, system=sys)
+            seq.add_block(spoil, gyr, gzr2)
+            seq.add_block(_fill(pp, sys, fill_tr))
+        seq.add_block(_fill(pp, sys, fill_shot))
+    return _bytes(seq)

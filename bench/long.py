@@ -1,0 +1,146 @@
+"""Long sequences: time and peak memory of `dtoc optimize` against the sequence's duration.
+
+Run: ``python -m bench.long [--durations 1 4 16 ...] [--whole-up-to S]`` (writes its section of
+docs/benchmarks.md).  The sequence: the corpus's 3D MPRAGE-like writer (tests/foreign/writers.py, 32 GRE
+readouts per 1 s shot, one shot per second of sequence); the hardware: the KCL 7 T 2024 GIRF from
+``../shared/data`` (a self-made exponential model when absent); limits 32 mT/m, 130 T/m/s.  Each run is
+its own process (``python -m dtoc optimize``), its peak RSS read from ``wait4``; the windowed solve
+(``windowed: on``) and, up to ``--whole-up-to`` seconds, the whole-sequence solve (``windowed: off``) side
+by side, with the k error of each output (re-read, played through the model) and the difference between
+the two.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _run(argv: list[str]) -> tuple[float, float, float, int]:
+    """(wall s, CPU s, peak RSS GB, exit code) of one ``python -m dtoc`` process."""
+    t0 = time.time()
+    p = subprocess.Popen(
+        [sys.executable, "-m", "dtoc", *argv], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+    _, status, ru = os.wait4(p.pid, 0)
+    p.returncode = os.waitstatus_to_exitcode(status)
+    err = p.stderr.read().decode() if p.stderr else ""
+    if p.returncode:
+        sys.stderr.write(err[-2000:])
+    return time.time() - t0, ru.ru_utime + ru.ru_stime, ru.ru_maxrss / 1e6, p.returncode
+
+
+def _k_err_dk(seq: Path, base: Path, girf: Path | None) -> float:
+    import numpy as np
+    import torch
+
+    from dtoc.hardware.model import resolve_model
+    from dtoc.seq.load import load_sequence
+
+    ir = load_sequence(base)
+    o = load_sequence(seq)
+    hw = resolve_model(girf=girf).frozen() if girf is not None else _model()
+    with torch.no_grad():
+        G = hw(torch.as_tensor(o.grad_mT_per_m)[None], o.dt_fine_s)[0][0]
+        k = ir.kspace_rad_per_m(G).numpy()
+    dk = 2 * np.pi / 0.22
+    return float(np.abs(k[:2] - ir.nominal_kspace_rad_per_m()[:2]).max() / dk)  # readout and phase axes
+
+
+def _model():
+    from dtoc.hardware.effects import Delay, ExpEddy
+    from dtoc.hardware.model import HardwareModel
+
+    return HardwareModel([ExpEddy(0.01, 2e-3), Delay(4e-6)]).frozen()
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--durations", type=float, nargs="+", default=[1, 4, 16, 64, 300])
+    ap.add_argument("--whole-up-to", type=float, default=4.0)
+    ap.add_argument("--no-write", action="store_true")
+    a = ap.parse_args(argv)
+    sys.path.insert(0, str(REPO))
+    from bench.foreign import corpus_girf
+    from tests.foreign.writers import mprage
+
+    rows = []
+    with tempfile.TemporaryDirectory() as td:
+        d = Path(td)
+        girf = corpus_girf(d, None)
+        model_args = ["--girf", str(girf)] if girf is not None else None
+        if model_args is None:
+            from dtoc.hardware.model import save_model
+
+            save_model(_model(), d / "model.json")
+            model_args = ["--model", str(d / "model.json")]
+        for mode in ("on", "off"):
+            (d / f"{mode}.yaml").write_text(f'windowed: "{mode}"\n')
+        for dur in a.durations:
+            base = d / f"mprage_{dur:g}.seq"
+            base.write_bytes(mprage(shots=int(round(dur))))
+            row = {"duration_s": dur}
+            for mode in ("on", "off"):
+                if mode == "off" and dur > a.whole_up_to:
+                    continue
+                out = d / f"out_{mode}_{dur:g}.seq"
+                man = d / f"out_{mode}_{dur:g}.json"
+                argv = ["optimize", str(base), *model_args, "--gmax", "32", "--smax", "130", "-o", str(out)]
+                argv += ["--json", str(man), "--config", str(d / f"{mode}.yaml"), "--force"]
+                wall, cpu, rss, code = _run(argv)
+                row[mode] = {"wall_s": wall, "cpu_s": cpu, "rss_gb": rss, "code": code}
+                if code == 0:
+                    m = json.loads(man.read_text())
+                    row[mode]["k_after_dk"] = _k_err_dk(out, base, girf)
+                    row[mode]["k_before_dk"] = m["before"]["kspace_max_error_dk"]
+                    row[mode]["windowed"] = m.get("windowed")
+                    row[mode]["blocks"] = None
+                print(json.dumps(row), flush=True)
+            rows.append(row)
+    text = render(rows, "KCL 7 T Terra 2024 3x3 GIRF" if girf is not None else "exp_eddy 1 % / 2 ms + 4 us delay")
+    print(text)
+    if not a.no_write:
+        from bench._report import write_section
+
+        write_section("long", "Long sequences: windowed optimize vs duration", text, "python -m bench.long")
+
+
+def render(rows: list[dict], hw: str) -> str:
+    head = (
+        f"3D MPRAGE-like (tests/foreign/writers.py `mprage`, 1 s shots of 32 readouts), hardware {hw}, "
+        "--gmax 32 --smax 130. One process per run; peak RSS from wait4. k after: max over ADC samples of the "
+        "readout/phase k error of the re-read output played through the model, in dk = 2 pi / 0.22 m.\n\n"
+        "| duration (s) | solve | wall (s) | CPU (s) | peak RSS (GB) | k before (dk) | k after (dk) | windows | "
+        "structures | Jacobians (s) | window solves (s) |\n|---|---|---|---|---|---|---|---|---|---|---|\n"
+    )
+    lines = []
+    for r in rows:
+        for mode, name in (("on", "windowed"), ("off", "whole")):
+            x = r.get(mode)
+            if x is None:
+                continue
+            if x["code"] != 0:
+                lines.append(
+                    f"| {r['duration_s']:g} | {name} | failed (exit {x['code']}) | | {x['rss_gb']:.2f} | | | | | | |"
+                )
+                continue
+            w = x.get("windowed") or {}
+            t = w.get("times_s", {})
+            lines.append(
+                f"| {r['duration_s']:g} | {name} | {x['wall_s']:.1f} | {x['cpu_s']:.1f} | {x['rss_gb']:.2f} | "
+                f"{x['k_before_dk']:.3g} | {x['k_after_dk']:.3g} | {w.get('windows', '-')} | "
+                f"{w.get('distinct_structures', '-')} | {t.get('jacobian', '-')} | {t.get('solve', '-')} |"
+            )
+    return head + "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,128 @@
+"""Windowed (period-by-period) optimization of long sequences, overlap-add convolution, hardware memory."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dtoc.hardware import convolution as C
+from dtoc.hardware.effects import Delay, ExpEddy, Girf, SlewLimit
+from dtoc.hardware.memory import is_affine, memory_s
+from dtoc.hardware.model import HardwareModel
+
+
+def _mprage_ir(shots: int = 2):
+    import tempfile
+    from pathlib import Path
+
+    from dtoc.seq.load import load_sequence
+    from tests.foreign.writers import mprage
+
+    data = mprage(n=8, nz=2, tr=8e-3, ti=0.06, tr_shot=0.2, shots=shots)
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "mp.seq"
+        p.write_bytes(data)
+        return load_sequence(p)
+
+
+def test_memory_of_effects():
+    m = HardwareModel([ExpEddy(0.01, 2e-3), Delay(4e-6)])
+    causal, acausal = memory_s(m, tol=1e-6)
+    assert causal == pytest.approx(2e-3 * math.log(0.01 / 1e-6) + 4e-6, rel=1e-12)
+    assert acausal == 0.0
+    h = np.zeros((3, 3, 101))
+    h[[0, 1, 2], [0, 1, 2], 50] = 1.0
+    causal, acausal = memory_s(HardwareModel([Girf(h, 1e-5, t0_s=-5e-4)]))
+    assert (causal, acausal) == pytest.approx((5e-4, 5e-4), abs=1e-12)
+    assert is_affine(m) and is_affine(None)
+    assert not is_affine(HardwareModel([SlewLimit(100.0)]))
+
+
+def test_overlap_add_equals_one_fft(monkeypatch):
+    rng = np.random.default_rng(3)
+    g = torch.as_tensor(rng.standard_normal((2, 3, 5000)))
+    h = torch.as_tensor(rng.standard_normal((4, 3, 301)))
+    ref = C.fft_convolve(g, h, -120)
+    monkeypatch.setattr(C, "OLA_MIN", 1000)
+    monkeypatch.setattr(C, "OLA_BLOCK", 512)
+    ola = C.fft_convolve(g, h, -120)
+    assert C.conv_length(5000, 301)[1] == 1024  # the blocked path ran
+    np.testing.assert_allclose(ola.numpy(), ref.numpy(), rtol=0, atol=1e-11)
+
+
+def test_projection_of_a_feasible_point_is_the_identity():
+    from dtoc.optimize.limits import EdgeProjector, Limits
+
+    rng = np.random.default_rng(0)
+    e = np.cumsum(rng.uniform(-0.3, 0.3, (3, 400)), axis=1)
+    e[:, 0] = e[:, -1] = 0
+    free = np.ones_like(e, dtype=bool)
+    free[:, [0, -1]] = False
+    P = EdgeProjector(e, free, 1e-5, Limits(40.0, 200.0))
+    x = P.project(e * 0.5, n_iter=60)
+    assert P.is_feasible(x)
+    assert np.array_equal(P.project(x, n_iter=60), x)
+
+
+@pytest.fixture(scope="module")
+def solved():
+    """A 2-shot MPRAGE-like sequence (0.4 s) pre-compensated whole and period by period."""
+    from dtoc.optimize import loss as L
+    from dtoc.optimize import optimizer as O
+    from dtoc.optimize.config import load_config
+    from dtoc.optimize.limits import EdgeProjector
+    from dtoc.optimize.run import free_edges, limits_and_sources
+    from dtoc.optimize.twin import EdgeTwin
+    from dtoc.optimize.windowed import windowed_warm_start
+
+    ir = _mprage_ir()
+    hw = HardwareModel([ExpEddy(0.01, 2e-3), Delay(4e-6)]).frozen()
+    cfg = load_config(ir.kind, None).model_copy(update={"gmax_mT_per_m": 32, "smax_T_per_m_per_s": 130})
+    lim, _ = limits_and_sources(ir, cfg)
+    free = free_edges(ir)
+    ctx = L.build_context(ir, lim)
+    P = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, lim)
+    twin = EdgeTwin(ir, hw, P)
+    causal, acausal = memory_s(hw)
+    e_win, st = windowed_warm_start(
+        ir,
+        hw,
+        lim,
+        free,
+        cfg.weights,
+        ctx.dk_rad_per_m.numpy(),
+        ctx.rf_mask.numpy(),
+        horizon_s=causal,
+        lookahead_s=acausal,
+    )
+    e_whole = O.warm_start(twin, ctx, cfg.weights, cfg.warm_iters)
+    out = {"ir": ir, "P": P, "st": st, "ctx": ctx}
+    with torch.no_grad():
+        for name, e in (("base", P.base), ("win", e_win), ("whole", e_whole)):
+            k = twin.forward_edges(torch.as_tensor(np.asarray(e)), moments=False).kspace_rad_per_m
+            err = (k - ctx.k0_rad_per_m).abs().numpy() / ctx.dk_rad_per_m.numpy()[:, None]
+            out[name] = float(np.nanmax(np.where(np.isfinite(err), err, 0)[:2]))
+            out["e_" + name] = np.asarray(e)
+    return out
+
+
+@pytest.mark.slow
+def test_windowed_matches_whole_sequence_solve(solved):
+    s = solved
+    assert s["P"].is_feasible(s["e_win"])
+    assert s["base"] > 0.01  # the model moves k by a percent of dk or more
+    assert s["win"] < 1e-3  # period by period reaches the whole solve's accuracy ...
+    assert s["win"] <= max(3 * s["whole"], 1e-4)  # ... within a factor of it
+    st = s["st"]
+    assert st.windows == 2 * 8 + 1  # one per excitation (8 per shot) + the lead-in before the first
+    assert st.structures < st.windows  # repeated periods share one Jacobian
+
+
+@pytest.mark.slow
+def test_windowed_changes_only_free_edges(solved):
+    s = solved
+    P = s["P"]
+    assert np.array_equal(s["e_win"][~P.free], P.base[~P.free])
