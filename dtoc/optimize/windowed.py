@@ -224,7 +224,9 @@ def windowed_warm_start(
         rf_c = [ir.rf[i].t_center_s - tsub for i in w.rf]
         rf_u = [ir.rf[i].use for i in w.rf]
         t_adc = np.concatenate([ir.adc[i].sample_times_s for i in w.adc]) - tsub if w.adc else np.zeros(0)
-        sel_adc: np.ndarray | list[int] = np.concatenate([np.arange(adc_start[i], adc_start[i + 1]) for i in w.adc]) if w.adc else []
+        sel_adc: np.ndarray | list[int] = (
+            np.concatenate([np.arange(adc_start[i], adc_start[i + 1]) for i in w.adc]) if w.adc else []
+        )
         k0 = k0_full[:, sel_adc] if w.adc else np.zeros((3, 0))
         t_mom = t_mom_all[w.moment_rf] - tsub
         mom0 = m0_full[:, w.moment_rf]
