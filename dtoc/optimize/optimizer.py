@@ -112,14 +112,52 @@ def warm_start(
     Returns:
         (3, N+1) projected edge samples, mT/m.
     """
-    P = twin.projector
-    free = twin.free_t
-    f = linear_objective(twin, ctx, weights)
     x0 = twin.base_edges() if x_init is None else x_init.detach().clone()
+    f = linear_objective(twin, ctx, weights)
+    return constrained_least_squares(
+        f,
+        x0,
+        twin.projector,
+        twin.free_t,
+        iters,
+        state,
+        progress,
+        cg_fraction if x_init is None else 0.0,
+        cg_tol,
+        rel_tol,
+    )
+
+
+def constrained_least_squares(
+    f: Callable[[torch.Tensor], tuple[torch.Tensor, dict]],
+    x0: torch.Tensor,
+    P,
+    free: torch.Tensor,
+    iters: int,
+    state: StageState | None = None,
+    progress: ProgressFn | None = None,
+    cg_fraction: float = 0.5,
+    cg_tol: float = 1e-12,
+    rel_tol: float = 1e-7,
+) -> torch.Tensor:
+    """The warm start's algorithm on any quadratic objective ``f`` of edge samples within the limits of ``P``.
+
+    CG on the unconstrained problem from ``x0`` (``iters * cg_fraction`` evaluations; its early stop
+    regularises), exact projection, then projected FISTA with adaptive restart (step from a power iteration
+    on the Hessian) for the remaining evaluations.
+
+    Args:
+        f: ``x -> (loss tensor, {term: float})``, quadratic in ``x`` (Hessian-vector products are gradient
+            differences), differentiable.
+        x0: (3, N+1) start (the base edges).  P: an :class:`~dtoc.optimize.limits.EdgeProjector`.
+        free: (3, N+1) bool tensor of the variables.
+    Returns:
+        (3, N+1) projected edge samples, mT/m.
+    """
     hist = state.history if state is not None else []
     if iters <= 0:
         return P.project(x0)
-    n_cg = int(iters * cg_fraction) if x_init is None else 0
+    n_cg = int(iters * cg_fraction)
     g0, f0, terms0 = _grad(f, x0, free)
     hist.append({"stage": "warm", "it": 0, "loss": f0, **terms0})
 

@@ -418,7 +418,6 @@ def optimize_sequence(
                 "a windowed (long-sequence) optimization has no image term; give windowed: off in --config"
             )
         with_image = False
-        ir.meta.setdefault("notes", []).append(window["note"])
     if with_image is None:
         with_image = ir.geometry is not None  # no grid (non-Cartesian): the k-space term alone
     if not with_image:
@@ -485,7 +484,7 @@ def optimize_sequence(
             )
             x = torch.as_tensor(e, dtype=dtype, device=device)
             stage_times["windowed_s"] = time.time() - t0
-            extra["windowed"] = {"memory_s": window["memory_s"], **wst.as_dict()}
+            extra["windowed"] = {"note": window["note"], "memory_s": window["memory_s"], **wst.as_dict()}
         else:
             if x is None:
                 if cfg.method in ("dto", "warmstart"):

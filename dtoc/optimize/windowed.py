@@ -1,4 +1,4 @@
-"""Windowed pre-compensation of long sequences: cost linear in duration, memory bounded by one window.
+"""Windowed pre-compensation of long sequences: memory bounded by one window, time a sum over windows.
 
 The warm start's objective (:func:`dtoc.optimize.optimizer.linear_objective`: k at every ADC sample, the
 moment before every RF pulse, G during RF, a small change penalty) is a sum over excitation periods, and a
@@ -15,14 +15,16 @@ time, in time order (receding horizon):
   sequence's normalisation, so that the windows' objectives add up to the whole-sequence objective;
 * with an affine hardware chain the residual vector is ``r0 + J d`` exactly; ``J`` depends only on the
   period's timing (not on the gradient amplitudes), so periods of one structure (every TR of a train)
-  share one Jacobian and one Cholesky factor of ``J^T J``, computed once ("kernel" of the repeated block).
-  The unconstrained minimiser is one back-substitution; when it leaves the limits, projected FISTA on the
-  exact quadratic (dense ``J^T J``) finishes it.
+  share one Jacobian, computed once ("kernel" of the repeated block) by one batched forward per free
+  variable; each window then runs the whole-sequence warm start's algorithm
+  (:func:`dtoc.optimize.optimizer.constrained_least_squares`: CG, exact projection, projected FISTA) on
+  that exact quadratic, and keeps the window unchanged if that is not better.
 
-Edges in long idle stretches (more than ``pad_s`` from any non-zero base gradient or ADC sample) are held
-at the base value (zero): a delay of a second adds no variables.  The difference to the whole-sequence
-solve (the part of the hardware's memory beyond the horizon, the future periods that cannot answer back)
-is measured in docs/benchmarks.md ("Long sequences").  Units: mT/m, s, rad/m.
+Edges in long idle stretches (more than :data:`PAD_S` from any non-zero base gradient or ADC sample) are
+held at the base value (zero): a delay of a second adds no variables.  What is left out against the
+whole-sequence solve: the part of the hardware's memory beyond the horizon, and the future periods that
+cannot answer back.  Opt-in, not yet benchmarked (docs/optimize.md, "Long sequences"): with a measured
+GIRF's long, noisy taps the per-structure Jacobians dominate the cost.  Units: mT/m, s, rad/m.
 """
 
 from __future__ import annotations
@@ -36,11 +38,14 @@ import numpy as np
 import torch
 
 from dtoc.optimize.limits import EdgeProjector, Limits, edges_to_played
+from dtoc.optimize.optimizer import constrained_least_squares
 from dtoc.seq.ir import SequenceIR, edges_to_fine
 from dtoc.seq.kspace import kspace_at
 
 #: a period with more free variables than this is not solved densely (the whole-sequence path is used)
 DENSE_MAX = 6000
+#: edges farther than this from any non-zero base gradient or ADC sample are held at the base value, s
+PAD_S = 2e-3
 
 
 @dataclass
@@ -59,8 +64,6 @@ class Window:
 class WindowStats:
     windows: int = 0
     structures: int = 0
-    constrained: int = 0
-    fista_iters: int = 0
     max_free: int = 0
     horizon_s: float = 0.0
     lookahead_s: float = 0.0
@@ -70,8 +73,6 @@ class WindowStats:
         return {
             "windows": self.windows,
             "distinct_structures": self.structures,
-            "windows_at_limits": self.constrained,
-            "fista_iterations": self.fista_iters,
             "max_free_variables_per_window": self.max_free,
             "horizon_s": self.horizon_s,
             "lookahead_s": self.lookahead_s,
@@ -79,31 +80,41 @@ class WindowStats:
         }
 
 
+def period_starts(ir: SequenceIR) -> list[int]:
+    """First block of every excitation period (block 0, then every block holding an exciting pulse)."""
+    return [0] + sorted({r.block for r in ir.rf if r.excites} - {0})
+
+
 def plan_windows(ir: SequenceIR, horizon_s: float, lookahead_s: float) -> list[Window]:
-    """Cores = excitation periods (from the block of one exciting pulse to the next's); their windows."""
+    """Cores = excitation periods (from the block of one exciting pulse to the next's); their windows.
+    Linear in the number of events: RF and ADC events are in time order, found per core by bisection."""
     edges = ir.block_edges_s
     nb = len(edges) - 1
-    exc_blocks = sorted({r.block for r in ir.rf if r.excites})
-    starts = [0] + [b for b in exc_blocks if b > 0]
+    starts = period_starts(ir)
+    rf_block = np.array([r.block for r in ir.rf], dtype=np.int64)
+    adc_block = np.array([a.block for a in ir.adc], dtype=np.int64)
+
+    def in_blocks(blocks: np.ndarray, b0: int, b1: int) -> list[int]:
+        return list(range(int(np.searchsorted(blocks, b0)), int(np.searchsorted(blocks, b1))))
+
     out = []
     for j, b0 in enumerate(starts):
         b1 = starts[j + 1] if j + 1 < len(starts) else nb
         t0, t1 = edges[b0], edges[b1]
         sb0 = int(max(0, np.searchsorted(edges, t0 - horizon_s, side="right") - 1))
         # the next period's excitation (its moment and G-during-RF depend on this core)
-        nxt = [i for i, r in enumerate(ir.rf) if r.block == b1 and r.excites] if b1 < nb else []
+        nxt = [i for i in in_blocks(rf_block, b1, b1 + 1) if ir.rf[i].excites] if b1 < nb else []
         t_end = t1 + lookahead_s
         if nxt:
             t_end = max(t_end, edges[b1 + 1])
         sb1 = int(min(nb, np.searchsorted(edges, t_end - 1e-12, side="left")))
         sb1 = max(sb1, b1)
-        in_core = [i for i, r in enumerate(ir.rf) if b0 <= r.block < b1]
+        in_core = in_blocks(rf_block, b0, b1)
         first = in_core[0] if (in_core and j > 0 and ir.rf[in_core[0]].excites) else None
         rf_idx = in_core + nxt[:1]
         own = [i for i in rf_idx if i != first]
         moment = [i for i in own if i > 0]  # the sequence's first pulse has no moment term
-        adc = [i for i, a in enumerate(ir.adc) if b0 <= a.block < b1]
-        out.append(Window((b0, b1), (sb0, sb1), adc, rf_idx, moment, own))
+        out.append(Window((b0, b1), (sb0, sb1), in_blocks(adc_block, b0, b1), rf_idx, moment, own))
     return out
 
 
@@ -123,14 +134,12 @@ def active_edges(ir: SequenceIR, pad_s: float) -> np.ndarray:
     return (c[hi] - c[lo]) > 0
 
 
-def period_free_counts(ir: SequenceIR, free: np.ndarray, pad_s: float = 2e-3) -> np.ndarray:
+def period_free_counts(ir: SequenceIR, free: np.ndarray, pad_s: float = PAD_S) -> np.ndarray:
     """Free variables of every excitation period (core) in windowed mode (cheap: no window is built)."""
     f = (free & active_edges(ir, pad_s)[None, :]).sum(axis=0)
     c = np.concatenate([[0], np.cumsum(f)])
     edges = ir.block_edges_s
-    nb = len(edges) - 1
-    starts = [0] + sorted({r.block for r in ir.rf if r.excites} - {0}) + [nb]
-    e = np.round(edges[starts] / ir.raster_s).astype(int)
+    e = np.round(edges[period_starts(ir) + [len(edges) - 1]] / ir.raster_s).astype(int)
     return c[e[1:]] - c[e[:-1]]
 
 
@@ -161,7 +170,7 @@ def windowed_warm_start(
     *,
     horizon_s: float,
     lookahead_s: float,
-    pad_s: float = 2e-3,
+    pad_s: float = PAD_S,
     iters: int = 300,
     dtype: torch.dtype = torch.float64,
     device: str = "cpu",
@@ -175,7 +184,8 @@ def windowed_warm_start(
         weights: :class:`~dtoc.optimize.config.LossWeights` (image, amplitude, slew ignored).
         dk_rad_per_m: (3,) k unit per axis (inf: axis not scored); rf_mask_full: (2N+1,) RF samples.
         horizon_s / lookahead_s: history kept before / base waveform kept after each core.
-        iters: CG + FISTA iterations per window (half each at most, as the whole-sequence warm start).
+        iters: evaluations per window of :func:`dtoc.optimize.optimizer.constrained_least_squares` (the
+            whole-sequence warm start's algorithm; half CG, half projected FISTA).
     Returns:
         (3, N+1) edges within the limits, and :class:`WindowStats`.
     Raises:
@@ -198,8 +208,6 @@ def windowed_warm_start(
     edges = np.array(ir.edge_grad_mT_per_m, dtype=np.float64)  # committed as we go
     played = base_fine.copy()
     cache: dict[str, dict] = {}
-    n_cg = iters // 2
-    n_fista = iters - n_cg
     tt = {"setup": 0.0, "jacobian": 0.0, "residual": 0.0, "solve": 0.0}
     for wi, w in enumerate(windows):
         t0 = time.time()
@@ -268,10 +276,11 @@ def windowed_warm_start(
             cache[key] = c
             tt["jacobian"] += time.time() - t0
         t0 = time.time()
-        idx = np.flatnonzero(fr.ravel())
-        x_p, its = _solve(c["H"], c["J"].T @ r0, x_sub, idx, P, c["lam"], n_cg, n_fista, dtype, device)
-        st.fista_iters += its
-        st.constrained += int(its > 0)
+        xs = T(x_sub)
+        f = _window_objective(c["J"], r0, xs, torch.as_tensor(np.flatnonzero(fr.ravel()), device=device))
+        x_t = constrained_least_squares(f, xs, P, torch.as_tensor(fr, device=device), iters)
+        with torch.no_grad():
+            x_p = x_t.cpu().numpy() if float(f(x_t)[0]) <= float((r0 * r0).sum()) else x_sub  # never worse
         tt["solve"] += time.time() - t0
         edges[:, e0 : e1 + 1] = x_p
         played[:, m0 : m1 + 1] = edges_to_played(x_p, fine_sub, fmask)
@@ -320,8 +329,7 @@ def _structure_key(*parts) -> str:
 
 
 def _factor(residual, x_sub: np.ndarray, fr: np.ndarray, r0: torch.Tensor, dtype, device) -> dict:
-    """Jacobian J of the affine residual w.r.t. the free edges (unit perturbations), H = J^T J, its largest
-    eigenvalue."""
+    """Jacobian J (R, n) of the affine residual w.r.t. the free edges (unit perturbations)."""
     idx = np.flatnonzero(fr.ravel())
     cols = []
     chunk = int(np.clip((1 << 22) // (2 * x_sub.shape[1]), 4, 128))  # batch memory ~ chunk x window length
@@ -332,80 +340,16 @@ def _factor(residual, x_sub: np.ndarray, fr: np.ndarray, r0: torch.Tensor, dtype
             X = xt.expand(ii.size, *xt.shape).clone().reshape(ii.size, -1)
             X[torch.arange(ii.size), torch.as_tensor(ii)] += 1.0
             cols.append(residual(X.reshape(ii.size, *xt.shape)) - r0)
-    J = torch.cat(cols, 0).T.contiguous()  # (R, n)
-    H = J.T @ J
-    return {"J": J, "H": H, "lam": _power(H)}
+    return {"J": torch.cat(cols, 0).T.contiguous()}  # (R, n)
 
 
-def _power(H: torch.Tensor, n: int = 30) -> float:
-    v = torch.ones(H.shape[0], dtype=H.dtype, device=H.device)
-    lam = 0.0
-    for _ in range(n):
-        w = H @ v
-        lam = float(w.norm())
-        v = w / max(lam, 1e-300)
-    return 1.05 * lam
+def _window_objective(J: torch.Tensor, r0: torch.Tensor, x_sub: torch.Tensor, idx: torch.Tensor):
+    """The window's exact quadratic ``||r0 + J d||^2`` (d: change of the free edges) as an objective of
+    :func:`dtoc.optimize.optimizer.constrained_least_squares`."""
+    xb = x_sub.reshape(-1)[idx]
 
+    def f(x: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        r = r0 + J @ (x.reshape(-1)[idx] - xb)
+        return (r * r).sum(), {}
 
-def _solve(H, b, x_sub, idx, P: EdgeProjector, lam, n_cg, n_fista, dtype, device, rel_tol=1e-7):
-    """The warm start's algorithm (:func:`dtoc.optimize.optimizer.warm_start`) on the window's exact quadratic
-    ``q(d) = d^T H d + 2 b^T d`` (d: change of the free edges): CG from d = 0 (its early stop regularises),
-    exact projection, projected FISTA with adaptive restart; never worse than the base (d = 0).
-    Returns (edges, FISTA iterations)."""
-    shape = x_sub.shape
-    xb = x_sub.ravel()[idx]
-
-    def d_of(x):
-        return torch.as_tensor(x.ravel()[idx] - xb, dtype=dtype, device=device)
-
-    def q(d):
-        return float(d @ (H @ d) + 2.0 * (b @ d))
-
-    def put(x, d):
-        z = x.ravel().copy()
-        z[idx] = xb + d.cpu().numpy()
-        return z.reshape(shape)
-
-    d = torch.zeros_like(b)
-    r = -b.clone()
-    p = r.clone()
-    rr = rr0 = float(r @ r)
-    for _ in range(n_cg):
-        if rr <= 1e-12 * max(rr0, 1e-300):
-            break
-        Hp = H @ p
-        pHp = float(p @ Hp)
-        if pHp <= 0:
-            break
-        a = rr / pHp
-        d = d + a * p
-        r = r - a * Hp
-        rr_new = float(r @ r)
-        p = r + (rr_new / rr) * p
-        rr = rr_new
-    x = P.project(put(x_sub, d), n_iter=60, exact=True)
-    step = 1.0 / (1.2 * 2.0 * max(lam, 1e-300))
-    y, x_prev, t = x.copy(), x.copy(), 1.0
-    f0 = q(d_of(x))
-    f_prev = math.inf
-    j = 0
-    for j in range(1, n_fista + 1):
-        dy = d_of(y)
-        gy = (2.0 * (H @ dy + b)).cpu().numpy()
-        z = y.ravel().copy()
-        z[idx] -= step * gy
-        x_new = P.project(z.reshape(shape), n_iter=8, exact=False)
-        if float(((y - x_new) * (x_new - x_prev)).sum()) > 0:
-            t = 1.0
-        t_new = 0.5 * (1 + math.sqrt(1 + 4 * t * t))
-        y = x_new + ((t - 1) / t_new) * (x_new - x_prev)
-        x_prev, t = x_new, t_new
-        if j > 20 and j % 20 == 1:
-            fy = q(dy)
-            if f_prev - fy <= max(rel_tol * abs(fy), 1e-6 * abs(f0)):
-                break
-            f_prev = fy
-    x = P.project(x_prev, n_iter=60, exact=True)
-    if q(d_of(x)) > 0.0:  # worse than leaving the window as it is
-        return x_sub.copy(), j
-    return x, j
+    return f
