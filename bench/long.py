@@ -102,7 +102,8 @@ def main(argv=None) -> None:
                     row[mode]["k_after_dk"] = _k_err_dk(out, base, girf)
                     row[mode]["k_before_dk"] = m["before"]["kspace_max_error_dk"]
                     row[mode]["windowed"] = m.get("windowed")
-                    row[mode]["blocks"] = None
+                    row[mode]["n_free"] = m["sequence"]["n_free_variables"]
+                    row[mode]["n_adc"] = m["sequence"]["n_adc_samples"]
                 print(json.dumps(row), flush=True)
             rows.append(row)
     text = render(rows, "KCL 7 T Terra 2024 3x3 GIRF" if girf is not None else "exp_eddy 1 % / 2 ms + 4 us delay")
@@ -118,8 +119,9 @@ def render(rows: list[dict], hw: str) -> str:
         f"3D MPRAGE-like (tests/foreign/writers.py `mprage`, 1 s shots of 32 readouts), hardware {hw}, "
         "--gmax 32 --smax 130. One process per run; peak RSS from wait4. k after: max over ADC samples of the "
         "readout/phase k error of the re-read output played through the model, in dk = 2 pi / 0.22 m.\n\n"
-        "| duration (s) | solve | wall (s) | CPU (s) | peak RSS (GB) | k before (dk) | k after (dk) | windows | "
-        "structures | Jacobians (s) | window solves (s) |\n|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "| duration (s) | ADC samples | free variables | solve | wall (s) | CPU (s) | peak RSS (GB) | k before (dk) | "
+        "k after (dk) | windows (solved directly) | structures | Jacobians (s) | window solves (s) |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
     for r in rows:
@@ -129,14 +131,15 @@ def render(rows: list[dict], hw: str) -> str:
                 continue
             if x["code"] != 0:
                 lines.append(
-                    f"| {r['duration_s']:g} | {name} | failed (exit {x['code']}) | | {x['rss_gb']:.2f} | | | | | | |"
+                    f"| {r['duration_s']:g} | | | {name} | failed (exit {x['code']}) | | {x['rss_gb']:.2f} | | | | | | |"
                 )
                 continue
             w = x.get("windowed") or {}
             t = w.get("times_s", {})
+            nw = f"{w['windows']} ({w['windows_solved_directly']})" if w else "-"
             lines.append(
-                f"| {r['duration_s']:g} | {name} | {x['wall_s']:.1f} | {x['cpu_s']:.1f} | {x['rss_gb']:.2f} | "
-                f"{x['k_before_dk']:.3g} | {x['k_after_dk']:.3g} | {w.get('windows', '-')} | "
+                f"| {r['duration_s']:g} | {x['n_adc']} | {x['n_free']} | {name} | {x['wall_s']:.1f} | {x['cpu_s']:.1f} | "
+                f"{x['rss_gb']:.2f} | {x['k_before_dk']:.3g} | {x['k_after_dk']:.3g} | {nw} | "
                 f"{w.get('distinct_structures', '-')} | {t.get('jacobian', '-')} | {t.get('solve', '-')} |"
             )
     return head + "\n".join(lines) + "\n"

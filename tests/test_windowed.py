@@ -126,3 +126,59 @@ def test_windowed_changes_only_free_edges(solved):
     s = solved
     P = s["P"]
     assert np.array_equal(s["e_win"][~P.free], P.base[~P.free])
+
+
+def test_window_jacobian_equals_unit_perturbations():
+    """The impulse-response Jacobian (window_jacobian) against one forward per free edge through the window's
+    residual: acausal taps, a cross term, an exponential, a delay, an offset; excitation, refocusing and an
+    'undefined' pulse (which excites) among the ADC samples; fine samples that do not follow the edges."""
+    from types import SimpleNamespace
+
+    from dtoc.hardware.effects import CrossEddy, Lti, Offset
+    from dtoc.optimize import window_jacobian as WJ
+    from dtoc.optimize.windowed import window_residual
+
+    rng = np.random.default_rng(5)
+    dt, Ne = 5e-6, 601
+    W = 2 * Ne - 1
+    taps = np.zeros((3, 41))
+    taps[:, :] = 0.02 * rng.standard_normal((3, 41))
+    hw = HardwareModel(
+        [Lti(taps, dt, t0_s=-20 * dt), CrossEddy(0.03, 1e-4, axis="y", input_axis="x"), ExpEddy(0.02, 3e-4),
+         Delay(7e-6), Offset(0.1)]
+    ).frozen()  # fmt: skip
+    fr = np.zeros((3, Ne), dtype=bool)
+    fr[:, 150:450] = rng.random((3, 300)) < 0.5
+    fmask = np.zeros((3, W), dtype=bool)
+    fmask[:, ::2] = fr
+    fmask[:, 1::2] = fr[:, 1:] | fr[:, :-1]
+    fmask[1, 600:640] = False  # samples that keep the played value although an edge is free
+    rf_c, rf_u = [0.4e-3, 1.6e-3, 2.3e-3, 2.9e-3], ["excitation", "refocusing", "undefined", "refocusing"]
+    t_adc = np.sort(rng.uniform(0.0, (W - 1) * dt, 300))
+    t_mom = np.array(rf_c[1:]) - 1e-9
+    rfm = np.zeros(W, dtype=bool)
+    rfm[300:340] = True
+    sc = SimpleNamespace(
+        k_axes=np.array([0, 2]), k=np.array([0.3, 0.5, 0.7]), m=np.array([0.2, 0.4, 0.6]), rf=1.3, reg=0.05
+    )
+    x = rng.standard_normal((3, Ne))
+    fine = torch.as_tensor(rng.standard_normal((3, W)))
+    g0 = torch.as_tensor(rng.standard_normal((3, W)))
+    T = torch.as_tensor
+    res = window_residual(
+        hw, dt, T(fmask), fine, g0, t_adc, T(np.zeros((3, t_adc.size))), t_mom, T(np.zeros((3, t_mom.size))),
+        rf_c, rf_u, rfm, sc, T(sc.k), T(sc.m),
+    )  # fmt: skip
+    idx = np.flatnonzero(fr.ravel())
+    X = np.repeat(x[None], idx.size + 1, 0).reshape(idx.size + 1, -1)
+    X[np.arange(1, idx.size + 1), idx] += 1.0
+    with torch.no_grad():
+        r = res(T(X.reshape(-1, 3, Ne))).numpy()
+    J_ref = (r[1:] - r[0]).T
+    R = WJ.impulse_responses(hw, dt, W)
+    J = WJ.lti_jacobian(R, dt, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc.k_axes, sc.k, sc.m, sc.rf)
+    S = WJ.reg_rows(fr, fmask, sc.reg).toarray()
+    full = np.concatenate([J, S], 0)
+    assert full.shape == J_ref.shape
+    assert np.abs(J_ref).max() > 1.0  # k rows: gamma * dt * scale is large
+    np.testing.assert_allclose(full, J_ref, rtol=0, atol=1e-9 * np.abs(J_ref).max())

@@ -289,11 +289,15 @@ class EdgeProjector:
     # ---- fine grid -------------------------------------------------------------------------------
     def fine_free_mask(self) -> np.ndarray:
         """(3, 2N+1) True on fine samples that follow the edge variables (free edges and their centres)."""
-        f = self.free
-        m = np.zeros((3, 2 * self.n_edges - 1), dtype=bool)
-        m[:, ::2] = f
-        m[:, 1::2] = f[:, 1:] | f[:, :-1]
-        return m
+        return fine_free_mask(self.free)
+
+
+def fine_free_mask(free: np.ndarray) -> np.ndarray:
+    """(3, 2N+1) True on fine samples that follow free edges (3, N+1): the edges and their centres."""
+    m = np.zeros((3, 2 * free.shape[1] - 1), dtype=bool)
+    m[:, ::2] = free
+    m[:, 1::2] = free[:, 1:] | free[:, :-1]
+    return m
 
 
 def edges_to_played(edges, base_fine, fine_mask):

@@ -15,16 +15,18 @@ time, in time order (receding horizon):
   sequence's normalisation, so that the windows' objectives add up to the whole-sequence objective;
 * with an affine hardware chain the residual vector is ``r0 + J d`` exactly; ``J`` depends only on the
   period's timing (not on the gradient amplitudes), so periods of one structure (every TR of a train)
-  share one Jacobian, computed once ("kernel" of the repeated block) by one batched forward per free
-  variable; each window then runs the whole-sequence warm start's algorithm
-  (:func:`dtoc.optimize.optimizer.constrained_least_squares`: CG, exact projection, projected FISTA) on
-  that exact quadratic, and keeps the window unchanged if that is not better.
+  share one Jacobian, built from the chain's impulse responses (:mod:`dtoc.optimize.window_jacobian`:
+  three forwards and a lookup per row and column), and one Cholesky factor of the normal matrix;
+* each window's exact quadratic is then minimised: by back-substitution when the unconstrained optimum
+  is within the limits, else by ADMM on the box and slew constraints (the normal matrix plus the
+  constraints' Gram matrix factored once per structure), followed by the exact projection; a window is
+  left unchanged if that is not better.
 
 Edges in long idle stretches (more than :data:`PAD_S` from any non-zero base gradient or ADC sample) are
 held at the base value (zero): a delay of a second adds no variables.  What is left out against the
 whole-sequence solve: the part of the hardware's memory beyond the horizon, and the future periods that
-cannot answer back.  Opt-in, not yet benchmarked (docs/optimize.md, "Long sequences"): with a measured
-GIRF's long, noisy taps the per-structure Jacobians dominate the cost.  Units: mT/m, s, rad/m.
+cannot answer back.  Cost and error against the whole-sequence solve: docs/benchmarks.md ("Long
+sequences"), docs/optimize.md.  Units: mT/m, s, rad/m.
 """
 
 from __future__ import annotations
@@ -35,10 +37,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
 import torch
 
-from dtoc.optimize.limits import EdgeProjector, Limits, edges_to_played
-from dtoc.optimize.optimizer import constrained_least_squares
+from dtoc.optimize import window_jacobian as WJ
+from dtoc.optimize.limits import EdgeProjector, Limits, edges_to_played, fine_free_mask
 from dtoc.seq.ir import SequenceIR, edges_to_fine
 from dtoc.seq.kspace import kspace_at
 
@@ -65,6 +69,8 @@ class WindowStats:
     windows: int = 0
     structures: int = 0
     max_free: int = 0
+    direct: int = 0
+    admm_iters: int = 0
     horizon_s: float = 0.0
     lookahead_s: float = 0.0
     times_s: dict = field(default_factory=dict)
@@ -74,6 +80,8 @@ class WindowStats:
             "windows": self.windows,
             "distinct_structures": self.structures,
             "max_free_variables_per_window": self.max_free,
+            "windows_solved_directly": self.direct,
+            "admm_iterations": self.admm_iters,
             "horizon_s": self.horizon_s,
             "lookahead_s": self.lookahead_s,
             "times_s": {k: round(v, 3) for k, v in self.times_s.items()},
@@ -171,7 +179,6 @@ def windowed_warm_start(
     horizon_s: float,
     lookahead_s: float,
     pad_s: float = PAD_S,
-    iters: int = 300,
     dtype: torch.dtype = torch.float64,
     device: str = "cpu",
     progress: Callable | None = None,
@@ -184,8 +191,6 @@ def windowed_warm_start(
         weights: :class:`~dtoc.optimize.config.LossWeights` (image, amplitude, slew ignored).
         dk_rad_per_m: (3,) k unit per axis (inf: axis not scored); rf_mask_full: (2N+1,) RF samples.
         horizon_s / lookahead_s: history kept before / base waveform kept after each core.
-        iters: evaluations per window of :func:`dtoc.optimize.optimizer.constrained_least_squares` (the
-            whole-sequence warm start's algorithm; half CG, half projected FISTA).
     Returns:
         (3, N+1) edges within the limits, and :class:`WindowStats`.
     Raises:
@@ -227,8 +232,11 @@ def windowed_warm_start(
         tsub = be[w.sub[0]]
         x_sub = edges[:, e0 : e1 + 1].copy()
         fine_sub = played[:, m0 : m1 + 1].copy()
-        P = EdgeProjector(x_sub, fr, ir.raster_s, limits)
-        fmask = P.fine_free_mask()
+        fmask = fine_free_mask(fr)
+        # the limits bind the core's edges and their fixed neighbours only: project there
+        rs = slice(max(ec0 - e0 - 1, 0), min(ec1 - e0 + 2, fr.shape[1]))
+        fr_r = fr[:, rs]
+        P = EdgeProjector(x_sub[:, rs], fr_r, ir.raster_s, limits)
         rf_c = [ir.rf[i].t_center_s - tsub for i in w.rf]
         rf_u = [ir.rf[i].use for i in w.rf]
         t_adc = np.concatenate([ir.adc[i].sample_times_s for i in w.adc]) - tsub if w.adc else np.zeros(0)
@@ -248,7 +256,7 @@ def windowed_warm_start(
         def T(a):
             return torch.as_tensor(a, dtype=dtype, device=device)
 
-        residual = _residual_fn(
+        residual = window_residual(
             hardware, dtf, torch.as_tensor(fmask), T(fine_sub), T(g0_sub), t_adc, T(k0), t_mom, T(mom0),
             rf_c, rf_u, rfm, sc, T(sc.k), T(sc.m),
         )  # fmt: skip
@@ -272,15 +280,24 @@ def windowed_warm_start(
         c = cache.get(key)
         if c is None:
             t0 = time.time()
-            c = _factor(residual, x_sub, fr, r0, dtype, device)
+            c = _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, device)
             cache[key] = c
             tt["jacobian"] += time.time() - t0
         t0 = time.time()
-        xs = T(x_sub)
-        f = _window_objective(c["J"], r0, xs, torch.as_tensor(np.flatnonzero(fr.ravel()), device=device))
-        x_t = constrained_least_squares(f, xs, P, torch.as_tensor(fr, device=device), iters)
-        with torch.no_grad():
-            x_p = x_t.cpu().numpy() if float(f(x_t)[0]) <= float((r0 * r0).sum()) else x_sub  # never worse
+        r0n = r0.cpu().numpy()
+        nd = c["J"].shape[0]
+        r0d, r0r = r0n[:nd], r0n[nd:]
+        grad0 = c["J"].T @ r0d + c["S"].T @ r0r
+        d = -sla.cho_solve(c["H"], grad0)
+        x_p = x_sub.copy()
+        x_p[fr] = x_sub[fr] + d
+        if P.is_feasible(x_p[:, rs]):
+            st.direct += 1
+        else:  # a limit is active: the same quadratic within the limits (ADMM on the cached factor)
+            x_p[:, rs], its = _admm(c, grad0, P, fr_r, x_sub[:, rs])
+            st.admm_iters += its
+        if _quadratic(c, r0d, r0r, x_p[fr] - x_sub[fr]) > float(r0n @ r0n):  # never worse than unchanged
+            x_p = x_sub
         tt["solve"] += time.time() - t0
         edges[:, e0 : e1 + 1] = x_p
         played[:, m0 : m1 + 1] = edges_to_played(x_p, fine_sub, fmask)
@@ -292,7 +309,7 @@ def windowed_warm_start(
     return edges, st
 
 
-def _residual_fn(hardware, dtf, fmask_t, fine_t, g0_t, t_adc, k0_t, t_mom, mom0_t, rf_c, rf_u, rfm, sc, sk_t, sm_t):
+def window_residual(hardware, dtf, fmask_t, fine_t, g0_t, t_adc, k0_t, t_mom, mom0_t, rf_c, rf_u, rfm, sc, sk_t, sm_t):
     """The window's weighted residual vector as a function of edge arrays: (B, 3, Ne) -> (B, R)."""
     ka = torch.as_tensor(sc.k_axes)
 
@@ -328,28 +345,81 @@ def _structure_key(*parts) -> str:
     return h.hexdigest()
 
 
-def _factor(residual, x_sub: np.ndarray, fr: np.ndarray, r0: torch.Tensor, dtype, device) -> dict:
-    """Jacobian J (R, n) of the affine residual w.r.t. the free edges (unit perturbations)."""
+def _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, device) -> dict:
+    """The structure's Jacobian J (dense rows), change-penalty rows S (sparse) and the Cholesky factor of
+    the normal matrix ``J^T J + S^T S`` (:mod:`dtoc.optimize.window_jacobian`)."""
+    R = WJ.impulse_responses(hardware, dtf, fmask.shape[1], dtype, device)
+    J = WJ.lti_jacobian(R, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc.k_axes, sc.k, sc.m, sc.rf)
+    S = WJ.reg_rows(fr, fmask, sc.reg)
+    H = J.T @ J + (S.T @ S).toarray()
+    try:
+        cho = sla.cho_factor(H)
+    except np.linalg.LinAlgError:  # no change penalty and an unobservable variable: a tiny ridge
+        cho = sla.cho_factor(H + 1e-12 * (np.trace(H) / max(H.shape[0], 1) + 1e-300) * np.eye(H.shape[0]))
+    return {"J": J, "S": S, "H": cho, "normal": H}
+
+
+def _admm(
+    c: dict,
+    grad0: np.ndarray,
+    P: EdgeProjector,
+    fr: np.ndarray,
+    xb: np.ndarray,
+    rho_rel: float = 0.01,
+    max_iter: int = 2000,
+    tol: float = 1e-5,
+) -> tuple[np.ndarray, int]:
+    """min 1/2 d^T H d + grad0^T d over the free edges with ``xb + d`` within ``P``'s limits (box ``lo..hi``,
+    ``|x[n+1] - x[n]| <= step`` on free pairs), by ADMM (over-relaxed, OSQP's splitting) with the normal
+    matrix ``H + rho A^T A`` factored once per structure; the result goes through ``P.project`` (exact)."""
     idx = np.flatnonzero(fr.ravel())
-    cols = []
-    chunk = int(np.clip((1 << 22) // (2 * x_sub.shape[1]), 4, 128))  # batch memory ~ chunk x window length
-    xt = torch.as_tensor(x_sub, dtype=dtype, device=device)
-    with torch.no_grad():
-        for s in range(0, idx.size, chunk):
-            ii = idx[s : s + chunk]
-            X = xt.expand(ii.size, *xt.shape).clone().reshape(ii.size, -1)
-            X[torch.arange(ii.size), torch.as_tensor(ii)] += 1.0
-            cols.append(residual(X.reshape(ii.size, *xt.shape)) - r0)
-    return {"J": torch.cat(cols, 0).T.contiguous()}  # (R, n)
+    n = idx.size
+    col = np.full(fr.size, -1, dtype=np.int64)
+    col[idx] = np.arange(n)
+    pa, pj = np.nonzero(P.pair_free)
+    i0 = col[pa * fr.shape[1] + pj]
+    i1 = col[pa * fr.shape[1] + pj + 1]
+    key = ("admm", rho_rel)
+    if key not in c:
+        Hd = c["normal"]
+        rho = rho_rel * float(np.trace(Hd)) / max(n, 1)
+        D = sp.csr_matrix(
+            (
+                np.r_[np.ones(i1.size), -np.ones(i0.size)],
+                (np.r_[np.arange(i1.size), np.arange(i0.size)], np.r_[i1, i0]),
+            ),
+            shape=(i1.size, n),
+        )
+        A = sp.vstack([sp.identity(n, format="csr"), D]).tocsr()
+        c[key] = {"rho": rho, "A": A, "K": sla.cho_factor(Hd + rho * (A.T @ A).toarray())}
+    m = c[key]
+    A, rho, K = m["A"], m["rho"], m["K"]
+    x0 = xb.ravel()[idx]
+    l = np.r_[P.lo.ravel()[idx] - x0, -P.step - (x0[i1] - x0[i0])]
+    u = np.r_[P.hi.ravel()[idx] - x0, P.step - (x0[i1] - x0[i0])]
+    alpha = 1.6
+    d = -sla.cho_solve(c["H"], grad0)
+    z = np.clip(A @ d, l, u)
+    y = np.zeros_like(z)
+    it = 0
+    for it in range(1, max_iter + 1):
+        d = sla.cho_solve(K, -grad0 + A.T @ (rho * z - y))
+        Ad = alpha * (A @ d) + (1 - alpha) * z
+        z_new = np.clip(Ad + y / rho, l, u)
+        y = y + rho * (Ad - z_new)
+        dz = z_new - z
+        z = z_new
+        if it % 10 == 0:
+            r_p = np.abs(A @ d - z).max()
+            r_d = rho * np.abs(A.T @ dz).max()
+            if r_p <= tol * max(1.0, np.abs(z).max()) and r_d <= tol * max(1.0, np.abs(grad0).max()):
+                break
+    x = xb.copy()
+    x.ravel()[idx] = x0 + d
+    return P.project(x), it
 
 
-def _window_objective(J: torch.Tensor, r0: torch.Tensor, x_sub: torch.Tensor, idx: torch.Tensor):
-    """The window's exact quadratic ``||r0 + J d||^2`` (d: change of the free edges) as an objective of
-    :func:`dtoc.optimize.optimizer.constrained_least_squares`."""
-    xb = x_sub.reshape(-1)[idx]
-
-    def f(x: torch.Tensor) -> tuple[torch.Tensor, dict]:
-        r = r0 + J @ (x.reshape(-1)[idx] - xb)
-        return (r * r).sum(), {}
-
-    return f
+def _quadratic(c: dict, r0d: np.ndarray, r0r: np.ndarray, d: np.ndarray) -> float:
+    rd = r0d + c["J"] @ d
+    rr = r0r + c["S"] @ d
+    return float(rd @ rd + rr @ rr)

@@ -1,0 +1,170 @@
+"""The exact Jacobian of a window's residual for a time-invariant affine hardware chain, from impulse responses.
+
+The windowed warm start (:mod:`dtoc.optimize.windowed`) needs, for every excitation-period structure, the
+Jacobian of its residual vector (k at the ADC samples, moments before RF pulses, G during RF) with respect
+to the free raster-edge samples.  Every chain of :data:`dtoc.hardware.memory.AFFINE_KINDS` is linear and
+time-invariant on the fine grid (convolutions, recursions started at rest, delays, gains; offsets cancel),
+so the response to a unit change of one fine sample is one impulse response per input axis, shifted:
+
+* ``R[a, b, m]``: realized axis ``b`` for a unit fine sample on demanded axis ``a`` at index ``W`` of a
+  ``2 W``-sample zero waveform (``W``: the window's fine length), minus the response to zero (the affine
+  offset).  A change at window index ``n`` moves ``G_b[p]`` by ``R[a, b, p - n + W]`` -- exactly what the
+  chain gives on the window itself, whose waveform is zero outside its samples (truncation included);
+* a raster edge ``j`` moves fine samples ``2j`` (weight 1) and ``2j +- 1`` (weight 1/2) where they follow
+  the edges (:meth:`dtoc.optimize.limits.EdgeProjector.fine_free_mask`);
+* k at a query time is a fixed combination of running integrals ``I(t) = int_0^t G`` at the query and at
+  the RF events before it (:func:`dtoc.seq.kspace.kspace_at`: an excitation resets, a refocusing negates):
+  ``k(t) = gamma (I(t) + sum_e A[t, e] I(t_e))``; the running integral of a shifted impulse response is a
+  shifted lookup in the exact PWL cumulative integral of ``R`` (:func:`dtoc.seq.kspace.pwl_integral_at`).
+
+Cost: three forwards of ``2 W`` samples and ``O(rows x columns)`` lookups, instead of one forward of the
+window per column.  The change penalty's rows (one per free fine sample, two or three non-zeros each) are
+not built: :func:`reg_rows` gives the sparse matrix.  Units: mT/m, s, rad/m.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
+
+#: the RF uses kspace_at acts on (excitation and undefined reset, refocusing negates)
+_K_EVENTS = ("excitation", "undefined", "refocusing")
+#: query rows evaluated at a time (memory ~ rows x columns x 9 doubles)
+_CHUNK = 256
+
+
+def impulse_responses(hardware, dt_s: float, W: int, dtype=torch.float64, device="cpu") -> np.ndarray:
+    """(3, 3, 2W) float64: ``R[a, b]`` realized axis b for a unit fine sample of axis a at index W."""
+    x = torch.zeros((4, 3, 2 * W), dtype=dtype, device=device)
+    for a in range(3):
+        x[a, a, W] = 1.0
+    with torch.no_grad():
+        G = x if hardware is None else hardware(x, dt_s)[0]
+    return (G[:3] - G[3:4]).cpu().double().numpy()
+
+
+def k_coefficients(t_s: np.ndarray, rf_c: list[float], rf_u: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(event times (E,), A (Q, E)): ``k(t_q) = gamma (I(t_q) + A[q] @ I(t_events))`` as in ``kspace_at``."""
+    ev = [(t, u) for t, u in zip(rf_c, rf_u) if u in _K_EVENTS]
+    E = len(ev)
+    te = np.array([e[0] for e in ev], dtype=np.float64)
+    after = np.zeros((E, E))  # row s: k right after event s, as coefficients of I(t_e)
+    for s in range(E):
+        before = np.zeros(E)
+        before[s] = 1.0
+        if s > 0:
+            before[s - 1] -= 1.0
+            before += after[s - 1]
+        after[s] = -before if ev[s][1] == "refocusing" else 0.0
+    t = np.asarray(t_s, dtype=np.float64)
+    A = np.zeros((t.size, E))
+    if E:
+        seg = np.searchsorted(te, t, side="right") - 1
+        on = np.flatnonzero(seg >= 0)
+        A[on] = after[seg[on]]
+        A[on, seg[on]] -= 1.0
+    return te, A
+
+
+def _edge_taps(fr_a: np.ndarray, fmask_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fine indices (n_a, 3) and weights (n_a, 3) that the free edges of one axis move (0 weight: none)."""
+    W = fmask_a.size
+    j = np.flatnonzero(fr_a)
+    n = 2 * j[:, None] + np.array([-1, 0, 1])[None, :]
+    w = np.broadcast_to(np.array([0.5, 1.0, 0.5]), n.shape).copy()
+    ok = (n >= 0) & (n < W)
+    n = np.clip(n, 0, W - 1)
+    w[~(ok & fmask_a[n])] = 0.0
+    return n, w
+
+
+def _integrals(R_a: np.ndarray, C_a: np.ndarray, W: int, dt: float, t_s: np.ndarray, n, w) -> np.ndarray:
+    """(3, Q, n_a): ``int_0^t`` of each column's realized change at the query times (window-relative)."""
+    t = np.clip(np.asarray(t_s, dtype=np.float64), 0.0, (W - 1) * dt)
+    m = np.clip(np.floor(t / dt + 1e-9).astype(np.int64), 0, max(W - 2, 0))
+    tau = (t - m * dt)[None, :, None, None]
+    idx = m[:, None, None] + W - n[None]  # (Q, n_a, 3) into the 2W grid
+    g0 = R_a[:, idx]
+    val = C_a[:, idx] + tau * g0 + 0.5 * tau * tau * (R_a[:, idx + 1] - g0) / dt
+    val = val - C_a[:, W - n][:, None]  # integrals counted from the window's start
+    return (val * w[None, None]).sum(-1)
+
+
+def lti_jacobian(
+    R: np.ndarray,
+    dt_s: float,
+    fr: np.ndarray,
+    fmask: np.ndarray,
+    t_adc: np.ndarray,
+    t_mom: np.ndarray,
+    rf_c: list[float],
+    rf_u: list[str],
+    rfm: np.ndarray,
+    k_axes: np.ndarray,
+    k_scale: np.ndarray,
+    m_scale: np.ndarray,
+    rf_scale: float,
+) -> np.ndarray:
+    """Rows of the window's residual other than the change penalty, as :func:`windowed.window_residual` orders
+    them (k: k-axes x ADC samples; moments: k-axes x pulses; G during RF: 3 x RF samples), by free edge.
+
+    Args:
+        R: (3, 3, 2W) :func:`impulse_responses`.  dt_s: fine spacing, s.
+        fr: (3, Ne) free edges; fmask: (3, W) fine samples that follow the edges.
+        t_adc, t_mom: window-relative query times, s.  rf_c, rf_u: window-relative RF centres and uses.
+        rfm: (W,) fine samples under the RF pulses whose G-during-RF counts.
+        k_axes: axes scored in k; k_scale, m_scale: (3,) row weights (1/dk and term weights); rf_scale.
+    Returns:
+        (rows, n_free) float64, columns in ``np.flatnonzero(fr.ravel())`` order.
+    """
+    W = fmask.shape[1]
+    C = np.concatenate([np.zeros(R.shape[:2] + (1,)), np.cumsum(0.5 * dt_s * (R[..., 1:] + R[..., :-1]), -1)], -1)
+    te, A_adc = k_coefficients(t_adc, rf_c, rf_u)
+    _, A_mom = k_coefficients(t_mom, rf_c, rf_u)
+    ka = np.asarray(k_axes, dtype=np.int64)
+    p_rf = np.flatnonzero(rfm)
+    blocks = []  # per input axis: (rows, n_a)
+    for a in range(3):
+        n, w = _edge_taps(fr[a], fmask[a])
+        if n.shape[0] == 0:
+            continue
+        parts = []
+        I_ev = _integrals(R[a], C[a], W, dt_s, te, n, w) if te.size else np.zeros((3, 0, n.shape[0]))
+        for tq, A, scale in ((t_adc, A_adc, k_scale), (t_mom, A_mom, m_scale)):
+            if not (np.size(tq) and ka.size):
+                continue
+            out = np.empty((3, np.size(tq), n.shape[0]))
+            for s in range(0, np.size(tq), _CHUNK):
+                sl = slice(s, s + _CHUNK)
+                out[:, sl] = _integrals(R[a], C[a], W, dt_s, tq[sl], n, w) + np.einsum("qe,ben->bqn", A[sl], I_ev)
+            out *= GAMMA_RAD_PER_S_PER_MT * np.asarray(scale)[:, None, None]
+            parts.append(out[ka].reshape(-1, n.shape[0]))
+        if p_rf.size:
+            idx = p_rf[:, None, None] - n[None] + W  # (P, n_a, 3)
+            parts.append((rf_scale * (R[a][:, idx] * w[None, None]).sum(-1)).reshape(-1, n.shape[0]))
+        blocks.append(np.concatenate(parts, 0) if parts else np.zeros((0, n.shape[0])))
+    return np.concatenate(blocks, 1) if blocks else np.zeros((0, 0))
+
+
+def reg_rows(fr: np.ndarray, fmask: np.ndarray, scale: float) -> sp.csr_matrix:
+    """The change penalty's rows ``scale * (g - g0)[fmask]`` (row-major over (axis, fine sample)) as a
+    sparse (fmask.sum(), n_free) matrix of the free edges."""
+    W = fmask.shape[1]
+    row_of = np.full(fmask.size, -1, dtype=np.int64)
+    row_of[np.flatnonzero(fmask.ravel())] = np.arange(int(fmask.sum()))
+    rows, cols, vals = [], [], []
+    c0 = 0
+    for a in range(3):
+        n, w = _edge_taps(fr[a], fmask[a])
+        cc = c0 + np.broadcast_to(np.arange(n.shape[0])[:, None], n.shape)
+        keep = w > 0
+        rows.append(row_of[a * W + n[keep]])
+        cols.append(cc[keep])
+        vals.append(scale * w[keep])
+        c0 += n.shape[0]
+    return sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(int(fmask.sum()), c0)
+    )
