@@ -5,7 +5,8 @@ compensation, for 2D sequences without a Cartesian grid (radial, UTE, spiral wit
 sequence's FOV centred as :mod:`dtoc.sim.recon` centres its images; ``w`` are Pipe-Menon density weights
 (``w <- w / |E E^H w|``, 12 iterations, computed once per sequence and sample mask).  Exact (no gridding
 kernel) and differentiable in the signal; cost N_adc x N^2 per image, which for the 2D sizes dtoc optimizes
-(10^3-10^4 samples, 32^2-96^2 pixels) is a single matrix product.  Both the ideal and the realized image use
+(10^3-10^4 samples, 32^2-96^2 pixels) is a single matrix product; above :data:`EXACT_MAX_ENTRIES` the same
+operator is computed by a gridding NUFFT (:mod:`dtoc.sim.nufft`).  Both the ideal and the realized image use
 the same operator, so the NRMSE compares like with like.
 """
 
@@ -14,6 +15,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+#: largest kept samples x pixels of the exact (dense matrix, 16 bytes an entry) operator; larger images are
+#: computed by :mod:`dtoc.sim.nufft` (the same operator by a gridding NUFFT, to 1e-10)
+EXACT_MAX_ENTRIES = 2e7
 _CACHE: dict = {}
 _NOMINAL: dict = {}  # id(ir) -> (ir, k_xy, k_key): the trajectory once per sequence, not once per image
 
@@ -67,6 +71,12 @@ def ndft_image(signal, ir, keep_mask=None) -> torch.Tensor:
     n = k_xy.shape[1]
     keep = np.ones(n, dtype=bool) if keep_mask is None else np.asarray(torch.as_tensor(keep_mask).cpu(), dtype=bool)
     real = torch.float64 if s.dtype in (torch.complex128, torch.float64) else torch.float32
+    if int(keep.sum()) * ny * nx > EXACT_MAX_ENTRIES:  # the same operator by a gridding NUFFT (dtoc.sim.nufft)
+        from dtoc.sim import nufft
+
+        p = nufft.plan(k_xy, k_key, (ny, nx), geo.fov_xy_m, keep, real)
+        cd = torch.complex128 if real == torch.float64 else torch.complex64
+        return nufft.nufft_image(s[..., torch.as_tensor(np.flatnonzero(keep), device=s.device)].to(cd), p)
     EH = _operator(k_xy, k_key, (ny, nx), geo.fov_xy_m, keep, real, s.device)
     sk = s[..., torch.as_tensor(np.flatnonzero(keep), device=s.device)].to(EH.dtype)
     return (sk @ EH.T).reshape(*s.shape[:-1], ny, nx)
