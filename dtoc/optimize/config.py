@@ -77,9 +77,9 @@ class OptimizeConfig(BaseModel):
         checkpoint_every: iterations between checkpoints when a checkpoint path is set.
         windowed: long sequences (docs/optimize.md, "Long sequences"): 'auto' = solve the warm start one
             excitation period at a time (:mod:`dtoc.optimize.windowed`; k-space terms only, no image term,
-            no discarding) when the sequence is longer than ``window_auto_s`` and the hardware chain is
-            affine; 'on' = always (an error when impossible); 'off' (default until its cost with measured
-            GIRFs is benchmarked, see docs/optimize.md) = never.
+            no discarding) when the sequence is longer than ``window_auto_s``, the hardware chain is
+            affine and no image term is asked for (default); 'on' = always (an error when impossible);
+            'off' = never (the whole sequence in one piece: memory and time grow with its length).
         window_auto_s: sequence duration above which 'auto' windows, s.
         window_horizon_max_s: cap of the history / lookahead kept around each period, s (default: the
             hardware's memory, :func:`dtoc.hardware.memory.memory_s`, up to this cap).
@@ -112,7 +112,7 @@ class OptimizeConfig(BaseModel):
     seed: int = 0
     threads: int = Field(1, ge=1)
     checkpoint_every: int = Field(20, ge=1)
-    windowed: Literal["auto", "on", "off"] = "off"
+    windowed: Literal["auto", "on", "off"] = "auto"
     window_auto_s: float = Field(4.0, gt=0)
     window_horizon_max_s: float = Field(0.5, gt=0)
 

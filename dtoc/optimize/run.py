@@ -167,11 +167,12 @@ def quality(twin: EdgeTwin, imager: Imager | None, ctx, edges, keep_mask=None, p
     return out
 
 
-def _window_plan(ir, hardware, cfg: OptimizeConfig, free) -> dict | None:
-    """Whether to solve period by period (:mod:`dtoc.optimize.windowed`) and with which horizon; None = whole."""
+def _window_plan(ir, hardware, cfg: OptimizeConfig, free, with_image: bool | None) -> dict | None:
+    """Whether to solve period by period (:mod:`dtoc.optimize.windowed`) and with which horizon; None = whole.
+    'auto' windows a sequence longer than ``window_auto_s`` unless an image term is asked for."""
     from dtoc.hardware.memory import is_affine, memory_s
 
-    if cfg.windowed == "off" or (cfg.windowed == "auto" and ir.duration_s <= cfg.window_auto_s):
+    if cfg.windowed == "off" or (cfg.windowed == "auto" and (ir.duration_s <= cfg.window_auto_s or with_image)):
         return None
     why = None
     if cfg.method not in ("dto", "warmstart"):
@@ -411,7 +412,7 @@ def optimize_sequence(
     dtype = torch.float64
     twin = EdgeTwin(ir, hardware, projector, dtype=dtype, device=device)
     ctx = L.build_context(ir, limits, dtype=dtype, device=device)
-    window = _window_plan(ir, hardware, cfg, free)
+    window = _window_plan(ir, hardware, cfg, free, with_image)
     if window is not None:  # long sequence: period by period, k-space terms only
         if with_image:
             raise InputError(
