@@ -42,7 +42,10 @@ CORPUS = [  # name, description, writer call
     ("ute", "2D UTE-like centre-out half spokes", "ute()"),
     ("gre3d", "3D GRE 16x16x8 (slab)", "gre3d()"),
     ("multislice_labels", "3-slice GRE 16x16, LIN/SLC labels, soft delay", "gre_multislice_labels()"),
+    ("mprage", "3D MPRAGE-like 32x32x8, inversion + TI, 8 shots of 1 s (windowed)", "mprage(nz=8)"),
 ]
+#: members too long for the default test job (tests/test_foreign_corpus.py marks them slow)
+SLOW = {"mprage"}
 
 
 def write_corpus(d: Path, only) -> list[tuple[str, str, Path]]:
@@ -257,23 +260,23 @@ _NOTES = """
 ## Reading the table
 - Column "image": whether the file gets an image term (and NRMSE): a Cartesian grid inferred from the ADC k
   positions (iFFT), or a 2D non-Cartesian trajectory with a known FOV -- radial with a constant step (FOV = 2 pi /
-  step) or a FOV definition in the file, as the spiral writers set -- reconstructed by an exact non-uniform DFT
-  with Pipe-Menon density weights (`dtoc.sim.ndft`). No image: 3D, ramp-sampled and UTE readouts without a FOV
-  definition, and trajectories beyond the exact NDFT's size (the 3-shot spiral: 20868 samples x 50^2 pixels).
+  step) or a FOV definition in the file, as the spiral writers set -- reconstructed by a non-uniform DFT with
+  Pipe-Menon density weights on the nominal trajectory (`dtoc.sim.ndft`: exact up to 2e7 samples x pixels,
+  above that the same operator by finufft to 1e-10, `dtoc.sim.nufft`; the 3-shot spiral, 20868 samples x 50^2
+  pixels, is the case). No image: 3D, ramp-sampled and UTE readouts without a FOV definition.
 - `*`: no FOV at all, so the k unit is the readouts' sampling step (column dk): the 3D file's is 2 pi / FOV,
   the UTE's and the ramp-sampled EPI's are their mean steps.
 - The spirals are written close to the slew limit (127 of 130 T/m/s), which leaves the optimizer little room;
   that is physics, not a bug to tune away.
 - The slice axis is held (`k` after excitation set by the file), except when k is encoded along it (3D): then it
   is optimized outside RF. Soft-delay blocks are never given gradients (their duration changes on the scanner).
+- The MPRAGE-like file (7.9 s) is longer than `window_auto_s` (4 s): it is solved one excitation period at a
+  time (docs/optimize.md, "Long sequences"), k-space terms only; its k error is over the three encoded axes.
 
 ## What the table does not show yet (issue 16, open)
-- A gridding NUFFT for large non-Cartesian trajectories (the exact NDFT covers up to 2e7 samples x pixels), and
-  image terms for 3D and ramp-sampled files.
+- Image terms for 3D files (a 3D phantom) and for ramp-sampled and UTE readouts without a FOV definition.
 - Multi-slice files: the grid is inferred over all slices together (the same k-space per slice); the image term sees
   one representative object. 3D files have no image term.
-- Long sequences (MPRAGE, multi-slice TSE at 10^4-10^6 blocks) are not windowed yet: cost grows with the whole
-  sequence.
 - The official Pulseq C++ reader has not been built against these outputs yet; pypulseq's reader and
   `check_timing` are.
 """

@@ -67,7 +67,11 @@ def main(argv=None) -> None:
     ap.add_argument("--durations", type=float, nargs="+", default=[1, 4, 16, 64, 300])
     ap.add_argument("--whole-up-to", type=float, default=4.0)
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--horizons", type=float, nargs="*", default=None, help="instead: the error of a capped horizon, s")
+    ap.add_argument("--horizon-duration", type=float, default=4.0)
     a = ap.parse_args(argv)
+    if a.horizons:
+        return horizons(a.horizons, a.horizon_duration, a.no_write)
     sys.path.insert(0, str(REPO))
     from bench.foreign import corpus_girf
     from tests.foreign.writers import mprage
@@ -112,6 +116,54 @@ def main(argv=None) -> None:
         from bench._report import write_section
 
         write_section("long", "Long sequences: windowed optimize vs duration", text, "python -m bench.long")
+
+
+def horizons(caps: list[float], duration: float, no_write: bool) -> None:
+    """k error of the windowed solve when its history/lookahead is capped below the hardware's memory."""
+    sys.path.insert(0, str(REPO))
+    from bench.foreign import corpus_girf
+    from tests.foreign.writers import mprage
+
+    rows = []
+    with tempfile.TemporaryDirectory() as td:
+        d = Path(td)
+        girf = corpus_girf(d, None)
+        if girf is None:
+            raise SystemExit("the KCL 2024 GIRF is absent (../shared/data)")
+        base = d / "mprage.seq"
+        base.write_bytes(mprage(shots=int(round(duration))))
+        for cap in caps:
+            cfg = d / f"h{cap:g}.yaml"
+            cfg.write_text(f'windowed: "on"\nwindow_horizon_max_s: {cap!r}\n')
+            out, man = d / f"h{cap:g}.seq", d / f"h{cap:g}.json"
+            argv = ["optimize", str(base), "--girf", str(girf), "--gmax", "32", "--smax", "130", "-o", str(out)]
+            wall, cpu, rss, code = _run(argv + ["--json", str(man), "--config", str(cfg), "--force"])
+            m = json.loads(man.read_text())
+            rows.append(
+                {"cap_s": cap, "horizon_s": m["windowed"]["horizon_s"], "lookahead_s": m["windowed"]["lookahead_s"],
+                 "memory_s": m["windowed"]["memory_s"], "wall_s": wall, "k_after_dk": _k_err_dk(out, base, girf)}
+            )  # fmt: skip
+            print(json.dumps(rows[-1]), flush=True)
+    mem = rows[0]["memory_s"]
+    text = (
+        f"The same MPRAGE-like sequence ({duration:g} s), KCL GIRF (memory {mem[0] * 1e3:.3g} ms causal / "
+        f"{mem[1] * 1e3:.3g} ms acausal), windowed with history and lookahead capped at "
+        "`window_horizon_max_s`; k after: the output played through the whole model (all taps), as above.\n\n"
+        "| cap (ms) | history (ms) | lookahead (ms) | k after (dk) | wall (s) |\n|---|---|---|---|---|\n"
+        + "\n".join(
+            f"| {r['cap_s'] * 1e3:g} | {r['horizon_s'] * 1e3:.3g} | {r['lookahead_s'] * 1e3:.3g} | "
+            f"{r['k_after_dk']:.3g} | {r['wall_s']:.1f} |"
+            for r in rows
+        )
+        + "\n"
+    )
+    print(text)
+    if not no_write:
+        from bench._report import write_section
+
+        write_section(
+            "long_horizon", "Long sequences: the error of the horizon", text, "python -m bench.long --horizons ..."
+        )
 
 
 def render(rows: list[dict], hw: str) -> str:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from bench.foreign import CORPUS, GMAX, SMAX, corpus_girf, run_one, write_corpus
+from bench.foreign import CORPUS, GMAX, SLOW, SMAX, corpus_girf, run_one, write_corpus
 
 
 @pytest.fixture(scope="module")
@@ -14,13 +14,13 @@ def corpus(tmp_path_factory, shared_data):
     girf = corpus_girf(d, None)
     if girf is None:
         pytest.skip("the KCL 2024 GIRF is absent")
-    return d, girf, {name: (desc, p) for name, desc, p in write_corpus(d, None)}
+    return d, girf
 
 
-@pytest.mark.parametrize("name", [c[0] for c in CORPUS])
+@pytest.mark.parametrize("name", [pytest.param(c[0], marks=pytest.mark.slow) if c[0] in SLOW else c[0] for c in CORPUS])
 def test_foreign_file_end_to_end(corpus, name):
-    d, girf, files = corpus
-    desc, seq = files[name]
+    d, girf = corpus
+    ((_, desc, seq),) = write_corpus(d, [name])
     r = run_one(name, desc, seq, girf, d)
     assert "error" not in r, r.get("error")
     assert r["base_check_ok"] and r["predict_ok"]
