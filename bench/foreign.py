@@ -263,20 +263,25 @@ _NOTES = """
   step) or a FOV definition in the file, as the spiral writers set -- reconstructed by a non-uniform DFT with
   Pipe-Menon density weights on the nominal trajectory (`dtoc.sim.ndft`: exact up to 2e7 samples x pixels,
   above that the same operator by finufft to 1e-10, `dtoc.sim.nufft`; the 3-shot spiral, 20868 samples x 50^2
-  pixels, is the case). No image: 3D, ramp-sampled and UTE readouts without a FOV definition.
-- `*`: no FOV at all, so the k unit is the readouts' sampling step (column dk): the 3D file's is 2 pi / FOV,
-  the UTE's and the ramp-sampled EPI's are their mean steps.
+  pixels, and the UTE are the cases). Ramp-sampled readouts without a FOV definition: straight Cartesian lines
+  (the ramp-sampled EPI) get FOV 2 pi / (the readout's mean step, the phase step) and N = samples per line x
+  phase lines; straight radial spokes with ramps (the UTE) get FOV 2 pi / the flat-top step (the sampled,
+  oversampled FOV); in both the non-uniform DFT regrids the ramp samples. No image: 3D.
+- `*`: no image grid, so the k unit is the readouts' sampling step (column dk; the 3D files' is 2 pi / FOV).
 - The spirals are written close to the slew limit (127 of 130 T/m/s), which leaves the optimizer little room;
   that is physics, not a bug to tune away.
 - The slice axis is held (`k` after excitation set by the file), except when k is encoded along it (3D): then it
   is optimized outside RF. Soft-delay blocks are never given gradients (their duration changes on the scanner).
+- Multi-slice files: the representative is the slices' average. The slices share one in-plane encoding (only
+  the RF frequency and the slice labels differ), so the grid is inferred over all slices together and the image
+  term reconstructs one 2D object from every slice's samples, averaged per grid point: each slice's trajectory
+  error enters the image with equal weight, and the k-space term scores every sample of every slice on its own.
+  A per-slice image would need a per-slice object, which the built-in phantom does not have.
 - The MPRAGE-like file (7.9 s) is longer than `window_auto_s` (4 s): it is solved one excitation period at a
   time (docs/optimize.md, "Long sequences"), k-space terms only; its k error is over the three encoded axes.
 
 ## What the table does not show yet (issue 16, open)
-- Image terms for 3D files (a 3D phantom) and for ramp-sampled and UTE readouts without a FOV definition.
-- Multi-slice files: the grid is inferred over all slices together (the same k-space per slice); the image term sees
-  one representative object. 3D files have no image term.
+- Image terms for 3D files (a 3D phantom and a 3D reconstruction).
 - The official Pulseq C++ reader has not been built against these outputs yet; pypulseq's reader and
   `check_timing` are.
 """

@@ -69,3 +69,46 @@ def test_large_trajectory_image_goes_through_the_nufft(monkeypatch):
     approx = ndft.ndft_image(s, ir)
     assert calls  # the gridded path ran
     np.testing.assert_allclose(approx.numpy(), exact.numpy(), rtol=0, atol=1e-8 * float(exact.abs().max()))
+
+
+def _ramp_lines(n_lines: int, n_s: int, dk_y: float, kx_max: float, ro: int = 0) -> tuple[np.ndarray, list[int]]:
+    """EPI-like lines, alternating direction, samples dense on the ramps (sin-spaced) along axis ``ro``."""
+    u = np.sin(np.linspace(-np.pi / 2, np.pi / 2, n_s))  # non-uniform, monotonic
+    k = np.zeros((3, n_lines * n_s))
+    for i in range(n_lines):
+        sl = slice(i * n_s, (i + 1) * n_s)
+        k[ro, sl] = kx_max * (u if i % 2 == 0 else -u)
+        k[1 - ro, sl] = (i - n_lines // 2) * dk_y
+    return k, [n_s] * n_lines
+
+
+@pytest.mark.parametrize("ro", [0, 1])
+def test_line_cartesian_reads_ramp_sampled_readouts(ro):
+    from dtoc.seq.geometry import line_cartesian, radial_like_step
+
+    k, sizes = _ramp_lines(24, 30, 2 * np.pi / 0.2, 2 * np.pi / 0.25 * 15)
+    if ro:
+        k = k[[1, 0, 2]]
+    got = line_cartesian(k, sizes)
+    assert got is not None
+    a, b, s_ro, s_pe, n_ro, n_pe = got
+    assert (a, b) == (ro, 1 - ro)
+    assert s_pe == pytest.approx(2 * np.pi / 0.2, rel=1e-9)
+    assert s_ro == pytest.approx(2 * (2 * np.pi / 0.25 * 15) / 29, rel=1e-9)  # span / (samples - 1)
+    assert (n_ro, n_pe) == (30, 24)
+    assert radial_like_step(k, sizes) is None  # not a constant step: the radial rule does not apply
+    spiral = np.vstack([_spiral(900, 300.0), np.zeros((1, 900))])
+    assert line_cartesian(spiral, [300, 300, 300]) is None
+    k[1 - ro, 5] += 1.0  # the phase coordinate moves inside a readout: not line-Cartesian
+    assert line_cartesian(k, sizes) is None
+
+
+def test_radial_flat_top_step_with_ramp_sampling():
+    from dtoc.seq.geometry import radial_like_step
+
+    r = np.concatenate([[0.0], np.cumsum(np.linspace(0.2, 2.0, 10)), 11 + np.arange(1, 21) * 2.0])  # ramp, then 2
+    ang = np.linspace(0, np.pi, 8, endpoint=False)
+    k = np.concatenate([np.stack([r * np.cos(t), r * np.sin(t), 0 * r]) for t in ang], axis=1)
+    sizes = [r.size] * ang.size
+    assert radial_like_step(k, sizes) is None
+    assert radial_like_step(k, sizes, constant=False) == pytest.approx(2.0, rel=1e-9)

@@ -293,7 +293,7 @@ def windowed_warm_start(
         x_p[fr] = x_sub[fr] + d
         if P.is_feasible(x_p[:, rs]):
             st.direct += 1
-        else:  # a limit is active: the same quadratic within the limits (ADMM on the cached factor)
+        else:  # a limit is active: the same quadratic within the limits (ADMM, matrices cached per structure)
             x_p[:, rs], its = _admm(c, grad0, P, fr_r, x_sub[:, rs])
             st.admm_iters += its
         if _quadratic(c, r0d, r0r, x_p[fr] - x_sub[fr]) > float(r0n @ r0n):  # never worse than unchanged
@@ -385,7 +385,8 @@ def _admm(
 ) -> tuple[np.ndarray, int]:
     """min 1/2 d^T H d + grad0^T d over the free edges with ``xb + d`` within ``P``'s limits (box ``lo..hi``,
     ``|x[n+1] - x[n]| <= step`` on free pairs), by ADMM (over-relaxed, OSQP's splitting) with the normal
-    matrix ``H + rho A^T A`` factored once per structure; the result goes through ``P.project`` (exact)."""
+    matrix ``H + rho A^T A`` inverted once per structure (again when rho is rebalanced), warm-started from the
+    last window of the structure; the result goes through ``P.project`` (exact).  Returns (edges, iterations)."""
     idx = np.flatnonzero(fr.ravel())
     n = idx.size
     col = np.full(fr.size, -1, dtype=np.int64)

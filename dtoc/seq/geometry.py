@@ -251,9 +251,11 @@ def sampling_step_dk(k0_rad_per_m, adc_sizes) -> float | None:
     return float(np.median(steps)) if steps else None
 
 
-def radial_like_step(k0_rad_per_m, adc_sizes) -> float | None:
+def radial_like_step(k0_rad_per_m, adc_sizes, constant: bool = True) -> float | None:
     """The sampling step when every readout runs along a straight line through k-space with a constant step
-    (radial, UTE: then 2 pi / step is the FOV); None otherwise (spiral, ...)."""
+    (radial, UTE: then 2 pi / step is the FOV); None otherwise (spiral, ...).  ``constant=False``: the step
+    may vary along the line (ramp sampling); the largest step of each line (its flat top), the same for every
+    line, is returned."""
     import numpy as np
 
     k = np.asarray(k0_rad_per_m, dtype=np.float64)[:2]
@@ -269,9 +271,50 @@ def radial_like_step(k0_rad_per_m, adc_sizes) -> float | None:
         u = d / np.maximum(nrm, 1e-30)
         if np.max(np.abs(u[0] * u[0, 0] + u[1] * u[1, 0] - 1)) > 1e-3:  # not straight
             return None
-        if np.ptp(nrm) > 1e-3 * nrm.mean():  # not a constant step
+        if constant and np.ptp(nrm) > 1e-3 * nrm.mean():  # not a constant step
             return None
-        steps.append(float(nrm.mean()))
+        steps.append(float(nrm.mean() if constant else nrm.max()))
     if not steps or np.ptp(steps) > 1e-3 * np.mean(steps):
         return None
     return float(np.mean(steps))
+
+
+def line_cartesian(k0_rad_per_m, adc_sizes) -> tuple[int, int, float, float, int, int] | None:
+    """Readouts that are straight lines along one in-plane axis at phase positions on a uniform grid, with a
+    non-uniform step along the line (ramp sampling): ``(readout_axis, phase_axis, step_readout, step_phase)``,
+    rad/m, the readout step being the mean over each line (its span / (samples - 1), the median line), and
+    ``(n_readout, n_phase)``: the median samples per line and the number of phase grid points spanned; None
+    otherwise.  The non-uniform DFT then regrids the ramp samples (:mod:`dtoc.sim.ndft`)."""
+    import numpy as np
+
+    k = np.asarray(k0_rad_per_m, dtype=np.float64)[:2]
+    edges = np.cumsum([0, *adc_sizes])
+    scale = max(float(np.abs(k).max()), 1e-12)
+    for ro in (0, 1):
+        pe = 1 - ro
+        pos, steps, counts, ok = [], [], [], True
+        for s, e in zip(edges[:-1], edges[1:]):
+            if e - s < 3:
+                continue
+            if np.ptp(k[pe, s:e]) > 1e-6 * scale:  # the phase coordinate moves within the readout
+                ok = False
+                break
+            d = np.diff(k[ro, s:e])
+            if not (np.all(d > 0) or np.all(d < 0)):
+                ok = False
+                break
+            pos.append(float(k[pe, s]))
+            steps.append(float(np.abs(d).sum()) / (e - s - 1))
+            counts.append(e - s)
+        if not ok or len(pos) < 2:
+            continue
+        p = np.sort(np.asarray(pos))
+        p = p[np.concatenate([[True], np.diff(p) > 1e-6 * scale])]  # distinct line positions
+        dp = np.diff(p)
+        step0 = float(dp.min()) if dp.size else 0.0
+        if step0 <= 0 or np.max(np.abs(dp / step0 - np.rint(dp / step0))) > 1e-3:
+            continue
+        n_pe = int(round(float(p[-1] - p[0]) / step0)) + 1
+        step_pe = float(p[-1] - p[0]) / (n_pe - 1)
+        return ro, pe, float(np.median(steps)), step_pe, int(np.median(counts)), n_pe
+    return None

@@ -51,8 +51,8 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
         _note_kind(ir, notes)
         if not _non_cartesian_image_grid(ir, k0, notes):
             notes.append(
-                "no FOV/matrix definitions and the ADC samples are not on a 2D Cartesian grid, nor radial with a "
-                "constant step, nor with a FOV definition (3D, spiral without FOV, ramp-sampled): k-space figures only, no image"
+                "no FOV/matrix definitions and the ADC samples are not on a 2D Cartesian grid, nor on straight radial "
+                "or Cartesian lines, nor with a FOV definition (3D, spiral without FOV): k-space figures only, no image"
             )
         return
     ir.fov_m = g.fov_m
@@ -80,10 +80,17 @@ def _non_cartesian_image_grid(ir: SequenceIR, k, notes: list) -> bool:
     if ir.fov_m is not None and ir.fov_m[0] > 0 and ir.fov_m[1] > 0:
         fov, src = float(min(ir.fov_m[0], ir.fov_m[1])), "the file's FOV definition"
     else:
-        step = radial_like_step(k, [a.num_samples for a in ir.adc])
-        if step is None:
-            return False
-        fov, src = 2 * math.pi / step, "2 pi / the radial sampling step"
+        sizes = [a.num_samples for a in ir.adc]
+        step = radial_like_step(k, sizes)
+        if step is not None:
+            fov, src = 2 * math.pi / step, "2 pi / the radial sampling step"
+        elif _line_cartesian_image_grid(ir, k, notes):
+            return True
+        else:
+            step = radial_like_step(k, sizes, constant=False)  # radial/UTE with ramp sampling
+            if step is None:
+                return False
+            fov, src = 2 * math.pi / step, "2 pi / the radial flat-top step; ramp samples regridded"
     kmax = float(np.max(np.hypot(k[0], k[1])))
     n = 2 * max(int(math.ceil(kmax * fov / (2 * math.pi) - 1e-6)), 4)
     from dtoc.sim import nufft
@@ -103,6 +110,33 @@ def _non_cartesian_image_grid(ir: SequenceIR, k, notes: list) -> bool:
     notes.append(
         f"non-Cartesian 2D: images by a non-uniform DFT on the nominal trajectory "
         f"({'exact' if exact else 'gridding NUFFT, finufft'}), {n} x {n} over {1e3 * fov:.4g} mm ({src})"
+    )
+    return True
+
+
+def _line_cartesian_image_grid(ir: SequenceIR, k, notes: list) -> bool:
+    """Ramp-sampled Cartesian readouts (:func:`dtoc.seq.geometry.line_cartesian`): FOV 2 pi / step per axis (the
+    readout's mean step), N the samples per readout and the phase lines spanned, images by the non-uniform
+    DFT (the ramp samples regridded).  True when set."""
+    import math
+
+    from dtoc.seq.geometry import line_cartesian
+
+    lc = line_cartesian(k, [a.num_samples for a in ir.adc])
+    if lc is None:
+        return False
+    ro, pe, s_ro, s_pe, n_ro, n_pe = lc
+    fov = [0.0, 0.0, 0.0]
+    fov[ro], fov[pe] = 2 * math.pi / s_ro, 2 * math.pi / s_pe
+    n = [n_ro, n_pe]
+    ir.fov_m = (fov[0], fov[1], 0.0)
+    ir.matrix = (n[0], n[1])
+    ir.readout_axis, ir.phase_axis = ro, pe
+    ir.meta["recon"] = "ndft"
+    notes.append(
+        f"ramp-sampled Cartesian readouts along {'xy'[ro]}: images by a non-uniform DFT on the nominal trajectory "
+        f"(ramp samples regridded), {n[0]} (readout) x {n[1]} (phase) over {1e3 * fov[ro]:.4g} x {1e3 * fov[pe]:.4g} "
+        f"mm (2 pi / the readout's mean step, 2 pi / the phase step)"
     )
     return True
 
