@@ -194,7 +194,30 @@ def render(rows: list[dict], hw: str) -> str:
                 f"{x['rss_gb']:.2f} | {x['k_before_dk']:.3g} | {x['k_after_dk']:.3g} | {nw} | "
                 f"{w.get('distinct_structures', '-')} | {t.get('jacobian', '-')} | {t.get('solve', '-')} |"
             )
-    return head + "\n".join(lines) + "\n"
+    return head + "\n".join(lines) + "\n" + _ratios(rows)
+
+
+def _ratios(rows: list[dict]) -> str:
+    """Side-by-side ratios: whole / windowed wall time per duration, and each solve's growth between durations."""
+    ok = [r for r in rows if r.get("on", {}).get("code") == 0]
+    vs = [
+        f"{r['off']['wall_s'] / r['on']['wall_s']:.1f}x at {r['duration_s']:g} s"
+        for r in ok
+        if r.get("off", {}).get("code") == 0
+    ]
+    out = []
+    if vs:
+        out.append("Whole / windowed wall time: " + ", ".join(vs) + ".")
+    for mode, name in (("on", "windowed"), ("off", "whole")):
+        rr = [r for r in rows if r.get(mode, {}).get("code") == 0]
+        g = [
+            f"{b['duration_s'] / a['duration_s']:g}x duration -> {b[mode]['wall_s'] / a[mode]['wall_s']:.2f}x wall, "
+            f"{b[mode]['rss_gb'] / a[mode]['rss_gb']:.2f}x peak RSS ({a['duration_s']:g} -> {b['duration_s']:g} s)"
+            for a, b in zip(rr[:-1], rr[1:])
+        ]
+        if g:
+            out.append(f"{name.capitalize()} growth: " + "; ".join(g) + ".")
+    return ("\n" + "\n\n".join(out) + "\n") if out else ""
 
 
 if __name__ == "__main__":
