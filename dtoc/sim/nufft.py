@@ -81,13 +81,13 @@ def plan(k_xy: np.ndarray, k_key: bytes, shape, fov_xy, keep: np.ndarray, real: 
 
 class _WeightedAdjoint(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, s: torch.Tensor, p: _Plan) -> torch.Tensor:  # type: ignore[override]
+    def forward(ctx, s: torch.Tensor, p: _Plan) -> torch.Tensor:
         ctx.p = p
         out = p.adjoint(s.detach().cpu().numpy() * p.w)
         return torch.as_tensor(out, device=s.device)
 
     @staticmethod
-    def backward(ctx, g: torch.Tensor):  # type: ignore[override]
+    def backward(ctx, g: torch.Tensor):
         p = ctx.p
         gs = p.forward(g.detach().cpu().numpy()) * p.w
         return torch.as_tensor(gs, device=g.device), None
