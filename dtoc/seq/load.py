@@ -93,23 +93,13 @@ def _non_cartesian_image_grid(ir: SequenceIR, k, notes: list) -> bool:
             fov, src = 2 * math.pi / step, "2 pi / the radial flat-top step; ramp samples regridded"
     kmax = float(np.max(np.hypot(k[0], k[1])))
     n = 2 * max(int(math.ceil(kmax * fov / (2 * math.pi) - 1e-6)), 4)
-    from dtoc.sim import nufft
-    from dtoc.sim.ndft import EXACT_MAX_ENTRIES
-
-    exact = ir.n_adc_samples * n * n <= EXACT_MAX_ENTRIES
-    if not exact and not nufft.available():
-        notes.append(
-            f"non-Cartesian 2D, {ir.n_adc_samples} samples on a {n} x {n} image: beyond the exact non-uniform DFT's "
-            f"size ({EXACT_MAX_ENTRIES:.0e} matrix entries) and finufft is not installed; k-space figures only"
-        )
-        return True
     ir.fov_m = (fov, fov, 0.0)
     ir.matrix = (n, n)
     ir.readout_axis, ir.phase_axis = 0, 1
     ir.meta["recon"] = "ndft"
     notes.append(
-        f"non-Cartesian 2D: images by a non-uniform DFT on the nominal trajectory "
-        f"({'exact' if exact else 'gridding NUFFT, finufft'}), {n} x {n} over {1e3 * fov:.4g} mm ({src})"
+        f"non-Cartesian 2D: images by a non-uniform DFT on the nominal trajectory, {n} x {n} over "
+        f"{1e3 * fov:.4g} mm ({src})"
     )
     return True
 
