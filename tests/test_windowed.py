@@ -93,8 +93,7 @@ def solved():
         lim,
         free,
         cfg.weights,
-        ctx.dk_rad_per_m.numpy(),
-        ctx.rf_mask.numpy(),
+        ctx,
         horizon_s=causal,
         lookahead_s=acausal,
     )

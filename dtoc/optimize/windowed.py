@@ -43,6 +43,7 @@ import torch
 
 from dtoc.optimize import window_jacobian as WJ
 from dtoc.optimize.limits import EdgeProjector, Limits, edges_to_played, fine_free_mask
+from dtoc.optimize.loss import LossContext
 from dtoc.seq.ir import SequenceIR, edges_to_fine
 from dtoc.seq.kspace import kspace_at
 
@@ -154,11 +155,12 @@ def period_free_counts(ir: SequenceIR, free: np.ndarray, pad_s: float = PAD_S) -
 class _Scales:
     """Per-term residual weights with the whole sequence's normalisation (see loss.py)."""
 
-    def __init__(self, ir: SequenceIR, weights, dk: np.ndarray, rf_mask_full: np.ndarray):
+    def __init__(self, ir: SequenceIR, weights, ctx: LossContext):
         n_adc = max(ir.n_adc_samples, 1)
         n_mom = max(len(ir.rf) - 1, 1)
-        n_rf = max(int(rf_mask_full.sum()), 1)
-        gref = float(np.abs(ir.grad_mT_per_m).max()) or 1.0
+        n_rf = max(int(ctx.rf_mask.sum()), 1)
+        gref = ctx.g_ref_mT_per_m
+        dk = ctx.dk_rad_per_m.cpu().numpy().astype(np.float64)
         inv = np.where(np.isfinite(dk), 1.0 / dk, 0.0)
         self.k = math.sqrt(weights.kspace / n_adc) * inv
         self.m = math.sqrt(weights.moment / n_mom) * inv
@@ -173,8 +175,7 @@ def windowed_warm_start(
     limits: Limits,
     free: np.ndarray,
     weights,
-    dk_rad_per_m: np.ndarray,
-    rf_mask_full: np.ndarray,
+    ctx: LossContext,
     *,
     horizon_s: float,
     lookahead_s: float,
@@ -189,7 +190,8 @@ def windowed_warm_start(
         ir: the base sequence; hardware: an affine chain (:func:`dtoc.hardware.memory.is_affine`).
         free: (3, N+1) optimizable edges (as :func:`dtoc.optimize.run.free_edges`).
         weights: :class:`~dtoc.optimize.config.LossWeights` (image, amplitude, slew ignored).
-        dk_rad_per_m: (3,) k unit per axis (inf: axis not scored); rf_mask_full: (2N+1,) RF samples.
+        ctx: the run's :class:`~dtoc.optimize.loss.LossContext` (nominal k at the ADC samples and before
+            the RF pulses, k unit per axis, RF samples, gradient normalisation).
         horizon_s / lookahead_s: history kept before / base waveform kept after each core.
     Returns:
         (3, N+1) edges within the limits, and :class:`WindowStats`.
@@ -203,12 +205,16 @@ def windowed_warm_start(
     windows = plan_windows(ir, horizon_s, lookahead_s)
     st.windows = len(windows)
     dtf = ir.dt_fine_s
-    sc = _Scales(ir, weights, np.asarray(dk_rad_per_m, dtype=np.float64), rf_mask_full)
+    sc = _Scales(ir, weights, ctx)
     base_fine = np.asarray(ir.grad_mT_per_m, dtype=np.float64)
-    k0_full = ir.nominal_kspace_rad_per_m()
+    k0_full = ctx.k0_rad_per_m.cpu().numpy()
     adc_start = np.concatenate([[0], np.cumsum([a.num_samples for a in ir.adc])]).astype(int)
     t_mom_all = np.array([r.t_center_s - 1e-9 for r in ir.rf])
-    m0_full = ir.kspace_rad_per_m(times_s=t_mom_all).numpy() if len(ir.rf) else np.zeros((3, 0))
+    # the nominal moment before pulse i is the context's column i - 1 (the first pulse has no moment term)
+    m0_ctx = ctx.k0_moment_rad_per_m
+    m0_full = np.zeros((3, len(ir.rf)))
+    if m0_ctx is not None:
+        m0_full[:, 1:] = m0_ctx.cpu().numpy()
     free = free & active_edges(ir, pad_s)[None, :]
     edges = np.array(ir.edge_grad_mT_per_m, dtype=np.float64)  # committed as we go
     played = base_fine.copy()
@@ -346,8 +352,8 @@ def _structure_key(*parts) -> str:
 
 
 def _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, device) -> dict:
-    """The structure's Jacobian J (dense rows), change-penalty rows S (sparse) and the Cholesky factor of
-    the normal matrix ``J^T J + S^T S`` (:mod:`dtoc.optimize.window_jacobian`)."""
+    """The structure's Jacobian J (dense rows, :mod:`dtoc.optimize.window_jacobian`), change-penalty rows S
+    (sparse), the normal matrix ``J^T J + S^T S`` and its inverse."""
     R = WJ.impulse_responses(hardware, dtf, fmask.shape[1], dtype, device)
     J = WJ.lti_jacobian(R, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc.k_axes, sc.k, sc.m, sc.rf)
     S = WJ.reg_rows(fr, fmask, sc.reg)
@@ -423,9 +429,9 @@ def _admm(
     it = refactor = 0
     for it in range(1, max_iter + 1):
         d = Kinv @ (-grad0 + A.T @ (rho * z - y))
-        Ad = alpha * (A @ d) + (1 - alpha) * z
-        z_new = np.clip(Ad + y / rho, l, u)
-        y = y + rho * (Ad - z_new)
+        Ad_relaxed = alpha * (A @ d) + (1 - alpha) * z
+        z_new = np.clip(Ad_relaxed + y / rho, l, u)
+        y = y + rho * (Ad_relaxed - z_new)
         dz = z_new - z
         z = z_new
         if it % 10 == 0:
