@@ -9,8 +9,6 @@ import torch
 
 from dtoc.sim import ndft, nufft
 
-pytestmark = pytest.mark.skipif(not nufft.available(), reason="finufft not installed")
-
 
 def _spiral(m: int, kmax: float, turns: float = 8.0, shots: int = 3) -> np.ndarray:
     t = np.linspace(0, 1, m // shots)

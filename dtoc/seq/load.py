@@ -93,15 +93,21 @@ def _non_cartesian_image_grid(ir: SequenceIR, k, notes: list) -> bool:
             fov, src = 2 * math.pi / step, "2 pi / the radial flat-top step; ramp samples regridded"
     kmax = float(np.max(np.hypot(k[0], k[1])))
     n = 2 * max(int(math.ceil(kmax * fov / (2 * math.pi) - 1e-6)), 4)
-    ir.fov_m = (fov, fov, 0.0)
-    ir.matrix = (n, n)
-    ir.readout_axis, ir.phase_axis = 0, 1
-    ir.meta["recon"] = "ndft"
-    notes.append(
+    _set_ndft_grid(
+        ir, (fov, fov, 0.0), (n, n), 0, 1, notes,
         f"non-Cartesian 2D: images by a non-uniform DFT on the nominal trajectory, {n} x {n} over "
-        f"{1e3 * fov:.4g} mm ({src})"
-    )
+        f"{1e3 * fov:.4g} mm ({src})",
+    )  # fmt: skip
     return True
+
+
+def _set_ndft_grid(ir: SequenceIR, fov_m, matrix, readout_axis: int, phase_axis: int, notes: list, note: str):
+    """Give ``ir`` the image grid of the non-uniform DFT reconstruction (:mod:`dtoc.sim.ndft`), with its note."""
+    ir.fov_m = fov_m
+    ir.matrix = matrix
+    ir.readout_axis, ir.phase_axis = readout_axis, phase_axis
+    ir.meta["recon"] = "ndft"
+    notes.append(note)
 
 
 def _line_cartesian_image_grid(ir: SequenceIR, k, notes: list) -> bool:
@@ -118,16 +124,12 @@ def _line_cartesian_image_grid(ir: SequenceIR, k, notes: list) -> bool:
     ro, pe, s_ro, s_pe, n_ro, n_pe = lc
     fov = [0.0, 0.0, 0.0]
     fov[ro], fov[pe] = 2 * math.pi / s_ro, 2 * math.pi / s_pe
-    n = [n_ro, n_pe]
-    ir.fov_m = (fov[0], fov[1], 0.0)
-    ir.matrix = (n[0], n[1])
-    ir.readout_axis, ir.phase_axis = ro, pe
-    ir.meta["recon"] = "ndft"
-    notes.append(
+    _set_ndft_grid(
+        ir, (fov[0], fov[1], 0.0), (n_ro, n_pe), ro, pe, notes,
         f"ramp-sampled Cartesian readouts along {'xy'[ro]}: images by a non-uniform DFT on the nominal trajectory "
-        f"(ramp samples regridded), {n[0]} (readout) x {n[1]} (phase) over {1e3 * fov[ro]:.4g} x {1e3 * fov[pe]:.4g} "
-        f"mm (2 pi / the readout's mean step, 2 pi / the phase step)"
-    )
+        f"(ramp samples regridded), {n_ro} (readout) x {n_pe} (phase) over {1e3 * fov[ro]:.4g} x "
+        f"{1e3 * fov[pe]:.4g} mm (2 pi / the readout's mean step, 2 pi / the phase step)",
+    )  # fmt: skip
     return True
 
 

@@ -71,12 +71,11 @@ def ndft_image(signal, ir, keep_mask=None) -> torch.Tensor:
     n = k_xy.shape[1]
     keep = np.ones(n, dtype=bool) if keep_mask is None else np.asarray(torch.as_tensor(keep_mask).cpu(), dtype=bool)
     real = torch.float64 if s.dtype in (torch.complex128, torch.float64) else torch.float32
+    cplx = torch.complex128 if real == torch.float64 else torch.complex64
+    sk = s[..., torch.as_tensor(np.flatnonzero(keep), device=s.device)].to(cplx)
     if int(keep.sum()) * ny * nx > EXACT_MAX_ENTRIES:  # the same operator by a gridding NUFFT (dtoc.sim.nufft)
         from dtoc.sim import nufft
 
-        p = nufft.plan(k_xy, k_key, (ny, nx), geo.fov_xy_m, keep, real)
-        cd = torch.complex128 if real == torch.float64 else torch.complex64
-        return nufft.nufft_image(s[..., torch.as_tensor(np.flatnonzero(keep), device=s.device)].to(cd), p)
+        return nufft.nufft_image(sk, nufft.plan(k_xy, k_key, (ny, nx), geo.fov_xy_m, keep, real))
     EH = _operator(k_xy, k_key, (ny, nx), geo.fov_xy_m, keep, real, s.device)
-    sk = s[..., torch.as_tensor(np.flatnonzero(keep), device=s.device)].to(EH.dtype)
     return (sk @ EH.T).reshape(*s.shape[:-1], ny, nx)

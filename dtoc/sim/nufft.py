@@ -21,15 +21,6 @@ EPS = {torch.float64: 1e-10, torch.float32: 1e-6}
 _CACHE: dict = {}
 
 
-def available() -> bool:
-    """True when finufft can be imported (a dependency of dtoc; False only in a broken install)."""
-    try:
-        import finufft  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 class _Plan:
     """Coordinates, density weights and precision of one (trajectory, grid, sample mask)."""
 
