@@ -27,14 +27,13 @@ REPO = Path(__file__).resolve().parents[1]
 def _run(argv: list[str]) -> tuple[float, float, float, int]:
     """(wall s, CPU s, peak RSS GB, exit code) of one ``python -m dtoc`` process."""
     t0 = time.time()
-    p = subprocess.Popen(
-        [sys.executable, "-m", "dtoc", *argv], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
-    )
-    _, status, ru = os.wait4(p.pid, 0)
-    p.returncode = os.waitstatus_to_exitcode(status)
-    err = p.stderr.read().decode() if p.stderr else ""
-    if p.returncode:
-        sys.stderr.write(err[-2000:])
+    with tempfile.TemporaryFile() as errf:  # a file, not a pipe: a long run's progress lines cannot block it
+        p = subprocess.Popen([sys.executable, "-m", "dtoc", *argv], cwd=REPO, stdout=subprocess.DEVNULL, stderr=errf)
+        _, status, ru = os.wait4(p.pid, 0)
+        p.returncode = os.waitstatus_to_exitcode(status)
+        if p.returncode:
+            errf.seek(0)
+            sys.stderr.write(errf.read().decode(errors="replace")[-2000:])
     return time.time() - t0, ru.ru_utime + ru.ru_stime, ru.ru_maxrss / 1e6, p.returncode
 
 

@@ -203,7 +203,8 @@ def worker(seq_path: str, phantom_path: str, out_json: str, repeats: int, dtype:
 def _run_limited(cmd: list[str], mem_limit_mb: float, timeout_s: float) -> dict:
     """Run ``cmd``; poll its RSS; kill it above the memory limit or after the timeout."""
     t0 = time.perf_counter()
-    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=REPO)
+    errf = tempfile.TemporaryFile()  # a file, not a pipe: the child cannot block on a full pipe while polled
+    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=errf, cwd=REPO)
     peak = 0.0
     why = None
     while p.poll() is None:
@@ -221,7 +222,9 @@ def _run_limited(cmd: list[str], mem_limit_mb: float, timeout_s: float) -> dict:
             why = f"killed after {timeout_s:.0f} s"
             p.kill()
         time.sleep(0.05)
-    err = p.stderr.read().decode(errors="replace") if p.stderr else ""
+    errf.seek(0)
+    err = errf.read().decode(errors="replace")
+    errf.close()
     return {"returncode": p.returncode, "killed": why, "polled_peak_rss_mb": peak, "stderr_tail": err[-400:]}
 
 
