@@ -8,6 +8,21 @@ from dtoc.util.atomic import atomic_write_bytes
 from dtoc.util.figures import png_bytes
 
 
+def plotted_span(ir) -> tuple[int, float]:
+    """The report's waveform panel: (number of fine samples from t = 0, end time s) -- the first ~3 ADC windows
+    (the first ~5 readouts of an EPI), or the whole sequence when it has no more than 3."""
+    t_end = ir.duration_s
+    if len(ir.adc) > 3:
+        t_end = ir.adc[3].t_start_s + 0.2e-3 if ir.kind != "epi" else ir.adc[min(5, len(ir.adc) - 1)].t_start_s
+    x, dtf = t_end + 1e-12, ir.dt_fine_s
+    c = int(np.floor(x / dtf))  # the last i with i * dtf <= x, as a comparison on the times themselves
+    while (c + 1) * dtf <= x:
+        c += 1
+    while c >= 0 and c * dtf > x:
+        c -= 1
+    return min(c + 1, ir.n_fine), t_end
+
+
 def write_report_png(path, figures: dict, manifest: dict, force: bool = False):
     """Write a 2 x 3 panel report (deterministic: no timestamps in the PNG metadata)."""
     import matplotlib
@@ -17,20 +32,16 @@ def write_report_png(path, figures: dict, manifest: dict, force: bool = False):
 
     ir = figures["ir"]
     before, after, keep = figures["before"], figures["after"], figures["keep"]
-    t_ms = ir.t_fine_s * 1e3
     ro = ir.readout_axis if ir.readout_axis is not None else 0
     pa = ir.phase_axis if ir.phase_axis is not None else 1 - ro if ro in (0, 1) else 1
     fig, ax = plt.subplots(2, 3, figsize=(15, 8.5))
-    # waveforms over the first ~3 ADC windows (or all when short)
-    t_end = ir.duration_s
-    if len(ir.adc) > 3:
-        t_end = ir.adc[3].t_start_s + 0.2e-3 if ir.kind != "epi" else ir.adc[min(5, len(ir.adc) - 1)].t_start_s
-    sel = ir.t_fine_s <= t_end + 1e-12
+    n, t_end = plotted_span(ir)
+    t_ms = np.arange(n) * ir.dt_fine_s * 1e3
     a = ax[0, 0]
-    a.plot(t_ms[sel], ir.grad_mT_per_m[ro, sel], "k--", lw=1, label="target g0")
-    a.plot(t_ms[sel], before["_G"][ro, sel], color="tab:red", lw=1, label="realized (base)")
-    a.plot(t_ms[sel], after["_g"][ro, sel], color="tab:green", lw=1, label="demanded (optimized)")
-    a.plot(t_ms[sel], after["_G"][ro, sel], color="tab:blue", lw=1, label="realized (optimized)")
+    a.plot(t_ms, ir.grad_mT_per_m[ro, :n], "k--", lw=1, label="target g0")
+    a.plot(t_ms, before["_G"][ro, :n], color="tab:red", lw=1, label="realized (base)")
+    a.plot(t_ms, after["_g"][ro, :n], color="tab:green", lw=1, label="demanded (optimized)")
+    a.plot(t_ms, after["_G"][ro, :n], color="tab:blue", lw=1, label="realized (optimized)")
     for adc in ir.adc:
         if adc.t_start_s <= t_end:
             a.axvspan(adc.t_start_s * 1e3, (adc.t_start_s + adc.num_samples * adc.dwell_s) * 1e3, color="0.9", zorder=0)

@@ -27,6 +27,7 @@ from dtoc.optimize import loss as L
 from dtoc.optimize import optimizer as O
 from dtoc.optimize.config import OptimizeConfig
 from dtoc.optimize.limits import EdgeProjector, Limits, check_area_reachable, limit_violations, waveform_extremes
+from dtoc.optimize.report import plotted_span
 from dtoc.optimize.twin import EdgeTwin
 from dtoc.seq.check import SafetyChecks, check_file, check_ir_limits
 from dtoc.seq.ir import SequenceIR
@@ -125,13 +126,20 @@ def make_phantoms(ir, cfg: OptimizeConfig, phantom=None) -> list:
 # ---------------------------------------------------------------------------------------------------
 # metrics
 # ---------------------------------------------------------------------------------------------------
-def quality(twin: EdgeTwin, imager: Imager | None, ctx, edges, keep_mask=None, played=None) -> dict:
+def quality(
+    twin: EdgeTwin, imager: Imager | None, ctx, edges, keep_mask=None, played=None, waveform_samples: int | None = None
+) -> dict:
     """Figures of one demanded waveform: nrmse, ghost_ratio (EPI), k-space errors, discards.
 
     ``played`` overrides the fine waveform (e.g. the base sequence as given, limits ignored).
+    ``waveform_samples``: keep only the first n fine samples of the demanded and realized waveforms (``_g``,
+    ``_G``: the report's panel, :func:`dtoc.optimize.report.plotted_span`) instead of the whole sequence's.
     """
     with torch.no_grad():
-        r = twin.forward(twin.demanded(played)) if played is not None else twin.forward_edges(edges, moments=False)
+        if played is not None:
+            r = twin.forward(twin.demanded(played), moments=False)
+        else:
+            r = twin.forward_edges(edges, moments=False)
         g, G, b0, k = r.demanded_grad_mT_per_m, r.realized_grad_mT_per_m, r.b0_uT, r.kspace_rad_per_m
         dk = ctx.dk_rad_per_m.cpu().numpy()
         ke = metrics.kspace_errors(k, ctx.k0_rad_per_m, dk)
@@ -161,10 +169,15 @@ def quality(twin: EdgeTwin, imager: Imager | None, ctx, edges, keep_mask=None, p
                 out["ghost_ratio_excess"] = m["ghost_ratio"] - m["ghost_ratio_ideal"]  # what the hardware adds
             out["_image"] = im.abs().cpu().numpy()
         out["_k"] = k.cpu().numpy()
-        out["_G"] = G.cpu().numpy()
-        out["_g"] = g.cpu().numpy()
+        out["_G"] = _head(G, waveform_samples)
+        out["_g"] = _head(g, waveform_samples)
         out["_b0"] = None if b0 is None else b0.cpu().numpy()
     return out
+
+
+def _head(w: torch.Tensor, n: int | None) -> np.ndarray:
+    """(3, n) first fine samples of a waveform as numpy (n None: all of it, without a copy)."""
+    return w.cpu().numpy() if n is None else w[:, :n].cpu().numpy().copy()  # copied: the rest is not kept
 
 
 def _window_plan(ir, hardware, cfg: OptimizeConfig, free, with_image: bool | None) -> dict | None:
@@ -428,7 +441,9 @@ def optimize_sequence(
         phantoms = make_phantoms(ir, cfg, phantom)
         imager = Imager(ir, phantoms, n_dummies=cfg.n_dummies, dtype=dtype, device=device)
 
-    before = quality(twin, imager, ctx, None, played=ir.grad_mT_per_m)
+    # a long (windowed) sequence keeps only the report's span of its whole-sequence waveforms
+    n_wave = None if window is None else plotted_span(ir)[0]
+    before = quality(twin, imager, ctx, None, played=ir.grad_mT_per_m, waveform_samples=n_wave)
     fault_point("setup")
     state = O.StageState(best_edges=twin.base_edges())
     stage_times = {}
@@ -539,7 +554,8 @@ def optimize_sequence(
             raise LimitError(f"internal: projected waveform violates limits ({viol[0]}); nothing written")
         ir_out = ir.with_grad(fine)
         _check_system_limits(ir_out, limits)
-        after = quality(twin, imager, ctx, x, keep_mask=keep)
+        # the exported waveform itself (bit for bit what twin.played(x) gives): no second whole-sequence copy
+        after = quality(twin, imager, ctx, None, keep_mask=keep, played=fine, waveform_samples=n_wave)
         if state.interrupted and ckpt_target is not None:
             done = max([h["it"] for h in state.history if h.get("stage") == "full"] or [start_it])
             save_checkpoint(ckpt_target, x, done, "full", state.history, cfg, force=True)

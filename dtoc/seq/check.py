@@ -111,18 +111,19 @@ def check_ir_limits(ir: SequenceIR, system: SystemSpec, grad_mT_per_m=None) -> l
     dtf = ir.dt_fine_s
     nums = _block_numbers(ir)
     m_edges = np.round(np.asarray(ir.block_edges_s) / dtf).astype(np.int64)
-    # block of each sample / segment (a segment belongs to the block holding its start)
-    seg_block = np.searchsorted(m_edges, np.arange(g.shape[1] - 1), side="right") - 1
-    smp_block = np.clip(np.searchsorted(m_edges, np.arange(g.shape[1]), side="right") - 1, 0, len(nums) - 1)
-    slew = np.diff(g, axis=1) / dtf * 1e-3  # T/m/s
     out: list[Violation] = []
 
-    def worst(rule, vals, blocks, limit, unit, axis=None, what=""):
+    # Memory: one (2N+1,) temporary at a time, and the block of a sample or segment looked up only for the
+    # offending indices (a long sequence's checker must not hold per-sample block tables).
+    def worst(rule, vals, segment, limit, unit, axis=None, what=""):
         bad = np.flatnonzero(np.abs(vals) > limit * (1 + _RTOL))
         if bad.size == 0:
             return
-        for b in np.unique(blocks[bad]):
-            sel = bad[blocks[bad] == b]
+        blocks = np.searchsorted(m_edges, bad, side="right") - 1  # a segment belongs to the block holding its start
+        if not segment:
+            blocks = np.clip(blocks, 0, len(nums) - 1)
+        for b in np.unique(blocks):
+            sel = bad[blocks == b]
             i = sel[np.argmax(np.abs(vals[sel]))]
             v = float(abs(vals[i]))
             out.append(
@@ -137,19 +138,21 @@ def check_ir_limits(ir: SequenceIR, system: SystemSpec, grad_mT_per_m=None) -> l
                 )
             )
 
+    def slew(a):  # T/m/s
+        return np.diff(g[a]) / dtf * 1e-3
+
     for a in range(3):
-        worst("grad_amplitude", g[a], smp_block, system.max_grad_mT_per_m, "mT/m", AXES[a], f"|g{AXES[a]}|")
-        worst("slew_rate", slew[a], seg_block, system.max_slew_T_per_m_per_s, "T/m/s", AXES[a], f"|dg{AXES[a]}/dt|")
-    worst("grad_vector", np.linalg.norm(g, axis=0), smp_block, system.vector_grad_limit_mT_per_m, "mT/m", None, "|g|")
-    worst(
-        "slew_vector",
-        np.linalg.norm(slew, axis=0),
-        seg_block,
-        system.vector_slew_limit_T_per_m_per_s,
-        "T/m/s",
-        None,
-        "|dg/dt|",
-    )
+        worst("grad_amplitude", g[a], False, system.max_grad_mT_per_m, "mT/m", AXES[a], f"|g{AXES[a]}|")
+        worst("slew_rate", slew(a), True, system.max_slew_T_per_m_per_s, "T/m/s", AXES[a], f"|dg{AXES[a]}/dt|")
+    g2 = g[0] * g[0]
+    g2 += g[1] * g[1]
+    g2 += g[2] * g[2]
+    worst("grad_vector", np.sqrt(g2, out=g2), False, system.vector_grad_limit_mT_per_m, "mT/m", None, "|g|")
+    del g2
+    s2 = slew(0) ** 2
+    s2 += slew(1) ** 2
+    s2 += slew(2) ** 2
+    worst("slew_vector", np.sqrt(s2, out=s2), True, system.vector_slew_limit_T_per_m_per_s, "T/m/s", None, "|dg/dt|")
     return out
 
 
@@ -545,7 +548,8 @@ def check_file(path: str | Path, system: SystemSpec | None = None, safety: Safet
             "written by an interrupted dtoc optimize (DtocInterrupted 1): a best-so-far, not a finished result"
         )
     _text_rules(st, system, res.violations)
-    seq, _ = read_pypulseq(path, require_signature=False)
+    del st  # the text parse (~20 bytes per file byte) is not kept while pypulseq reads the file again
+    seq = read_pypulseq(path, require_signature=False)[0]  # its text parse is dropped at once
     try:
         ir = from_pypulseq(seq)
     except InputError as e:

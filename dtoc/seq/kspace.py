@@ -38,7 +38,7 @@ def pwl_cumulative(g, dt: float) -> torch.Tensor:
     g = _as_tensor(g)
     inc = 0.5 * dt * (g[..., 1:] + g[..., :-1])
     zero = torch.zeros(g.shape[:-1] + (1,), dtype=g.dtype, device=g.device)
-    return torch.cat([zero, torch.cumsum(inc, dim=-1)], dim=-1)
+    return torch.cat([zero, inc.cumsum_(dim=-1)], dim=-1)  # in place: one whole-length temporary fewer
 
 
 def pwl_integral_at(g, dt: float, t_s, cumulative: torch.Tensor | None = None) -> torch.Tensor:
