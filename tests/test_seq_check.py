@@ -283,3 +283,56 @@ def test_cli_check_exit_codes_and_json(tmp_path, capsys):
         run(["check", str(SMALL), "--system", str(sysf)])
     assert e.value.code == 2
     assert "max_slew: unknown key" in capsys.readouterr().err
+
+
+def _limits_reference(ir, system):
+    """The checker's rules written the plain way (per-sample block tables, whole-array norms): the
+    memory-lean check_ir_limits must give exactly these violations."""
+    g = ir.grad_mT_per_m
+    dtf = ir.dt_fine_s
+    m_edges = np.round(np.asarray(ir.block_edges_s) / dtf).astype(np.int64)
+    nb = len(m_edges) - 1
+    seg_block = np.searchsorted(m_edges, np.arange(g.shape[1] - 1), side="right") - 1
+    smp_block = np.clip(np.searchsorted(m_edges, np.arange(g.shape[1]), side="right") - 1, 0, nb - 1)
+    slew = np.diff(g, axis=1) / dtf * 1e-3
+    out = []
+
+    def worst(rule, vals, blocks, limit, axis):
+        bad = np.flatnonzero(np.abs(vals) > limit * (1 + 1e-6))
+        for b in np.unique(blocks[bad]):
+            sel = bad[blocks[bad] == b]
+            i = sel[np.argmax(np.abs(vals[sel]))]
+            out.append((rule, int(b) + 1, axis, float(abs(vals[i])), round(i * dtf * 1e3, 3)))
+
+    for a in range(3):
+        worst("grad_amplitude", g[a], smp_block, system.max_grad_mT_per_m, "xyz"[a])
+        worst("slew_rate", slew[a], seg_block, system.max_slew_T_per_m_per_s, "xyz"[a])
+    worst("grad_vector", np.linalg.norm(g, axis=0), smp_block, system.vector_grad_limit_mT_per_m, None)
+    worst("slew_vector", np.linalg.norm(slew, axis=0), seg_block, system.vector_slew_limit_T_per_m_per_s, None)
+    return out
+
+
+def test_check_ir_limits_equals_plain_reference():
+    """Random waveforms over blocks of uneven length, violations at block boundaries, the last sample and
+    in several blocks at once: the same (rule, block, axis, worst value, time) as the plain computation."""
+    from dtoc.seq.ir import SequenceIR
+
+    rng = np.random.default_rng(7)
+    raster = 10e-6
+    n_r = rng.integers(3, 40, size=25)
+    edges = np.concatenate([[0], np.cumsum(n_r)]) * raster
+    n_fine = 2 * int(n_r.sum()) + 1
+    g = rng.normal(0, 12, size=(3, n_fine))
+    g[0, 0] = 45.0  # first sample
+    g[1, -1] = -50.0  # last sample (belongs to the last block)
+    m_edges = np.round(edges / (raster / 2)).astype(int)
+    g[2, m_edges[5]] = 60.0  # a block boundary sample: the block it starts
+    ir = SequenceIR(raster_s=raster, grad_mT_per_m=g, block_edges_s=edges)
+    system = SystemSpec(max_grad_mT_per_m=32.0, max_slew_T_per_m_per_s=130.0)
+    got = [
+        (v.rule, v.block, v.axis, v.value, float(re.search(r"t = ([\d.]+) ms", v.message).group(1)))
+        for v in check_ir_limits(ir, system)
+    ]
+    want = _limits_reference(ir, system)
+    assert len(want) > 50 and {w[0] for w in want} == {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector"}
+    assert got == want

@@ -125,3 +125,21 @@ def test_write_refuses_overwrite(tmp_path):
     assert out.read_text() == "keep"
     write_seq(ir, out, force=True)
     assert read_seq(out).adc == ir.adc
+
+
+def test_in_place_block_rewrite_equals_pypulseq_set_block(monkeypatch):
+    """The writer's O(1) neighbour view (set_block_in_place) writes the same bytes as pypulseq's own
+    set_block on the whole table, for a perturbation that changes most blocks of the GRE and of the EPI
+    (first and last blocks included)."""
+    import dtoc.seq.write as W
+
+    for name, seed in (("gre_small.seq", 11), ("epi_small.seq", 12)):
+        ir = read_seq(SEQ / name)
+        new = ir.with_grad(edges_to_fine(ir.edge_grad_mT_per_m + _smooth_perturbation(ir, 2.0, seed)))
+        n_changed = len(changed_blocks(new))
+        assert n_changed > 0.5 * (len(ir.block_edges_s) - 1)
+        fast = seq_bytes_of(new)
+        with monkeypatch.context() as m:
+            m.setattr(W, "set_block_in_place", lambda seq, keys, b, *ev: seq.set_block(keys[b], *ev))
+            plain = seq_bytes_of(new)
+        assert fast == plain

@@ -181,3 +181,35 @@ def test_window_jacobian_equals_unit_perturbations():
     assert full.shape == J_ref.shape
     assert np.abs(J_ref).max() > 1.0  # k rows: gamma * dt * scale is large
     np.testing.assert_allclose(full, J_ref, rtol=0, atol=1e-9 * np.abs(J_ref).max())
+
+
+def test_report_span_and_trimmed_waveforms():
+    """plotted_span counts exactly the fine samples the report's mask selected (t <= t_end + 1 ps) on the
+    shipped EPI and GRE, and quality() with waveform_samples keeps that prefix of the whole-sequence
+    waveforms, equal to the full arrays' prefix, with the k-space figures unchanged."""
+    from pathlib import Path
+
+    from dtoc.optimize.limits import EdgeProjector, Limits
+    from dtoc.optimize.loss import build_context
+    from dtoc.optimize.report import plotted_span
+    from dtoc.optimize.run import free_edges, quality
+    from dtoc.optimize.twin import EdgeTwin
+    from dtoc.seq.load import load_sequence
+
+    root = Path(__file__).resolve().parents[1]
+
+    for name in ("epi_small.seq", "gre_small.seq"):
+        ir = load_sequence(root / "sequences" / name)
+        n, t_end = plotted_span(ir)
+        assert n == int(np.sum(ir.t_fine_s <= t_end + 1e-12))
+        assert 1 < n < ir.n_fine
+    lim = Limits(40.0, 180.0)
+    proj = EdgeProjector(ir.edge_grad_mT_per_m, free_edges(ir), ir.raster_s, lim)
+    twin = EdgeTwin(ir, HardwareModel([ExpEddy(0.01, 2e-3), Delay(4e-6)]).frozen(), proj)
+    ctx = build_context(ir, lim)
+    full = quality(twin, None, ctx, None, played=ir.grad_mT_per_m)
+    part = quality(twin, None, ctx, None, played=ir.grad_mT_per_m, waveform_samples=n)
+    assert full["_G"].shape == (3, ir.n_fine) and part["_G"].shape == (3, n)
+    assert np.array_equal(part["_G"], full["_G"][:, :n]) and np.array_equal(part["_g"], full["_g"][:, :n])
+    assert part["_G"].base is None or part["_G"].base.shape == (3, n)  # not a view of the whole waveform
+    assert part["kspace_max_dk"] == full["kspace_max_dk"] and np.array_equal(part["_k"], full["_k"])

@@ -144,13 +144,32 @@ def to_pypulseq(ir: SequenceIR, adc_offsets: dict[int, tuple[float, float]] | No
             events.extend(v.values() if isinstance(v, dict) else (v if isinstance(v, (list, tuple)) else [v]))
         try:
             with quiet():
-                seq.set_block(key, *events, pp.make_delay(dur))
+                set_block_in_place(seq, keys, b, *events, pp.make_delay(dur))
         except Exception as e:  # noqa: BLE001
             raise DtocError(f"block {key}: pypulseq refused the rewritten block: {e}") from None
         if abs(float(seq.block_durations[key]) - dur) > 1e-12:
             raise DtocError(f"block {key}: duration changed while rewriting ({dur} -> {seq.block_durations[key]})")
     seq.system.max_slew, seq.system.max_grad = saved_slew, saved_grad
     return seq
+
+
+def set_block_in_place(seq, keys: list, b: int, *events) -> None:
+    """``seq.set_block(keys[b], *events)`` on an existing block, in time independent of the sequence's length.
+
+    pypulseq 1.5's ``set_block`` finds an existing block's neighbours by ``list(block_events).index(key)``,
+    three times a call, so rewriting every block of a long sequence is quadratic (minutes for 5 minutes of
+    sequence).  Its neighbour look-up and slew checks read only the block and its two neighbours, so it is
+    given a table holding just those three, in order; the rewritten entry then goes into the full table.
+    The result is the same sequence (same libraries, same bytes)."""
+    full = seq.block_events
+    key = keys[b]
+    local = type(full)((k, full[k]) for k in keys[max(b - 1, 0) : b + 2])
+    seq.block_events = local
+    try:
+        seq.set_block(key, *events)
+    finally:
+        seq.block_events = full
+    full[key] = local[key]
 
 
 def seq_bytes_of(ir: SequenceIR, definitions: dict | None = None, adc_offsets=None) -> bytes:
