@@ -213,3 +213,18 @@ def test_report_span_and_trimmed_waveforms():
     assert np.array_equal(part["_G"], full["_G"][:, :n]) and np.array_equal(part["_g"], full["_g"][:, :n])
     assert part["_G"].base is None or part["_G"].base.shape == (3, n)  # not a view of the whole waveform
     assert part["kspace_max_dk"] == full["kspace_max_dk"] and np.array_equal(part["_k"], full["_k"])
+
+
+def test_rf_mask_by_bisection_equals_the_comparison():
+    """rf_mask_fine (one bisection per pulse, linear in the duration) marks exactly the fine samples with
+    t_start - 1 ps <= t <= t_end + 1 ps of some pulse, as the whole-array comparison per pulse did."""
+    from dtoc.optimize.loss import rf_mask_fine
+
+    ir = _mprage_ir(shots=3)
+    t = ir.t_fine_s
+    want = np.zeros(t.shape, dtype=bool)
+    for r in ir.rf:
+        want |= (t >= r.t_start_s - 1e-12) & (t <= r.t_start_s + r.duration_s + 1e-12)
+    got = rf_mask_fine(ir)
+    assert len(ir.rf) > 20 and want.sum() > 100
+    assert np.array_equal(got, want)

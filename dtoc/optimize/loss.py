@@ -62,8 +62,10 @@ def rf_mask_fine(ir) -> np.ndarray:
     """(2N+1,) True on fine samples within an RF pulse ``[t_start, t_start + duration]``."""
     t = ir.t_fine_s
     m = np.zeros(t.shape, dtype=bool)
-    for r in ir.rf:
-        m |= (t >= r.t_start_s - 1e-12) & (t <= r.t_start_s + r.duration_s + 1e-12)
+    for r in ir.rf:  # the samples t_start - 1 ps <= t <= t_end + 1 ps, found by bisection (linear in the duration)
+        lo = np.searchsorted(t, r.t_start_s - 1e-12, side="left")
+        hi = np.searchsorted(t, r.t_start_s + r.duration_s + 1e-12, side="right")
+        m[lo:hi] = True
     return m
 
 
