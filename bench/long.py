@@ -216,6 +216,14 @@ def _ratios(rows: list[dict]) -> str:
         ]
         if g:
             out.append(f"{name.capitalize()} growth: " + "; ".join(g) + ".")
+        m = [
+            f"{(b[mode]['wall_s'] - a[mode]['wall_s']) / (b['duration_s'] - a['duration_s']):.2f} s and "
+            f"{(b[mode]['rss_gb'] - a[mode]['rss_gb']) / (b['duration_s'] - a['duration_s']) * 1e3:.0f} MB "
+            f"({a['duration_s']:g} -> {b['duration_s']:g} s)"
+            for a, b in zip(rr[:-1], rr[1:])
+        ]
+        if m and mode == "on":  # the marginal cost, free of the one-off structure factorisations
+            out.append("Windowed, per second of sequence (wall, peak RSS): " + "; ".join(m) + ".")
     return ("\n" + "\n\n".join(out) + "\n") if out else ""
 
 
