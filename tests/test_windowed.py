@@ -207,8 +207,8 @@ def test_report_span_and_trimmed_waveforms():
     proj = EdgeProjector(ir.edge_grad_mT_per_m, free_edges(ir), ir.raster_s, lim)
     twin = EdgeTwin(ir, HardwareModel([ExpEddy(0.01, 2e-3), Delay(4e-6)]).frozen(), proj)
     ctx = build_context(ir, lim)
-    full = quality(twin, None, ctx, None, played=ir.grad_mT_per_m)
-    part = quality(twin, None, ctx, None, played=ir.grad_mT_per_m, waveform_samples=n)
+    full = quality(twin, None, ctx, ir.grad_mT_per_m)
+    part = quality(twin, None, ctx, ir.grad_mT_per_m, waveform_samples=n)
     assert full["_G"].shape == (3, ir.n_fine) and part["_G"].shape == (3, n)
     assert np.array_equal(part["_G"], full["_G"][:, :n]) and np.array_equal(part["_g"], full["_g"][:, :n])
     assert part["_G"].base is None or part["_G"].base.shape == (3, n)  # not a view of the whole waveform

@@ -127,19 +127,16 @@ def make_phantoms(ir, cfg: OptimizeConfig, phantom=None) -> list:
 # metrics
 # ---------------------------------------------------------------------------------------------------
 def quality(
-    twin: EdgeTwin, imager: Imager | None, ctx, edges, keep_mask=None, played=None, waveform_samples: int | None = None
+    twin: EdgeTwin, imager: Imager | None, ctx, played, keep_mask=None, waveform_samples: int | None = None
 ) -> dict:
     """Figures of one demanded waveform: nrmse, ghost_ratio (EPI), k-space errors, discards.
 
-    ``played`` overrides the fine waveform (e.g. the base sequence as given, limits ignored).
-    ``waveform_samples``: keep only the first n fine samples of the demanded and realized waveforms (``_g``,
+    ``played``: the (3, 2N+1) fine demanded waveform, mT/m (the base as given, limits ignored; or the exported
+    waveform).  ``waveform_samples``: keep only the first n fine samples of the demanded and realized waveforms (``_g``,
     ``_G``: the report's panel, :func:`dtoc.optimize.report.plotted_span`) instead of the whole sequence's.
     """
     with torch.no_grad():
-        if played is not None:
-            r = twin.forward(twin.demanded(played), moments=False)
-        else:
-            r = twin.forward_edges(edges, moments=False)
+        r = twin.forward(twin.demanded(played), moments=False)
         g, G, b0, k = r.demanded_grad_mT_per_m, r.realized_grad_mT_per_m, r.b0_uT, r.kspace_rad_per_m
         dk = ctx.dk_rad_per_m.cpu().numpy()
         ke = metrics.kspace_errors(k, ctx.k0_rad_per_m, dk)
@@ -443,7 +440,7 @@ def optimize_sequence(
 
     # a long (windowed) sequence keeps only the report's span of its whole-sequence waveforms
     n_wave = None if window is None else plotted_span(ir)[0]
-    before = quality(twin, imager, ctx, None, played=ir.grad_mT_per_m, waveform_samples=n_wave)
+    before = quality(twin, imager, ctx, ir.grad_mT_per_m, waveform_samples=n_wave)
     fault_point("setup")
     state = O.StageState(best_edges=twin.base_edges())
     stage_times = {}
@@ -555,7 +552,7 @@ def optimize_sequence(
         ir_out = ir.with_grad(fine)
         _check_system_limits(ir_out, limits)
         # the exported waveform itself (bit for bit what twin.played(x) gives): no second whole-sequence copy
-        after = quality(twin, imager, ctx, None, keep_mask=keep, played=fine, waveform_samples=n_wave)
+        after = quality(twin, imager, ctx, fine, keep_mask=keep, waveform_samples=n_wave)
         if state.interrupted and ckpt_target is not None:
             done = max([h["it"] for h in state.history if h.get("stage") == "full"] or [start_it])
             save_checkpoint(ckpt_target, x, done, "full", state.history, cfg, force=True)

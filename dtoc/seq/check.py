@@ -184,14 +184,15 @@ def system_from_definitions(defs: dict) -> SystemSpec | None:
         ) from None
 
 
-def _on_raster(t: float, r: float) -> bool:
-    return abs(t / r - round(t / r)) < 1e-6
-
-
 def _all_on_raster(times, r: float) -> bool:
-    """:func:`_on_raster` of every time at once (an arbitrary gradient has one per sample)."""
+    """True when every time (s) is a multiple of the raster ``r`` to 1e-6 of it (an arbitrary gradient has one
+    time per sample: tested at once)."""
     q = np.asarray(times, dtype=np.float64) / r
     return bool(np.all(np.abs(q - np.round(q)) < 1e-6))
+
+
+def _on_raster(t: float, r: float) -> bool:
+    return _all_on_raster((t,), r)
 
 
 def _text_rules(st, system: SystemSpec, out: list[Violation]) -> None:
