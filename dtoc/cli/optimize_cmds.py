@@ -48,7 +48,9 @@ def optimize_cmd(
     augment: int | None = typer.Option(None, "--augment", help="number of rotated phantoms (0 = none)"),
     no_discard: bool = typer.Option(False, "--no-discard", help="keep every sample (no post-hoc skipping)"),
     phantom: str | None = typer.Option(
-        None, "--phantom", help="phantom: brain, brain:N, brain-noscalp[:N] (no fat/skull) or a .npz"
+        None,
+        "--phantom",
+        help="phantom: brain, brain:N, brain-noscalp[:N] (no fat/skull), brain3d[:N] (3D head: the image term of a 3D-encoded sequence, asked for) or a .npz",
     ),
     b0: float | None = typer.Option(
         None,

@@ -29,7 +29,7 @@ def simulate_cmd(
     phantom: str | None = typer.Option(
         None,
         "--phantom",
-        help="Phantom .npz, or 'brain' / 'brain:N' / 'brain-noscalp[:N]' (built-in head; noscalp: without fat and skull; default: brain at the image matrix).",
+        help="Phantom .npz, or 'brain' / 'brain:N' / 'brain-noscalp[:N]' (built-in head; noscalp: without fat and skull; default: brain at the image matrix), 'brain3d[:N]' (3D head on a 3D-encoded sequence's grid, its default).",
     ),
     field_T: float | None = typer.Option(
         None,
@@ -58,7 +58,7 @@ def simulate_cmd(
 
     from dtoc.sim.comparison import check_device, compare_ideal_realized, plot_comparison, torch_dtype
     from dtoc.sim.metrics import report_figures
-    from dtoc.sim.phantom import phantom_for
+    from dtoc.sim.phantom import is_3d_spec, phantom_for
     from dtoc.util.atomic import atomic_write_bytes, check_outputs, outputs_together, sha256_file
     from dtoc.util.jsonout import strict_json
     from dtoc.version import __version__
@@ -88,7 +88,10 @@ def simulate_cmd(
     R = parse_orientation(orientation)
     if R is not None:
         hw = RotatedChain(hw, R)
-    ir.require_geometry(f"{seq}: simulate")
+    if phantom is None and ir.meta.get("grid3d") is not None:
+        phantom = "brain3d"  # a 3D-encoded sequence images the built-in 3D head
+    if not is_3d_spec(phantom):
+        ir.require_geometry(f"{seq}: simulate")
     ph = phantom_for(ir, phantom, field_T=field_T, b0=b0_map, b1=b1_map)
     res = compare_ideal_realized(
         ir, ph, hw, n_dummies=dummies, dtype=tdtype, device=dev, step=lambda s: rep.step(f"simulating: {s}")

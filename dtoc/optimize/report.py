@@ -89,6 +89,10 @@ def write_report_png(path, figures: dict, manifest: dict, force: bool = False):
         ):
             a = ax[1, j]
             if img is not None:
+                img = np.asarray(img)
+                if img.ndim == 3:  # a 3D image: its central z slice
+                    title += f" (z {img.shape[0] // 2}/{img.shape[0]})"
+                    img = img[img.shape[0] // 2]
                 a.imshow(img, cmap="gray", vmin=0, vmax=vmax, origin="lower")
             a.set_title(title)
             a.axis("off")

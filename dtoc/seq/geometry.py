@@ -211,28 +211,107 @@ def infer_cartesian_grid(k0_rad_per_m, adc_sizes) -> InferredGrid | None:
     for a in (ro, pe):
         if a == pe and not pe_candidates:  # a single line (e.g. a 1D readout): one phase point
             continue
-        g = _grid_step(k[a])
+        g = _axis_grid(k[a])
         if g is None:
             return None
-        dk, o = g
-        # a half-step offset is +0.5 or -0.5 alike: take the one that gives the smaller standard grid
-        cands = [o] + ([o - math.copysign(1.0, o)] if abs(o) > 0.49 else [])
-        n, o = min((_layout_points(np.rint(k[a] / dk - c).astype(np.int64)), c) for c in cands)
-        out_n[a] = n
-        fov[a] = 2 * math.pi / dk
-        off[a] = float(o)
-    if fov[ro] == 0.0:
-        return None
-    # the readout's own sampling step must be the grid step: lines whose samples sit at different offsets
-    # (an ADC not centred on alternating readouts) only form a finer grid that half the points never fill
-    step = float(
-        np.median([np.median(np.abs(np.diff(k[ro, s:e]))) for s, e in zip(edges[:-1], edges[1:]) if e - s > 1])
-    )
-    if step > 1.1 * 2 * math.pi / fov[ro]:
+        out_n[a], fov[a], off[a] = g
+    if fov[ro] == 0.0 or not _readout_step_is_grid_step(k[ro], edges, fov[ro]):
         return None
     if fov[pe] == 0.0:
         fov[pe] = fov[ro] * out_n[pe] / out_n[ro]  # one line: a nominal FOV, the recon needs one
     return InferredGrid(ro, pe, (out_n[ro], out_n[pe]), (fov[0], fov[1], fov[2]), (off[0], off[1], off[2]))
+
+
+def _axis_grid(values) -> tuple[int, float, float] | None:
+    """(points, FOV m, offset in dk) of one axis' k values on a common grid (:func:`_grid_step`,
+    :func:`_layout_points`); None when they are not on one."""
+    import numpy as np
+
+    g = _grid_step(values)
+    if g is None:
+        return None
+    dk, o = g
+    # a half-step offset is +0.5 or -0.5 alike: take the one that gives the smaller standard grid
+    cands = [o] + ([o - math.copysign(1.0, o)] if abs(o) > 0.49 else [])
+    n, o = min((_layout_points(np.rint(values / dk - c).astype(np.int64)), c) for c in cands)
+    return n, 2 * math.pi / dk, float(o)
+
+
+def _readout_step_is_grid_step(k_ro, edges, fov_ro: float) -> bool:
+    """The readout's own sampling step must be the grid step: lines whose samples sit at different offsets
+    (an ADC not centred on alternating readouts) only form a finer grid that half the points never fill."""
+    import numpy as np
+
+    step = float(np.median([np.median(np.abs(np.diff(k_ro[s:e]))) for s, e in zip(edges[:-1], edges[1:]) if e - s > 1]))
+    return step <= 1.1 * 2 * math.pi / fov_ro
+
+
+@dataclass(frozen=True)
+class InferredGrid3D:
+    """A 3D Cartesian grid read off the nominal k of the ADC samples (k varies along one axis within each
+    ADC and along the two others between ADCs).
+
+    Attributes:
+        readout_axis: physical axis of the readout.
+        matrix_xyz: grid points per physical axis (nx, ny, nz).
+        fov_m: 2 pi / dk per physical axis, m.
+        offset_dk: where the samples sit between grid points, fraction of dk per axis.
+    """
+
+    readout_axis: int
+    matrix_xyz: tuple[int, int, int]
+    fov_m: tuple[float, float, float]
+    offset_dk: tuple[float, float, float]
+
+    def describe(self) -> str:
+        n, f = self.matrix_xyz, self.fov_m
+        s = (
+            f"3D Cartesian grid inferred from the ADC k positions: {n[0]} x {n[1]} x {n[2]} (x, y, z; readout "
+            f"{'xyz'[self.readout_axis]}), FOV {1e3 * f[0]:.4g} x {1e3 * f[1]:.4g} x {1e3 * f[2]:.4g} mm"
+        )
+        if any(abs(o) > 1e-3 for o in self.offset_dk):
+            s += f", samples offset by {', '.join(f'{o:+.3g}' for o in self.offset_dk)} dk"
+        return s + "; image term on a 3D phantom when one is given (--phantom brain3d)"
+
+    def as_meta(self) -> dict:
+        """The JSON-able form kept in ``SequenceIR.meta['grid3d']``."""
+        return {
+            "readout_axis": self.readout_axis,
+            "matrix_xyz": list(self.matrix_xyz),
+            "fov_m": list(self.fov_m),
+            "offset_dk": list(self.offset_dk),
+        }
+
+
+def infer_cartesian_grid_3d(k0_rad_per_m, adc_sizes) -> InferredGrid3D | None:
+    """The 3D Cartesian grid of a sequence from the nominal k of its ADC samples; None when the samples are not
+    on one.  Same rules per axis as :func:`infer_cartesian_grid` (standard layouts, half-step offsets,
+    partial Fourier), with k varying along one axis within ADCs and along both others between them."""
+    import numpy as np
+
+    k = np.asarray(k0_rad_per_m, dtype=np.float64)
+    edges = np.cumsum([0, *adc_sizes])
+    if k.ndim != 2 or k.shape[0] != 3 or edges[-1] != k.shape[1] or k.shape[1] == 0:
+        return None
+    scale = max(float(np.abs(k).max()), 1e-12)
+    bounds = [(s, e) for s, e in zip(edges[:-1], edges[1:]) if e > s]
+    within = np.array([max(np.ptp(k[a, s:e]) for s, e in bounds) for a in range(3)])
+    between = np.array([np.ptp([np.mean(k[a, s:e]) for s, e in bounds]) for a in range(3)])
+    varies = within > 1e-4 * scale
+    if varies.sum() != 1:
+        return None
+    ro = int(np.argmax(varies))
+    if not all(between[a] > 1e-4 * scale for a in range(3) if a != ro):
+        return None
+    n, fov, off = [0, 0, 0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+    for a in range(3):
+        g = _axis_grid(k[a])
+        if g is None:
+            return None
+        n[a], fov[a], off[a] = g
+    if not _readout_step_is_grid_step(k[ro], edges, fov[ro]):
+        return None
+    return InferredGrid3D(ro, (n[0], n[1], n[2]), (fov[0], fov[1], fov[2]), (off[0], off[1], off[2]))
 
 
 def sampling_step_dk(k0_rad_per_m, adc_sizes) -> float | None:

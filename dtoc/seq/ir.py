@@ -201,9 +201,11 @@ class SequenceIR:
 
     @property
     def dk_rad_per_m(self) -> np.ndarray | None:
-        """(3,) k-space grid step 2*pi/FOV per axis, rad/m (None when the FOV is unknown)."""
+        """(3,) k-space grid step 2*pi/FOV per axis, rad/m (a 3D-encoded file without definitions: of the grid
+        inferred from its ADC k, ``meta['grid3d']``; None when the FOV is unknown)."""
         if self.fov_m is None:
-            return None
+            g = self.meta.get("grid3d")
+            return None if g is None else np.array([2 * np.pi / f for f in g["fov_m"]])
         return np.array([2 * np.pi / f if f else np.inf for f in self.fov_m])
 
     @property

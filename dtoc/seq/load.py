@@ -39,16 +39,29 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
     grid off the nominal k of its ADC samples (:func:`dtoc.seq.geometry.infer_cartesian_grid`) and guess the
     kind (several readouts per excitation with alternating polarity: EPI; one: GRE), each with a note.
     Non-Cartesian files keep no geometry (k-space figures only)."""
-    if ir.fov_m is not None and ir.matrix is not None or not ir.adc:
+    if not ir.adc:
         return
-    from dtoc.seq.geometry import infer_cartesian_grid
+    from dtoc.seq.geometry import infer_cartesian_grid, infer_cartesian_grid_3d
 
+    sizes = [a.num_samples for a in ir.adc]
+    if ir.fov_m is not None and ir.matrix is not None:
+        if len(ir.matrix) == 3 and ir.matrix[2] > 1:  # a 3D file with definitions: its 3D grid from the k positions
+            g3 = infer_cartesian_grid_3d(ir.nominal_kspace_rad_per_m(), sizes)
+            if g3 is not None:
+                ir.meta["grid3d"] = g3.as_meta()
+                ir.meta.setdefault("notes", []).append(g3.describe())
+        return
     k0 = ir.nominal_kspace_rad_per_m()  # (3, N_adc), computed once for every inference below
-    g = infer_cartesian_grid(k0, [a.num_samples for a in ir.adc])
+    g = infer_cartesian_grid(k0, sizes)
     notes = ir.meta.setdefault("notes", [])
     if g is None:
         _free_encoded_slice_axes(ir, k0, notes)
         _note_kind(ir, notes)
+        g3 = infer_cartesian_grid_3d(k0, sizes)
+        if g3 is not None:
+            ir.meta["grid3d"] = g3.as_meta()
+            notes.append(g3.describe())
+            return
         if not _non_cartesian_image_grid(ir, k0, notes):
             notes.append(
                 "no FOV/matrix definitions and the ADC samples are not on a 2D Cartesian grid, nor on straight radial "

@@ -19,15 +19,15 @@ import torch
 from dtoc.errors import InputError
 from dtoc.sim import metrics
 from dtoc.sim.imager import Imager
-from dtoc.sim.phantom import Phantom
-from dtoc.sim.recon import cartesian_grid
+from dtoc.sim.phantom import Phantom, check_phantom_matches
+from dtoc.sim.recon import cartesian_grid, cartesian_grid_3d
 from dtoc.sim.twin import HardwareChain, Twin
 from dtoc.util.figures import png_bytes
 
 
 @dataclass
 class ComparisonResult:
-    """Images (magnitude, (ny, nx)), k-space ((3, N_adc), rad/m) and metrics of ideal vs realized."""
+    """Images (magnitude, (ny, nx) or (nz, ny, nx)), k-space ((3, N_adc), rad/m) and metrics of ideal vs realized."""
 
     ideal_image: np.ndarray
     realized_image: np.ndarray
@@ -90,8 +90,10 @@ def compare_ideal_realized(
 
     note = step or (lambda _s: None)
     ndft = ir.meta.get("recon") == "ndft"  # non-Cartesian: non-uniform DFT on the nominal trajectory
-    grid = None if ndft else cartesian_grid(ir, keep_mask)
-    ny, nx = ir.require_geometry("simulate").image_shape if grid is None else grid.shape
+    check_phantom_matches(ir, phantom)
+    three_d = phantom.is_3d
+    grid = None if ndft else (cartesian_grid_3d(ir, keep_mask) if three_d else cartesian_grid(ir, keep_mask))
+    matrix = list(ir.require_geometry("simulate").image_shape[::-1] if grid is None else grid.shape[::-1])
     note("graph" if not n_dummies or n_dummies <= 0 else f"graph, {n_dummies} dummy cycles, ideal simulation")
     imager = Imager(
         ir,
@@ -118,18 +120,20 @@ def compare_ideal_realized(
         # k figures in float64 whatever the simulation precision
         k = ir.kspace_rad_per_m(r.realized_grad_mT_per_m.detach().to("cpu", torch.float64)).numpy()
     note("metrics")
-    fov_xy = ir.require_geometry("simulate").fov_xy_m if grid is None else grid.fov_m
-    dk = np.array([2 * np.pi / fov_xy[0], 2 * np.pi / fov_xy[1], np.inf])
+    fov = ir.require_geometry("simulate").fov_xy_m if grid is None else grid.fov_m
+    dk = np.array([2 * np.pi / f for f in fov] + ([] if three_d else [np.inf]))
     used = (
         (np.ones(ir.n_adc_samples, dtype=bool) if keep_mask is None else np.asarray(keep_mask, dtype=bool))
         if grid is None
         else grid.flat_index >= 0
     )
-    m: dict[str, Any] = metrics.image_metrics(img, img0, epi=ir.kind == "epi", phase_dim=ir.phase_image_dim)
+    m: dict[str, Any] = metrics.image_metrics(
+        img, img0, epi=ir.kind == "epi" and not three_d, phase_dim=ir.phase_image_dim
+    )
     m.update(metrics.kspace_errors(k, k0, dk, mask=used))
     m["kept_samples"] = int(used.sum())
     m["n_adc_samples"] = int(used.size)
-    m["matrix"] = [nx, ny]
+    m["matrix"] = matrix
     return ComparisonResult(
         ideal_image=img0.detach().cpu().numpy().astype(np.float64),
         realized_image=img.detach().cpu().numpy().astype(np.float64),
@@ -149,6 +153,9 @@ def plot_comparison(res: ComparisonResult, title: str = "") -> bytes:
     import matplotlib.pyplot as plt
 
     i0, i1 = res.ideal_image, res.realized_image
+    if i0.ndim == 3:  # a 3D image: its central z slice
+        title = (title + ", " if title else "") + f"central slice z = {i0.shape[0] // 2} of {i0.shape[0]}"
+        i0, i1 = i0[i0.shape[0] // 2], i1[i1.shape[0] // 2]
     vmax = float(max(i0.max(), i1.max(), 1e-30))
     diff = i1 - i0
     dmax = float(max(np.abs(diff).max(), 1e-12 * vmax))

@@ -2,7 +2,8 @@
 
 The targets ``I0`` are simulated with the base (ideal) gradient; the phase-distribution graph depends on
 the base sequence only and is built once (its pruning bounds use the tissue range of the first phantom;
-rotated copies hold the same tissues).  Units: mT/m, uT; images (ny, nx) as :mod:`dtoc.sim.recon` defines.
+rotated copies hold the same tissues).  Units: mT/m, uT; images (ny, nx) as :mod:`dtoc.sim.recon` defines
+((nz, ny, nx) for a 3D-encoded sequence on a 3D phantom).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import torch
 
 from dtoc.sim import recon
 from dtoc.sim.pdg import PDGConfig, build_graph, simulate, steady_state_mz
+from dtoc.sim.phantom import check_phantom_matches
 
 if TYPE_CHECKING:
     from dtoc.seq.ir import SequenceIR
@@ -51,6 +53,8 @@ class Imager:
         self.device = device
         self.config = config or PDGConfig()
         self.n_dummies = n_dummies
+        for ph in phantoms:
+            check_phantom_matches(ir, ph)
         self.graph = build_graph(ir, self.config, phantoms[0] if phantoms else None)
         self.mz0: list = []
         #: ideal (base-waveform) signal (n_coils, N_adc) and image (ny, nx) of every phantom

@@ -219,19 +219,26 @@ class ObjectSpectrum:
     """Estimate of how much signal a state of dephasing k can give, relative to k = 0.
 
     |sum_v pd(v) exp(-i k.r_v)| / sum_v pd(v), times the voxel-shape factor, from a 2x zero-padded
-    FFT of the PD map (nearest grid point, max over the 2x2 neighbours; periodic beyond the voxel
+    FFT of the PD map (3D FFT for a 3D phantom) (nearest grid point, max over the 2x2 neighbours; periodic beyond the voxel
     Nyquist, as the voxel sum is).  This is an *estimate* (the state's amplitude map is not PD), used
     only for pruning; docs/simulator.md quantifies the resulting error.
     """
 
     def __init__(self, phantom, floor: float = 0.0):
-        ny, nx = phantom.pd.shape
+        ny, nx = phantom.pd.shape[-2:]
         pad = 2
-        F = np.abs(np.fft.fft2(phantom.pd, s=(pad * ny, pad * nx)))
-        tot = float(phantom.pd.sum()) or 1.0
-        F = F / tot
-        # conservative: max over each point and its +1 neighbours
-        F = np.maximum.reduce([F, np.roll(F, 1, 0), np.roll(F, 1, 1), np.roll(np.roll(F, 1, 0), 1, 1)])
+        pd = phantom.pd
+        tot = float(pd.sum()) or 1.0
+        if pd.ndim == 3:  # a 3D phantom: the same estimate over (kz, ky, kx)
+            F = np.abs(np.fft.fftn(pd, s=tuple(pad * n for n in pd.shape))) / tot
+            F = np.maximum.reduce([np.roll(F, s, (0, 1, 2)) for s in np.ndindex(2, 2, 2)])
+            self.dz = phantom.fov_m[2] / pd.shape[0]
+            self.step_z = 2 * np.pi / (pad * pd.shape[0] * self.dz)
+        else:
+            F = np.abs(np.fft.fft2(pd, s=(pad * ny, pad * nx)))
+            F = F / tot
+            # conservative: max over each point and its +1 neighbours
+            F = np.maximum.reduce([F, np.roll(F, 1, 0), np.roll(F, 1, 1), np.roll(np.roll(F, 1, 0), 1, 1)])
         self.F = np.maximum(F, floor)
         self.dx, self.dy = phantom.fov_m[0] / nx, phantom.fov_m[1] / ny
         self.step_x = 2 * np.pi / (pad * nx * self.dx)
@@ -240,13 +247,21 @@ class ObjectSpectrum:
 
     def __call__(self, k: np.ndarray) -> np.ndarray:
         """k (..., 3) rad/m -> (...) estimate in [0, 1]."""
-        ix = np.round(k[..., 0] / self.step_x).astype(np.int64) % self.F.shape[1]
-        iy = np.round(k[..., 1] / self.step_y).astype(np.int64) % self.F.shape[0]
-        val = self.F[iy, ix]
+        ix = np.round(k[..., 0] / self.step_x).astype(np.int64) % self.F.shape[-1]
+        iy = np.round(k[..., 1] / self.step_y).astype(np.int64) % self.F.shape[-2]
+        if self.F.ndim == 3:
+            iz = np.round(k[..., 2] / self.step_z).astype(np.int64) % self.F.shape[0]
+            val = self.F[iz, iy, ix]
+        else:
+            val = self.F[iy, ix]
         if self.shape == "box":
             val = val * np.abs(np.sinc(k[..., 0] * self.dx / (2 * np.pi)) * np.sinc(k[..., 1] * self.dy / (2 * np.pi)))
+            if self.F.ndim == 3:
+                val = val * np.abs(np.sinc(k[..., 2] * self.dz / (2 * np.pi)))
         elif self.shape == "sinc":
             val = val * ((np.abs(k[..., 0]) <= np.pi / self.dx) & (np.abs(k[..., 1]) <= np.pi / self.dy))
+            if self.F.ndim == 3:
+                val = val * (np.abs(k[..., 2]) <= np.pi / self.dz)
         return np.minimum(val, 1.0)
 
 
@@ -287,8 +302,8 @@ def _bounds(ir: SequenceIR, config: PDGConfig, phantom) -> _Bounds:
             b.probe_t1 = np.array([mt1, b.t1, b.t1, b.t1, mt1, mt1])
             b.probe_t2 = np.array([mt2, b.t2, b.t2, b.t2, mt2, mt2])
             b.probe_b1 = np.array([mb1, mb1, lo, hi, lo, hi])
-        ny, nx = phantom.shape
-        b.voxel_m = (phantom.fov_m[0] / nx, phantom.fov_m[1] / ny, zsize)
+        ny, nx = phantom.shape[-2:]
+        b.voxel_m = (phantom.fov_m[0] / nx, phantom.fov_m[1] / ny, phantom.voxel_size_z_m if phantom.is_3d else zsize)
         b.voxel_shape = phantom.voxel_shape
     elif ir.geometry is not None:
         vx, vy, vz = ir.geometry.voxel_m

@@ -458,7 +458,8 @@ class _SignalBatcher:
         Kj = self.Kjs[n]
         T = iv.adc_stop - iv.adc_start
         method = signal_method(cfg, T, iv.emit.size)
-        if method != "gemm" or vox.n_coils * T * vox.n > self.budget:
+        # a 3D phantom: per interval (the batched kernels' fused spatial phase is x-y only)
+        if method != "gemm" or vox.n_coils * T * vox.n > self.budget or vox.z is not None:
             self.pieces.append(
                 (
                     iv.adc_start,

@@ -25,7 +25,7 @@ from dtoc.errors import InputError
 
 @dataclass
 class VoxelData:
-    """Per-voxel tensors of the simulated (PD > 0) voxels, flattened in (iy, ix) order."""
+    """Per-voxel tensors of the simulated (PD > 0) voxels, flattened in (iy, ix) order ((iz, iy, ix) in 3D)."""
 
     index: torch.Tensor  # (V,) flat indices into the (ny, nx) grid
     iy: np.ndarray
@@ -49,6 +49,10 @@ class VoxelData:
     has_b0: bool
     has_t2d: bool
     has_diffusion: bool
+    # 3D phantom ((nz, ny, nx) maps): z of every voxel, the z grid and the slice index (None in 2D)
+    z: torch.Tensor | None = None
+    zg: torch.Tensor | None = None
+    iz: np.ndarray | None = None
     # per-simulate cache of constant signal-kernel factors (see :func:`_time_factor`)
     cache: dict = field(default_factory=dict, repr=False)
 
@@ -86,12 +90,33 @@ class VoxelData:
         )
         return out.reshape(*shape, self.n)
 
+    def spatial_phase_3d(self, k: torch.Tensor) -> torch.Tensor:
+        """(..., V) complex exp(-i k.r_v) for k (..., >=3) rad/m: :meth:`spatial_phase` times the z factor
+        of a 3D phantom (plain autograd for kz), or :meth:`spatial_phase` alone in 2D."""
+        sp = self.spatial_phase(k[..., 0], k[..., 1])
+        if self.z is None or self.zg is None:
+            return sp
+        iz = self.cache.get("iz")
+        if iz is None:
+            iz = self.cache["iz"] = torch.as_tensor(self.iz, device=self.pd.device)
+        kz = k[..., 2].reshape(-1)
+        zf = _cis(-self.zg[:, None] * kz[None, :]).index_select(0, iz).T  # (M, V)
+        return sp * zf.reshape(*k.shape[:-1], self.n)
+
+    def phase_of(self, k: torch.Tensor) -> torch.Tensor:
+        """(..., V) spatial phase k.r_v (rad) for k (..., >=2) rad/m (x, y; and z for a 3D phantom)."""
+        ph = k[..., 0:1] * self.x + k[..., 1:2] * self.y
+        if self.z is not None:
+            ph = ph + k[..., 2:3] * self.z
+        return ph
+
     @classmethod
     def from_phantom(cls, ph, initial_mz, dtype, device, cfg) -> VoxelData:
-        ny, nx = ph.pd.shape
+        ny, nx = ph.pd.shape[-2:]
         mask = np.asarray(ph.pd) > 0
         flat = np.where(mask.ravel())[0]
-        iy, ix = np.divmod(flat, nx)
+        iz, iyx = np.divmod(flat, ny * nx)
+        iy, ix = np.divmod(iyx, nx)
         T = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64).ravel()[flat], dtype=dtype, device=device)  # noqa: E731
         with np.errstate(divide="ignore"):
             r1 = 1.0 / np.asarray(ph.t1_s, dtype=np.float64)
@@ -102,8 +127,8 @@ class VoxelData:
             mz0 = T(ph.pd)
         else:
             m = initial_mz.detach().cpu().numpy() if isinstance(initial_mz, torch.Tensor) else np.asarray(initial_mz)
-            if m.shape != (ny, nx):
-                raise InputError(f"simulate: initial_mz has shape {m.shape}, expected {(ny, nx)}")
+            if m.shape != ph.pd.shape:
+                raise InputError(f"simulate: initial_mz has shape {m.shape}, expected {ph.pd.shape}")
             mz0 = T(m)
         coil = None
         if ph.coil_sens is not None:
@@ -112,6 +137,8 @@ class VoxelData:
             coil = torch.as_tensor(cs, dtype=cd, device=device)
         b0 = np.asarray(ph.b0_hz, dtype=np.float64)
         sel = mask
+        axes = ph.axis_positions_m()
+        zg = torch.as_tensor(axes[2], dtype=dtype, device=device) if ph.pd.ndim == 3 else None
         return cls(
             index=torch.as_tensor(flat, device=device),
             iy=iy,
@@ -127,21 +154,27 @@ class VoxelData:
             b1=T(ph.b1),
             x=T(xx),
             y=T(yy),
-            xg=torch.as_tensor(xx[0], dtype=dtype, device=device),
-            yg=torch.as_tensor(yy[:, 0], dtype=dtype, device=device),
+            xg=torch.as_tensor(axes[0], dtype=dtype, device=device),
+            yg=torch.as_tensor(axes[1], dtype=dtype, device=device),
             coil=coil,
-            voxel_m=(ph.fov_m[0] / nx, ph.fov_m[1] / ny, cfg.voxel_size_z_m),
+            voxel_m=(ph.fov_m[0] / nx, ph.fov_m[1] / ny, ph.voxel_size_z_m if ph.is_3d else cfg.voxel_size_z_m),
             voxel_shape=ph.voxel_shape,
             has_b0=bool(np.any(b0[sel] != 0)),
             has_t2d=bool(np.any(np.isfinite(np.asarray(ph.t2dash_s)[sel]))),
             has_diffusion=bool(np.any(np.asarray(ph.d_m2_per_s)[sel] > 0)),
+            z=None if zg is None else zg[torch.as_tensor(iz, device=device)],
+            zg=zg,
+            iz=None if zg is None else iz,
         )
 
     def observe_mz(self, A, K, tau_s) -> torch.Tensor:
         """Voxel-mean Mz (V,) of longitudinal states A (Z, V) with k K (Z, 4) and dephasing time tau (Z,)."""
         tau = torch.as_tensor(tau_s, dtype=self.r2d.dtype, device=A.device)
         k = K.to(self.x.dtype)
-        ph = -(k[:, 0:1] * self.x[None] + k[:, 1:2] * self.y[None] + tau[:, None] * self.omega[None])
+        if self.z is None:
+            ph = -(k[:, 0:1] * self.x[None] + k[:, 1:2] * self.y[None] + tau[:, None] * self.omega[None])
+        else:
+            ph = -(self.phase_of(k) + tau[:, None] * self.omega[None])
         mag = -(tau.abs()[:, None] * self.r2d[None])
         E = torch.exp(torch.complex(mag, ph))
         vf = voxel_factor(K, self).to(A.dtype)
@@ -219,6 +252,8 @@ def signal_method(cfg, n_samples: int, n_emitting: int) -> str:
 def emit_signal(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -> torch.Tensor:
     """(C, T) signal of the emitting states of interval ``n`` at its ADC samples (before ADC phase)."""
     method = signal_method(cfg, iv.adc_stop - iv.adc_start, iv.emit.size)
+    if method == "separable" and vox.z is not None:
+        method = "gemm"  # the separable product factors x and y on the full 2D grid only
     if method == "direct":
         return emit_signal_direct(iv, A, K, mom, n, vox, graph, bounds_t, cfg)
     return emit_signal_gemm(iv, A, K, mom, n, vox, graph, bounds_t, cfg, separable=method == "separable")
@@ -258,6 +293,8 @@ def emit_signal_direct(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -
             + kk[:, :, 1:2] * vox.y[None, None, :]
             + ta[:, :, None] * vox.omega[None, None, :]
         )
+        if vox.z is not None:
+            ph = ph - kk[:, :, 2:3] * vox.z[None, None, :]
         E = torch.exp(torch.complex(mag, ph))  # (J, t, V)
         s = torch.einsum("jtv,cjv->cjt", E, AC)
         out.append((s * vf[None, :, sl]).sum(1))
@@ -333,6 +370,8 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
     kj = Kj.to(rdt)
     tau_t = torch.as_tensor(tau, dtype=rdt, device=dev)
     ph = -(kj[:, 0:1] * vox.x[None] + kj[:, 1:2] * vox.y[None] + tau_t[:, None] * vox.omega[None])
+    if vox.z is not None:
+        ph = ph - kj[:, 2:3] * vox.z[None]
     mag0 = torch.zeros_like(ph)
     if dif is not None:
         mag0 = mag0 - dif[0][:, None] * vox.d[None]
@@ -453,8 +492,12 @@ def _kernel(mt_r, dtr, rate, vox: VoxelData, key=None) -> torch.Tensor:
     if key is not None:
         tf = _time_factor(dtr, rate, vox, key)
         if tf is not None:
+            if vox.z is not None:
+                return vox.spatial_phase_3d(mt_r) * tf
             return vox.spatial_phase(mt_r[:, 0], mt_r[:, 1]) * tf
     kph = -(mt_r[:, 0:1] * vox.x[None] + mt_r[:, 1:2] * vox.y[None] + dtr[:, None] * vox.omega[None])
+    if vox.z is not None:
+        kph = kph - mt_r[:, 2:3] * vox.z[None]
     # clamp: the mirrored (tau < 0) kernel grows as exp(+dt/T2'); only masked-out samples can get there
     return torch.exp(torch.complex(torch.clamp(-dtr[:, None] * rate[None], max=80.0), kph))
 

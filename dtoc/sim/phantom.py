@@ -6,7 +6,9 @@ phantom :func:`brain_phantom`, :func:`uniform_phantom`), the ``.npz`` loader/wri
 
 Geometry: a 2D phantom of shape (ny, nx) covers ``fov_m = (fov_x, fov_y)`` centred on the isocentre;
 voxel (iy, ix) sits at x = (ix - nx/2) * fov_x / nx, y = (iy - ny/2) * fov_y / ny (m), the positions
-a plain inverse FFT of a centred k-space grid assigns to its pixels (see :mod:`dtoc.sim.recon`).
+a plain inverse FFT of a centred k-space grid assigns to its pixels (see :mod:`dtoc.sim.recon`).  A 3D
+phantom (for 3D-encoded sequences) has maps of shape (nz, ny, nx) over ``fov_m = (fov_x, fov_y, fov_z)``,
+voxel (iz, iy, ix) at z = (iz - nz/2) * fov_z / nz as well (:func:`brain_phantom_3d`).
 
 Partial volume: a voxel holding several tissues gets PD = sum_c f_c PD_c and PD-weighted mean *rates*
 (1/T1, 1/T2, 1/T2', D) -- the single-compartment approximation of the mixed signal.  The same rule is
@@ -30,7 +32,7 @@ from dtoc.errors import InputError
 
 @dataclass
 class Phantom:
-    """Tissue maps, each (ny, nx) float64 unless noted.
+    """Tissue maps, each (ny, nx) float64 unless noted ((nz, ny, nx) for a 3D phantom).
 
     Attributes:
         pd: proton density (relative, >= 0).
@@ -38,8 +40,8 @@ class Phantom:
         d_m2_per_s: isotropic diffusion coefficient, m^2/s (>= 0).
         b0_hz: off-resonance, Hz.
         b1: relative transmit field (1 = nominal flip angle).
-        fov_m: (fov_x, fov_y), m.
-        coil_sens: optional (n_coils, ny, nx) complex receive sensitivities (None = one uniform coil).
+        fov_m: (fov_x, fov_y), m ((fov_x, fov_y, fov_z) for a 3D phantom).
+        coil_sens: optional (n_coils, ny, nx) ((n_coils, nz, ny, nx) in 3D) complex receive sensitivities (None = one uniform coil).
         voxel_shape: 'box' or 'sinc' or 'none': the intra-voxel signal model the simulator applies
             (a box voxel attenuates a state of dephasing k by sinc(k dx / 2pi) per axis).
     """
@@ -51,27 +53,40 @@ class Phantom:
     d_m2_per_s: np.ndarray
     b0_hz: np.ndarray
     b1: np.ndarray
-    fov_m: tuple[float, float]
+    fov_m: tuple[float, ...]
     coil_sens: np.ndarray | None = None
     voxel_shape: str = "box"
 
     @property
-    def shape(self) -> tuple[int, int]:
+    def shape(self) -> tuple[int, ...]:
         return tuple(self.pd.shape)
 
+    @property
+    def is_3d(self) -> bool:
+        """True for a (nz, ny, nx) phantom."""
+        return self.pd.ndim == 3
+
+    def axis_positions_m(self) -> tuple[np.ndarray, ...]:
+        """Voxel-centre coordinates per axis, m: (x (nx,), y (ny,)) and z (nz,) for a 3D phantom."""
+        n = self.shape[::-1]  # (nx, ny[, nz])
+        return tuple((np.arange(n[a]) - n[a] / 2) * self.fov_m[a] / n[a] for a in range(len(n)))
+
     def positions_m(self) -> tuple[np.ndarray, np.ndarray]:
-        """(x, y) voxel-centre coordinates, each (ny, nx), m."""
-        ny, nx = self.shape
-        x = (np.arange(nx) - nx / 2) * self.fov_m[0] / nx
-        y = (np.arange(ny) - ny / 2) * self.fov_m[1] / ny
-        yy, xx = np.meshgrid(y, x, indexing="ij")
-        return xx, yy
+        """(x, y) voxel-centre coordinates, each of the maps' shape, m."""
+        xyz = self.axis_positions_m()
+        grids = np.meshgrid(*xyz[::-1], indexing="ij")  # ([z,] y, x)
+        return grids[-1], grids[-2]
 
     @property
     def voxel_size_m(self) -> tuple[float, float]:
         """(dx, dy) voxel edge lengths, m."""
-        ny, nx = self.shape
+        ny, nx = self.shape[-2:]
         return (self.fov_m[0] / nx, self.fov_m[1] / ny)
+
+    @property
+    def voxel_size_z_m(self) -> float | None:
+        """dz of a 3D phantom, m (None in 2D)."""
+        return self.fov_m[2] / self.shape[0] if self.is_3d else None
 
 
 MAP_KEYS = ("pd", "t1_s", "t2_s", "t2dash_s", "d_m2_per_s", "b0_hz", "b1")
@@ -205,13 +220,15 @@ def _as_shape(n) -> tuple[int, int]:
     return ny, nx
 
 
-def _as_fov(fov_m) -> tuple[float, float]:
+def _as_fov(fov_m, ndim: int = 2) -> tuple[float, ...]:
+    """(fov_x, fov_y) of a 2D phantom (a scalar: square), or (fov_x, fov_y, fov_z) of a 3D one, m."""
     f = np.atleast_1d(np.asarray(fov_m, dtype=np.float64)).ravel()
     if f.size == 1:
-        f = np.array([f[0], f[0]])
-    if f.size < 2 or not np.all(np.isfinite(f[:2])) or np.any(f[:2] <= 0):
-        raise InputError(f"fov_m {fov_m!r}: expected a positive number or (fov_x, fov_y) in m")
-    return (float(f[0]), float(f[1]))
+        f = np.full(ndim, f[0])
+    if f.size < ndim or not np.all(np.isfinite(f[:ndim])) or np.any(f[:ndim] <= 0):
+        want = "(fov_x, fov_y)" if ndim == 2 else "(fov_x, fov_y, fov_z)"
+        raise InputError(f"fov_m {fov_m!r}: expected a positive number or {want} in m")
+    return tuple(float(x) for x in f[:ndim])
 
 
 def _mix(fractions: dict[str, np.ndarray], params: dict[str, tuple]) -> dict[str, np.ndarray]:
@@ -286,21 +303,8 @@ def brain_phantom(
     fov = _as_fov(fov_m)
     params = tissue_params(field_T)
     os_ = int(oversample) if oversample else max(4, int(math.ceil(512 / max(ny, nx))))
-    # sub-sample centres in normalised units (FOV edge at +-1); voxel (iy, ix) covers [(i - n/2 - 1/2), (i - n/2 + 1/2)] * 2/n
-    sub = (np.arange(os_) + 0.5) / os_ - 0.5
-    ux = ((np.arange(nx)[:, None] - nx / 2 + sub[None, :]) * 2.0 / nx).ravel()
-    uy = ((np.arange(ny)[:, None] - ny / 2 + sub[None, :]) * 2.0 / ny).ravel()
-    vv, uu = np.meshgrid(uy, ux, indexing="ij")
-    lab = label_map(uu, vv, seed, lesion)
-    if not scalp:
-        lab[(lab == TISSUES.index("fat")) | (lab == TISSUES.index("skull"))] = TISSUES.index("background")
-    fractions = {}
-    for ti, name in enumerate(TISSUES):
-        if name == "background":
-            continue
-        f = (lab == ti).reshape(ny, os_, nx, os_).mean(axis=(1, 3))
-        if f.any():
-            fractions[name] = f
+    counts = _label_counts(ny, nx, os_, seed, lesion, scalp)
+    fractions = {name: c / os_**2 for name, c in counts.items() if c.any()}
     maps = _mix(fractions, params)
     # smooth maps evaluated at voxel centres
     yc = (np.arange(ny) - ny / 2) * 2.0 / ny
@@ -316,6 +320,89 @@ def brain_phantom(
         d_m2_per_s=maps["d_m2_per_s"],
         b0_hz=b0_map,
         b1=b1_map,
+        fov_m=fov,
+        voxel_shape="box",
+    )
+
+
+def _label_counts(ny: int, nx: int, os_: int, seed: int, lesion: bool, scalp: bool, scale: float = 1.0) -> dict:
+    """Per tissue, the number of the ``os_`` x ``os_`` sub-samples of every voxel (ny, nx) that hold it, for the
+    head's cross-section shrunk by ``scale`` (1: the axial section of :func:`brain_phantom`)."""
+    # sub-sample centres in normalised units (FOV edge at +-1); voxel (iy, ix) covers [(i - n/2 - 1/2), (i - n/2 + 1/2)] * 2/n
+    sub = (np.arange(os_) + 0.5) / os_ - 0.5
+    ux = ((np.arange(nx)[:, None] - nx / 2 + sub[None, :]) * 2.0 / nx).ravel()
+    uy = ((np.arange(ny)[:, None] - ny / 2 + sub[None, :]) * 2.0 / ny).ravel()
+    vv, uu = np.meshgrid(uy, ux, indexing="ij")
+    lab = label_map(uu / scale, vv / scale, seed, lesion) if scale != 1.0 else label_map(uu, vv, seed, lesion)
+    if not scalp:
+        lab[(lab == TISSUES.index("fat")) | (lab == TISSUES.index("skull"))] = TISSUES.index("background")
+    return {
+        name: (lab == ti).reshape(ny, os_, nx, os_).sum(axis=(1, 3))
+        for ti, name in enumerate(TISSUES)
+        if name != "background"
+    }
+
+
+#: Semi-axis of the 3D head along z, in units of half the z FOV (as the axial section's 0.90 along y).
+HEAD_Z_SEMI_AXIS = 0.90
+
+
+def brain_phantom_3d(
+    n_xyz,
+    fov_m,
+    field_T: float = DEFAULT_B0_T,
+    seed: int = 0,
+    *,
+    b0: bool = False,
+    b1: bool = False,
+    lesion: bool = True,
+    scalp: bool = True,
+) -> Phantom:
+    """Built-in 3D brain phantom (nz, ny, nx) over ``fov_m = (fov_x, fov_y, fov_z)``, deterministic.
+
+    An ellipsoidal head: the slice at normalised height w (FOV edge at +-1) is the axial section of
+    :func:`brain_phantom` shrunk by sqrt(1 - (w / 0.90)^2), so the head fills the z FOV in the same
+    fraction as the y FOV (a slab FOV holds the whole head, squeezed: a test object for the image
+    term of 3D-encoded sequences, not anatomy).  Voxels are box averages of the tissue labels over
+    a sub-grid (>= 256 samples per in-plane axis, 4 per z voxel).  ``b0`` / ``b1``: the smooth maps of
+    :func:`brain_phantom` in every slice (else B0 = 0, B1 = 1).
+
+    Args:
+        n_xyz: (nx, ny, nz) matrix.
+        fov_m: (fov_x, fov_y, fov_z), m.
+    """
+    try:
+        nx, ny, nz = (int(v) for v in n_xyz)
+    except Exception:  # noqa: BLE001
+        raise InputError(f"3D phantom matrix {n_xyz!r}: expected (nx, ny, nz)") from None
+    _as_shape((ny, nx))
+    if not 1 <= nz <= 1024:
+        raise InputError(f"3D phantom matrix {n_xyz!r}: expected 1..1024 voxels along z")
+    fov = _as_fov(fov_m, 3)
+    params = tissue_params(field_T)
+    os_ = max(4, int(math.ceil(256 / max(ny, nx))))
+    os_z = 4
+    fr = {name: np.zeros((nz, ny, nx)) for name in TISSUES if name != "background"}
+    for iz in range(nz):
+        for sz in (np.arange(os_z) + 0.5) / os_z - 0.5:
+            w = (iz - nz / 2 + sz) * 2.0 / nz
+            if abs(w) >= HEAD_Z_SEMI_AXIS:
+                continue
+            scale = math.sqrt(1.0 - (w / HEAD_Z_SEMI_AXIS) ** 2)
+            for name, c in _label_counts(ny, nx, os_, seed, lesion, scalp, scale).items():
+                fr[name][iz] += c / (os_**2 * os_z)
+    maps = _mix({k: v for k, v in fr.items() if v.any()}, params)
+    vc, uc = np.meshgrid((np.arange(ny) - ny / 2) * 2.0 / ny, (np.arange(nx) - nx / 2) * 2.0 / nx, indexing="ij")
+    b0_map = _smooth_b0_hz(uc, vc, float(field_T), seed) if b0 else np.zeros((ny, nx))
+    b1_map = _smooth_b1(uc, vc, float(field_T)) if b1 else np.ones((ny, nx))
+    return Phantom(
+        pd=maps["pd"],
+        t1_s=maps["t1_s"],
+        t2_s=maps["t2_s"],
+        t2dash_s=maps["t2dash_s"],
+        d_m2_per_s=maps["d_m2_per_s"],
+        b0_hz=np.repeat(b0_map[None], nz, 0),
+        b1=np.repeat(b1_map[None], nz, 0),
         fov_m=fov,
         voxel_shape="box",
     )
@@ -357,9 +444,11 @@ def uniform_phantom(
 # Rotation (augmentation)
 # ------------------------------------------------------------------------------------------------
 def _rotate_map(a: np.ndarray, deg: float, fill: float) -> np.ndarray:
-    """Bilinear rotation of a (ny, nx) map by ``deg`` (counter-clockwise in x-y) about the isocentre pixel (ny/2, nx/2)."""
+    """Bilinear rotation of a (ny, nx) map (each slice of a (nz, ny, nx) one) by ``deg`` (counter-clockwise in x-y) about the isocentre pixel (ny/2, nx/2)."""
     from scipy.ndimage import map_coordinates
 
+    if a.ndim == 3:  # a 3D phantom: every z slice about the z axis
+        return np.stack([_rotate_map(sl, deg, fill) for sl in a])
     ny, nx = a.shape
     th = math.radians(deg)
     c, s = math.cos(th), math.sin(th)
@@ -417,8 +506,10 @@ def rotate(phantom: Phantom, deg: float) -> Phantom:
 # ------------------------------------------------------------------------------------------------
 def validate_phantom(p: Phantom, source: str = "phantom") -> Phantom:
     """Check shapes and value ranges; raise a one-line :class:`InputError` naming the map."""
-    if not isinstance(p.pd, np.ndarray) or p.pd.ndim != 2 or p.pd.size == 0:
-        raise InputError(f"{source}: 'pd' must be a non-empty 2D (ny, nx) array, got shape {np.shape(p.pd)}")
+    if not isinstance(p.pd, np.ndarray) or p.pd.ndim not in (2, 3) or p.pd.size == 0:
+        raise InputError(
+            f"{source}: 'pd' must be a non-empty (ny, nx) or (nz, ny, nx) array, got shape {np.shape(p.pd)}"
+        )
     shape = p.pd.shape
     for k in MAP_KEYS:
         a = getattr(p, k)
@@ -440,10 +531,10 @@ def validate_phantom(p: Phantom, source: str = "phantom") -> Phantom:
         raise InputError(f"{source}: 'b0_hz' must be finite (Hz)")
     if not np.all(np.isfinite(p.b1)) or np.any(p.b1 < 0):
         raise InputError(f"{source}: 'b1' must be finite and >= 0 (relative)")
-    _as_fov(p.fov_m)
-    if p.coil_sens is not None and (np.ndim(p.coil_sens) != 3 or np.shape(p.coil_sens)[1:] != shape):
+    _as_fov(p.fov_m, p.pd.ndim)
+    if p.coil_sens is not None and (np.ndim(p.coil_sens) != len(shape) + 1 or np.shape(p.coil_sens)[1:] != shape):
         raise InputError(
-            f"{source}: 'coil_sens' has shape {np.shape(p.coil_sens)}, expected (n_coils, {shape[0]}, {shape[1]})"
+            f"{source}: 'coil_sens' has shape {np.shape(p.coil_sens)}, expected (n_coils, {', '.join(map(str, shape))})"
         )
     if p.voxel_shape not in ("box", "sinc", "none"):
         raise InputError(f"{source}: voxel_shape {p.voxel_shape!r}: expected 'box', 'sinc' or 'none'")
@@ -471,8 +562,8 @@ def load_phantom(path: str | os.PathLike) -> Phantom:
     if missing:
         raise InputError(f"{p}: missing key(s) {', '.join(missing)} (required: pd, t1_s, t2_s as (ny, nx), fov_m in m)")
     pd = np.asarray(data["pd"])
-    if pd.ndim != 2:
-        raise InputError(f"{p}: 'pd' has shape {pd.shape}, expected (ny, nx)")
+    if pd.ndim not in (2, 3):
+        raise InputError(f"{p}: 'pd' has shape {pd.shape}, expected (ny, nx) or (nz, ny, nx)")
     shape = pd.shape
     defaults = {"t2dash_s": np.inf, "d_m2_per_s": 0.0, "b0_hz": 0.0, "b1": 1.0}
 
@@ -491,10 +582,11 @@ def load_phantom(path: str | os.PathLike) -> Phantom:
         coil = np.asarray(data["coil_sens"]).astype(np.complex128)
     vs = str(data["voxel_shape"]) if "voxel_shape" in data else "box"
     try:
-        fov = _as_fov(data["fov_m"])
+        fov = _as_fov(data["fov_m"], pd.ndim)
     except InputError:
+        want = "(fov_x, fov_y)" if pd.ndim == 2 else "(fov_x, fov_y, fov_z)"
         raise InputError(
-            f"{p}: 'fov_m' {np.asarray(data['fov_m']).tolist()!r}: expected a positive number or (fov_x, fov_y) in m"
+            f"{p}: 'fov_m' {np.asarray(data['fov_m']).tolist()!r}: expected a positive number or {want} in m"
         ) from None
     ph = Phantom(
         pd=get("pd"),
@@ -537,7 +629,7 @@ def save_phantom(phantom: Phantom, path: str | os.PathLike, force: bool = False)
 
 
 #: Names of the built-in phantom specs (``name`` or ``name:N``) accepted by :func:`resolve_phantom`.
-BUILTIN_PHANTOMS = ("brain", "brain-noscalp")
+BUILTIN_PHANTOMS = ("brain", "brain-noscalp", "brain3d")
 
 
 def is_builtin_spec(spec) -> bool:
@@ -552,6 +644,8 @@ def resolve_phantom(
     'brain-noscalp' / 'brain-noscalp:N' (the same without extracranial fat and skull, see
     :func:`brain_phantom`), or a .npz path."""
     name, _, size = ("brain" if spec is None else str(spec)).partition(":")
+    if name == "brain3d":
+        raise InputError("phantom brain3d: a 3D phantom is made on a 3D-encoded sequence's grid (phantom_for)")
     if name in BUILTIN_PHANTOMS:
         if size:
             try:
@@ -573,9 +667,13 @@ def phantom_for(
     """The phantom of a spec (:func:`resolve_phantom`) on the image grid of sequence ``ir``.
 
     Built-in phantoms are made at the sequence's in-plane matrix (``size`` overrides it: N x N) and FOV
-    (:attr:`dtoc.seq.ir.SequenceIR.geometry`); a ``.npz`` phantom is read as it is.
+    (:attr:`dtoc.seq.ir.SequenceIR.geometry`); ``brain3d`` (``brain3d:N``) on a 3D-encoded sequence's grid
+    (``ir.meta['grid3d']``); a ``.npz`` phantom is read as it is.
     """
     geo = ir.geometry
+    name, _, n3 = str(spec).partition(":")
+    if name == "brain3d":
+        return _brain3d_for(ir, n3 or (str(size) if size else ""), field_T, b0, b1)
     if is_builtin_spec("brain" if spec is None else spec) and geo is None:
         raise InputError("sequence has no matrix/FOV definitions: cannot build the phantom")
     matrix = fov = None
@@ -584,3 +682,46 @@ def phantom_for(
         matrix = (size or ny, size or nx)
         fov = geo.fov_xy_m
     return resolve_phantom(spec, matrix=matrix, fov_m=fov, field_T=field_T, b0=b0, b1=b1)
+
+
+def _brain3d_for(ir, size: str, field_T: float, b0: bool = False, b1: bool = False) -> Phantom:
+    """:func:`brain_phantom_3d` on the 3D grid of a 3D-encoded sequence (``brain3d:N``: N x N in plane)."""
+    g = (getattr(ir, "meta", None) or {}).get("grid3d")
+    if g is None:
+        raise InputError("phantom brain3d: the sequence has no 3D Cartesian grid (2D files take brain or a 2D .npz)")
+    nx, ny, nz = (int(v) for v in g["matrix_xyz"])
+    if size:
+        try:
+            nx = ny = int(size)
+        except ValueError:
+            raise InputError(f"phantom brain3d:{size}: expected brain3d:N with an integer N") from None
+    return brain_phantom_3d((nx, ny, nz), tuple(g["fov_m"]), field_T=field_T, b0=b0, b1=b1)
+
+
+def is_3d_spec(spec) -> bool:
+    """True when a phantom (object or spec) is 3D: ``brain3d[:N]``, a (nz, ny, nx) ``.npz`` or :class:`Phantom`."""
+    if isinstance(spec, Phantom):
+        return spec.is_3d
+    if spec is None:
+        return False
+    s = str(spec)
+    if s.split(":", 1)[0] == "brain3d":
+        return True
+    if s.lower().endswith(".npz") and Path(s).is_file():
+        try:
+            with np.load(s, allow_pickle=False) as z:
+                return "pd" in z.files and z["pd"].ndim == 3
+        except Exception:  # noqa: BLE001  (load_phantom reports an unreadable file)
+            return False
+    return False
+
+
+def check_phantom_matches(ir, phantom: Phantom) -> None:
+    """A 3D-encoded sequence (``ir.meta['grid3d']``) images a 3D phantom, a 2D one a 2D phantom: one line otherwise."""
+    three_d = (getattr(ir, "meta", None) or {}).get("grid3d") is not None
+    if three_d and not phantom.is_3d:
+        raise InputError(
+            "the sequence is 3D-encoded: its image needs a 3D phantom (--phantom brain3d, or a .npz with (nz, ny, nx) maps)"
+        )
+    if phantom.is_3d and not three_d:
+        raise InputError(f"a 3D phantom {phantom.shape} needs a 3D-encoded sequence (k on a 3D Cartesian grid)")

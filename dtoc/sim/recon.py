@@ -13,6 +13,9 @@ Conventions (consistent with :class:`dtoc.sim.phantom.Phantom` and the simulator
   is at x = (ix - nx/2) dx, y = (iy - ny/2) dy -- exactly the Phantom's voxel positions -- and a
   voxel of transverse magnetisation m at that position reconstructs to value m (no flip, no shift).
 * Image array layout (ny, nx): rows = physical y, columns = physical x (z ignored: 2D).
+* 3D-encoded sequences (``ir.meta['grid3d']``, inferred from the ADC k positions by
+  :func:`dtoc.seq.geometry.infer_cartesian_grid_3d`): the same rules on every axis, image (nz, ny, nx)
+  by ``fftshift(ifftn(ifftshift(K)))`` over the three axes (:func:`cartesian_grid_3d`).
 * Multi-coil: root-sum-of-squares magnitude over coils; one coil: the complex image.
 
 Everything is torch and differentiable with respect to the signal (the optimizer's image loss).
@@ -30,18 +33,18 @@ from dtoc.errors import InputError
 
 @dataclass(frozen=True)
 class CartesianGrid:
-    """Mapping of ADC samples onto the (ny, nx) Cartesian target grid.
+    """Mapping of ADC samples onto the (ny, nx) Cartesian target grid ((nz, ny, nx) for a 3D grid).
 
     Attributes:
-        shape: (ny, nx) image matrix.
-        fov_m: (fov_x, fov_y), m.
-        flat_index: (N_adc,) int64 index into the flattened (ny*nx) k-space grid (-1: sample not used).
-        counts: (ny*nx,) number of samples on each grid point.
+        shape: (ny, nx) image matrix, or (nz, ny, nx).
+        fov_m: (fov_x, fov_y), m, or (fov_x, fov_y, fov_z).
+        flat_index: (N_adc,) int64 index into the flattened k-space grid (-1: sample not used).
+        counts: (prod(shape),) number of samples on each grid point.
         max_off_grid: largest |k0/dk - round(k0/dk)| over used samples (fraction of dk).
     """
 
-    shape: tuple[int, int]
-    fov_m: tuple[float, float]
+    shape: tuple[int, ...]
+    fov_m: tuple[float, ...]
     flat_index: np.ndarray
     counts: np.ndarray
     max_off_grid: float
@@ -123,6 +126,37 @@ def cartesian_grid(
     return CartesianGrid((ny, nx), fov, flat, counts, max_off)
 
 
+def cartesian_grid_3d(ir, keep_mask=None, *, on_grid_tol: float = 0.05) -> CartesianGrid:
+    """Grid indices of every ADC sample of a 3D-encoded ``ir`` on its inferred (nz, ny, nx) grid
+    (``ir.meta['grid3d']``, :func:`dtoc.seq.geometry.infer_cartesian_grid_3d`)."""
+    g = (getattr(ir, "meta", None) or {}).get("grid3d")
+    if g is None:
+        raise InputError("reconstruction: the sequence has no 3D Cartesian grid (see its notes)")
+    n = np.asarray(g["matrix_xyz"], dtype=np.int64)
+    fov = np.asarray(g["fov_m"], dtype=np.float64)
+    k0 = np.asarray(ir.nominal_kspace_rad_per_m(), dtype=np.float64)
+    n_adc = k0.shape[1]
+    keep = np.ones(n_adc, dtype=bool) if keep_mask is None else np.asarray(keep_mask, dtype=bool).ravel()
+    if keep.shape != (n_adc,):
+        raise InputError(f"keep_mask has {keep.size} entries, expected one per ADC sample ({n_adc})")
+    u = k0 / (2 * np.pi / fov)[:, None] - np.asarray(g["offset_dk"], dtype=np.float64)[:, None]
+    r = np.rint(u)
+    off = np.abs(u - r)
+    max_off = float(off[:, keep].max()) if keep.any() else 0.0
+    if max_off > on_grid_tol:
+        i = int(np.argmax(np.where(keep, off.max(0), -1)))
+        raise InputError(f"nominal k-space sample {i} is {max_off:.3f} dk off the 3D grid (tolerance {on_grid_tol})")
+    j = r.astype(np.int64) + (n // 2)[:, None]  # (3, N_adc): (jx, jy, jz)
+    outside = keep & np.any((j < 0) | (j >= n[:, None]), axis=0)
+    if outside.any():
+        i = int(np.argmax(outside))
+        raise InputError(f"nominal k-space sample {i} lies outside the {n[0]}x{n[1]}x{n[2]} grid")
+    flat = np.where(keep, (j[2] * n[1] + j[1]) * n[0] + j[0], -1).astype(np.int64)
+    counts = np.bincount(flat[keep], minlength=int(n.prod()))
+    shape = (int(n[2]), int(n[1]), int(n[0]))
+    return CartesianGrid(shape, (float(fov[0]), float(fov[1]), float(fov[2])), flat, counts, max_off)
+
+
 def grid_kspace(signal, grid: CartesianGrid) -> torch.Tensor:
     """Scatter samples onto the grid (averaging duplicates, zero elsewhere).
 
@@ -134,7 +168,6 @@ def grid_kspace(signal, grid: CartesianGrid) -> torch.Tensor:
     s = torch.as_tensor(signal)
     if not s.is_complex():
         s = s.to(torch.complex128 if s.dtype == torch.float64 else torch.complex64)
-    ny, nx = grid.shape
     if s.shape[-1] != grid.flat_index.size:
         raise InputError(f"signal has {s.shape[-1]} samples, the sequence {grid.flat_index.size} ADC samples")
     used = np.where(grid.flat_index >= 0)[0]
@@ -143,15 +176,19 @@ def grid_kspace(signal, grid: CartesianGrid) -> torch.Tensor:
     cnt = grid.counts[grid.flat_index[used]]
     if np.any(cnt > 1):
         src = src / torch.as_tensor(cnt, dtype=src.real.dtype, device=s.device)
-    out = torch.zeros(s.shape[:-1] + (ny * nx,), dtype=s.dtype, device=s.device)
+    out = torch.zeros(s.shape[:-1] + (int(np.prod(grid.shape)),), dtype=s.dtype, device=s.device)
     out = out.index_add(-1, idx, src)
-    return out.reshape(s.shape[:-1] + (ny, nx))
+    return out.reshape(s.shape[:-1] + tuple(grid.shape))
 
 
-def kspace_to_image(kgrid: torch.Tensor) -> torch.Tensor:
-    """(..., ny, nx) centred k-space grid -> (..., ny, nx) complex image (see module conventions)."""
-    dims = (-2, -1)
-    return torch.fft.fftshift(torch.fft.ifft2(torch.fft.ifftshift(kgrid, dim=dims), dim=dims), dim=dims)
+def kspace_to_image(kgrid: torch.Tensor, ndim: int = 2) -> torch.Tensor:
+    """(..., ny, nx) centred k-space grid -> (..., ny, nx) complex image (see module conventions);
+    ``ndim=3``: (..., nz, ny, nx) -> (..., nz, ny, nx)."""
+    if ndim == 2:
+        dims = (-2, -1)
+        return torch.fft.fftshift(torch.fft.ifft2(torch.fft.ifftshift(kgrid, dim=dims), dim=dims), dim=dims)
+    d3 = tuple(range(-ndim, 0))
+    return torch.fft.fftshift(torch.fft.ifftn(torch.fft.ifftshift(kgrid, dim=d3), dim=d3), dim=d3)
 
 
 def reconstruct(
@@ -173,24 +210,30 @@ def reconstruct(
         grid: precomputed :func:`cartesian_grid` (then ``keep_mask``/``matrix``/``fov_m`` are ignored).
         coil_axis: whether the second-to-last axis is a coil axis (default: True for 2D+ input).
     Returns:
-        (ny, nx) complex image for one coil, or (ny, nx) real root-sum-of-squares magnitude for several.
+        (ny, nx) complex image for one coil, or (ny, nx) real root-sum-of-squares magnitude for several
+        ((nz, ny, nx) for a 3D-encoded sequence).
     """
     s = torch.as_tensor(signal)
-    if grid is None and (getattr(ir, "meta", None) or {}).get("recon") == "ndft":
+    meta = getattr(ir, "meta", None) or {}
+    if grid is None and meta.get("recon") == "ndft":
         from dtoc.sim.ndft import ndft_image  # non-Cartesian 2D: non-uniform DFT on the nominal trajectory
 
         img = ndft_image(s, ir, keep_mask)
     else:
         if grid is None:
-            grid = cartesian_grid(ir, keep_mask, matrix=matrix, fov_m=fov_m)
-        img = kspace_to_image(grid_kspace(s, grid))
+            if meta.get("grid3d") is not None and matrix is None:
+                grid = cartesian_grid_3d(ir, keep_mask)
+            else:
+                grid = cartesian_grid(ir, keep_mask, matrix=matrix, fov_m=fov_m)
+        img = kspace_to_image(grid_kspace(s, grid), len(grid.shape))
     if coil_axis is None:
         coil_axis = s.ndim >= 2
     if not coil_axis:
         return img
-    if img.shape[-3] == 1:
-        return img[..., 0, :, :]
-    return rss(img)
+    cdim = -1 - (img.ndim - s.ndim + 1)  # the coil axis just before the image axes
+    if img.shape[cdim] == 1:
+        return img.squeeze(cdim)
+    return rss(img, dim=cdim)
 
 
 def rss(images: torch.Tensor, dim: int = -3) -> torch.Tensor:
