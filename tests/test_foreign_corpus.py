@@ -27,6 +27,8 @@ def test_foreign_file_end_to_end(corpus, name):
     # the output: dtoc check at the limits, pypulseq's reader and check_timing, an independent slew, RF/ADC/timing kept
     assert r["check_ok"] and r["pypulseq_timing_ok"] and r["only_gradients_changed"], r
     assert r["slew_independent"] <= SMAX * (1 + 1e-6)
+    if r["cpp_reader"] is not None:  # the official Pulseq C++ reader, where one is configured (bench/foreign.py)
+        assert r["cpp_reader"]["ok"] and r["cpp_reader"]["agrees_with_pypulseq"], r["cpp_reader"]
     # what the manifest claims is what the written file does on the model
     assert r["k_after_reread_dk"] == pytest.approx(r["k_after_dk"], abs=1e-3)
     assert r["k_after_dk"] < 0.5 * r["k_before_dk"], r
