@@ -4,7 +4,7 @@
 
 Cases: the 64x64 single-shot EPI (sequences/epi_esp081.seq) on 64, 128 and 256 phantoms and a 128x128 EPI on a
 256 phantom, each with the nominal gradient and with the gradient realized by the bundled example 7 T GIRF (its
-blip tails make the phase moment drift along every line: the Taylor series of the line path). float32 (the
+blip tails make the phase moment drift along every line: the Jacobi-Anger series of the line path). float32 (the
 optimizer's inner loop) and float64, 1 torch thread, graph built once per case; forward and forward + backward
 (loss sum |s|^2 w.r.t. the (3, 2N+1) gradient) timed interleaved (old, new, old, new, ...), minimum of the
 repeats; the GEMM peak of this machine (one complex64 matrix product, 1 thread) for the achieved rate.  The
@@ -122,8 +122,9 @@ def render(rows: list[dict], peak: float) -> str:
         f"complex64 GEMM, 1 thread: {peak:.1f} GFLOP/s. The per-sample path contracts the readout axis for every "
         "sample (T x V x terms complex multiply-adds as matrix products); the line path contracts the phase-encoded "
         "axis once per line and the readout axis per sample (n_lines x V x terms + T x n_ro x terms), the realized "
-        "phase drift along a line by a Taylor series whose length sets the gain (docs/simulator.md, 'Signal "
-        "evaluation').\n"
+        "phase drift along a line by a Jacobi-Anger series whose length sets the gain (docs/simulator.md, "
+        "'Signal evaluation'); where it would be too long (4 S > min(n_pe, samples per line)) the per-sample "
+        "path runs. fwd+bwd: S + 2 terms, so the nominal lines' gain is smaller with a gradient than without.\n"
     )
 
 

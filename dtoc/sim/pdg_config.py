@@ -40,7 +40,7 @@ class PDGConfig:
         taylor_tol: target relative truncation error of the 'separable' method's Taylor expansion.
         window_samples: ADC samples per window of the 'separable' method.
         line_aware: 'separable' on readouts along lines of constant phase-encoding moment (EPI,
-            Cartesian; up to the realized gradient's small in-line perturbation, expanded in a Taylor
+            Cartesian; up to the realized gradient's in-line drift, expanded in a Jacobi-Anger
             series): windows follow the lines and the phase-encoded axis is contracted once per line
             (:func:`dtoc.sim.pdg_signal._apply_kernel_lines`, ~n_pe / terms fewer operations).  True,
             default; False = per-sample windows (the reference for tests and benchmarks).

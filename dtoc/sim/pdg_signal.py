@@ -574,6 +574,34 @@ def _line_windows(m_pe: np.ndarray, m_ro: np.ndarray, W: int) -> np.ndarray | No
     return np.asarray(out, dtype=np.int64)
 
 
+def _drift_terms(x: float, tol: float) -> int:
+    """Terms of the Jacobi-Anger series of exp(-i x u), |u| <= 1, for a truncation below ``tol``
+    (|J_n(x)| <= (x / 2)^n / n!; twice the first dropped bound, with a margin of 2)."""
+    n, term = 1, x / 2
+    while 4 * term > tol and n < 200:
+        n += 1
+        term = term * (x / 2) / n
+    return n
+
+
+def _jacobi_anger(z: np.ndarray, n: int) -> np.ndarray:
+    """(n, P) coefficients c_k(z) with exp(-i z u) = sum_k c_k(z) T_k(u): c_0 = J_0(z), c_k = 2 (-i)^k J_k(z)."""
+    from scipy.special import jv
+
+    k = np.arange(n)[:, None]
+    c = jv(k, np.asarray(z, dtype=np.float64)[None, :]) * (2.0 * (-1j) ** k)
+    c[0] *= 0.5
+    return c
+
+
+def _chebyshev(u: torch.Tensor, n: int) -> torch.Tensor:
+    """(..., n) Chebyshev polynomials T_0..T_{n-1} of u (differentiable; T_{k+1} = 2 u T_k - T_{k-1})."""
+    t = [torch.ones_like(u), u]
+    for _ in range(2, n):
+        t.append(2 * u * t[-1] - t[-2])
+    return torch.stack(t[:n], -1)
+
+
 def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: int, wins: np.ndarray):
     """(M, T) = Cm (M, V) @ Kern(t, v)^T for readouts along lines of (nearly) constant phase-encoding moment.
 
@@ -581,17 +609,17 @@ def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: in
     window's mid-range), with p the phase-encoded and q the readout coordinate of voxel v,
 
         Kern(t, v) = exp(-tc_w lam_v) sum_r (-(dt - tc_w) lam_v)^r / r!
-                     x exp(-i m_w p_v) sum_s (-i (m_pe(t) - m_w) p_v)^s / s!  x  exp(-i m_ro(t) q_v),
+                     x exp(-i m_w p_v) sum_s c_s(D p_v) T_s((m_pe(t) - m_w) / D)  x  exp(-i m_ro(t) q_v),
 
-    so the sum over the phase-encoded axis is one matrix product per readout column q:
-    E[q; (w, s), (m, r)] = sum_p F[q; (w, s), p] H[q; p, (m, r)] with the window factors
-    F = exp(-tc_w lam) exp(-i m_w p) (-i p)^s / s! (constants: no autograd) and the weights
+    (c_s the Jacobi-Anger coefficients of exp(-i z u), :func:`_jacobi_anger`; T_s Chebyshev polynomials; D
+    the largest drift |m_pe(t) - m_w|), so the sum over the phase-encoded axis is one matrix product per
+    readout column q: E[q; (w, s), (m, r)] = sum_p F[q; (w, s), p] H[q; p, (m, r)] with the window factors
+    F = exp(-tc_w lam) exp(-i m_w p) c_s(D p) (constants: no autograd) and the weights
     H = Cm lam^r (-1)^r / r! (formed once); then one (W x n_ro) @ (n_ro x M R S) product per window.
     n_lines x V x M R S + T x n_ro x M R S complex multiply-adds, against T x V x M R of
     :func:`_apply_kernel_separable`.  exp(-tc_w lam) is advanced from window to window by one multiplication
-    (float64; the factors of the distinct window spacings cached) instead of V exponentials per window.  The
-    delta series (S terms) covers the realized gradient's in-line drift; both truncations are below
-    ``cfg.taylor_tol`` (S + 1 terms under autograd: the derivative's series is one term shorter).
+    (float64; the factors of the distinct window spacings cached) instead of V exponentials per window.  Both
+    truncations are below ``cfg.taylor_tol`` (the drift series two terms longer under autograd).
     """
     dev = Cm.device
     ny, nx = vox.shape
@@ -627,20 +655,28 @@ def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: in
     m_ro = mt_r[:, ro].index_select(0, idx_t).reshape(nW, W, 1)
     m_c = 0.5 * (m_pe.detach().amax(1) + m_pe.detach().amin(1))  # (nW,) window centre moment (constant)
     delta = m_pe - m_c[:, None]  # (nW, W), differentiable
-    x_d = float(delta.detach().abs().max()) * (float(g_pe.abs().max()) if g_pe.numel() else 0.0)
-    S = _taylor_terms(x_d, cfg.taylor_tol) if x_d > 0 else 1
+    p_max = max(float(g_pe.abs().max()) if g_pe.numel() else 0.0, 1e-300)
+    # the expansion interval |delta| <= d_max (never 0: the series' first-order term carries the derivative)
+    d_obs = float(delta.detach().abs().max())
+    d_max = max(d_obs, 1e-3 / p_max)
+    exact = d_obs == 0.0 and not mt_r.requires_grad  # constant lines, no derivative: the factor is 1
+    S = 1 if exact else _drift_terms(d_max * p_max, cfg.taylor_tol)
     if mt_r.requires_grad:
-        S += 1  # the derivative of an S-term series is the (S-1)-term series of the derivative
+        S += 2  # the derivative's series: T_n' grows as n^2, two more terms keep it below the tolerance
     # weights H (n_ro, n_pe, M R): Cm (-lam)^r / r!, formed once
     powers = torch.stack([(-lam) ** r / math.factorial(r) for r in range(R)], 0)  # (R, V)
     H = ro_pe(full[:, None, :] * powers[None]).permute(2, 3, 0, 1).reshape(n_ro, n_pe, M * R)
     with torch.no_grad():
         Pc = _cis(-m_c[:, None] * g_pe[None, :].detach())  # (nW, n_pe)
-        pw = torch.stack([(-1j * g_pe.detach().to(cdt)) ** s / math.factorial(s) for s in range(S)], 0)  # (S, n_pe)
+        pw = (
+            torch.ones((1, n_pe), dtype=cdt, device=dev)
+            if exact
+            else torch.as_tensor(_jacobi_anger(d_max * g_pe.detach().cpu().numpy(), S), device=dev).to(cdt)
+        )  # (S, n_pe)
         lam64 = lam.to(torch.complex128)
     X = _cis(-m_ro * g_ro)  # (nW, W, n_ro)
     dlp = torch.as_tensor(np.stack([dl**r for r in range(R)], -1), dtype=rdt, device=dev).to(cdt)  # (nW, W, R)
-    dq = torch.stack([delta**s for s in range(S)], -1).to(cdt)  # (nW, W, S)
+    dq = _chebyshev(delta / d_max, S).to(cdt)  # (nW, W, S): T_s(delta / d_max)
     bs = max(1, int(cfg.chunk_elems // max(1, S * ny * nx)))
     decay = None
     steps: dict = {}
@@ -698,10 +734,10 @@ def _apply_kernel_separable(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg) ->
         if wins is not None:
             g_pe = (vox.yg if pe == 1 else vox.xg).detach().abs().max().item()
             x_d = 0.5 * max(float(np.ptp(md[a:b, pe])) for a, b in wins) * g_pe
-            # worth it while the delta series stays short: cost ~ S (1 / samples per line + 1 / n_pe) of the
+            # worth it while the drift series stays short: cost ~ S (1 / samples per line + 1 / n_pe) of the
             # per-sample path's
             per_line = int(np.median(wins[:, 1] - wins[:, 0]))
-            if 4 * _taylor_terms(x_d, cfg.taylor_tol) <= min(ny if pe == 1 else nx, per_line):
+            if 4 * _drift_terms(x_d, cfg.taylor_tol) <= min(ny if pe == 1 else nx, per_line):
                 return _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox, cfg, pe, wins)
     full = torch.zeros((M, ny * nx), dtype=cdt, device=dev).index_copy(1, vox.index, Cm)
     lam_v = torch.complex(vox.r2 + (sgn * vox.r2d if use_t2d else 0.0), vox.omega)  # (V,)
