@@ -38,3 +38,46 @@ def test_the_probe_sees_torch_when_a_command_needs_it(repo_root):
     argv = ["predict", "sequences/epi_small.seq"]
     r = subprocess.run([sys.executable, "-c", PROBE, *argv], cwd=repo_root, capture_output=True, text=True)
     assert r.stderr.strip().splitlines()[-1] == "TORCH", r.stderr[-2000:]
+
+
+DEFER_PROBE = (
+    "import sys\n"
+    "from dtoc.cli.main import run\n"
+    "try:\n"
+    "    run(sys.argv[1:])\n"
+    "except SystemExit:\n"
+    "    pass\n"
+    "print(','.join(m for m in ('matplotlib', 'scipy.signal') if m in sys.modules) or 'NONE', file=sys.stderr)\n"
+)
+
+
+@pytest.mark.parametrize(
+    "argv", [["check", "sequences/epi_small.seq"], ["build", "sequences/epi_small.yaml", "-o", "{tmp}/b.seq"]]
+)
+def test_reading_and_writing_seq_files_skips_pypulseqs_plotting_imports(repo_root, tmp_path, argv):
+    """pypulseq's plotting / PNS / spectrum modules (matplotlib, scipy.signal) are deferred (dtoc.seq.pulseq)."""
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    r = subprocess.run([sys.executable, "-c", DEFER_PROBE, *argv], cwd=repo_root, capture_output=True, text=True)
+    assert r.stderr.strip().splitlines()[-1] == "NONE", r.stderr[-2000:]
+
+
+def test_deferred_pypulseq_functions_still_work():
+    """The deferred names load the real module when called: pypulseq's own gradient spectrum and PNS run."""
+    code = (
+        "import sys\n"
+        "from dtoc.seq.pulseq import import_pypulseq\n"
+        "pp = import_pypulseq()\n"
+        "assert 'scipy.signal' not in sys.modules\n"
+        "seq = pp.Sequence()\n"
+        "seq.read('sequences/gre_paper.seq')\n"
+        "spec = seq.calculate_gradient_spectrum(plot=False)\n"
+        "assert 'scipy.signal' in sys.modules and len(spec[0]) == 3\n"
+        "from pypulseq.Sequence import calc_grad_spectrum as m\n"
+        "assert hasattr(m, 'spectrogram')  # the real module now\n"
+        "print('OK')\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=_REPO)
+    assert r.stdout.strip().endswith("OK"), r.stderr[-2000:]
+
+
+_REPO = __import__("pathlib").Path(__file__).resolve().parents[1]

@@ -115,7 +115,9 @@ def _common_definitions(seq, spec: BaseSpec) -> None:
 
 # ---------------------------------------------------------------------------------------------- GRE
 def _build_gre(spec: GreSpec):
-    import pypulseq as pp
+    from dtoc.seq.pulseq import import_pypulseq
+
+    pp = import_pypulseq()
 
     sysd = spec.system
     opts = sysd.to_pypulseq_opts(enforce_limits=False)
@@ -222,7 +224,9 @@ def _build_gre(spec: GreSpec):
 
 # ---------------------------------------------------------------------------------------------- EPI
 def _build_epi(spec: EpiSpec):
-    import pypulseq as pp
+    from dtoc.seq.pulseq import import_pypulseq
+
+    pp = import_pypulseq()
 
     sysd = spec.system
     opts = sysd.to_pypulseq_opts(enforce_limits=False)

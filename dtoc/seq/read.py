@@ -52,7 +52,9 @@ def read_pypulseq(path: str | Path, require_signature: bool = True):
         InputError: missing / empty / binary / truncated / corrupt / unsigned / bad signature /
             unsupported version, or anything pypulseq cannot read (one line).
     """
-    import pypulseq as pp
+    from dtoc.seq.pulseq import import_pypulseq
+
+    pp = import_pypulseq()
 
     p = Path(path)
     st = parse_seq_text(p)

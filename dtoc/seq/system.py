@@ -63,7 +63,9 @@ class SystemSpec(BaseModel):
         With ``enforce_limits=False`` the amplitude/slew limits are set 1000x higher, so that pypulseq
         builds over-limit target waveforms; dtoc checks limits itself (:mod:`dtoc.seq.check`).
         """
-        import pypulseq as pp
+        from dtoc.seq.pulseq import import_pypulseq
+
+        pp = import_pypulseq()
 
         scale = 1.0 if enforce_limits else 1000.0
         return pp.Opts(

@@ -67,7 +67,9 @@ def to_pypulseq(ir: SequenceIR, adc_offsets: dict[int, tuple[float, float]] | No
 
     ``adc_offsets``: {block index: (phase rad, frequency Hz)} added to that block's ADC phase and frequency
     offsets (the off-centre correction of :mod:`dtoc.optimize.offcentre`; the only non-gradient change)."""
-    import pypulseq as pp
+    from dtoc.seq.pulseq import import_pypulseq
+
+    pp = import_pypulseq()
 
     src = ir.source
     if src is None:
