@@ -40,10 +40,10 @@ def _ir(case):
     return build_ir(parse_spec(data))
 
 
-def gemm_peak_gflops() -> float:
-    """Achieved complex64 GEMM rate of this machine, 1 thread (8 real flops per complex multiply-add)."""
-    a = torch.randn(512, 512, dtype=torch.complex64)
-    b = torch.randn(512, 512, dtype=torch.complex64)
+def gemm_peak_gflops(dtype=torch.complex64) -> float:
+    """Achieved complex GEMM rate of this machine, 1 thread (8 real flops per complex multiply-add)."""
+    a = torch.randn(512, 512, dtype=dtype)
+    b = torch.randn(512, 512, dtype=dtype)
     a @ b
     best = np.inf
     for _ in range(5):
@@ -55,6 +55,7 @@ def gemm_peak_gflops() -> float:
 
 def run(repeats: int) -> list[dict]:
     import dtoc
+    import dtoc.sim.pdg_signal as S
     from dtoc.sim.pdg import PDGConfig, build_graph, simulate
     from dtoc.sim.phantom import brain_phantom
 
@@ -70,6 +71,11 @@ def run(repeats: int) -> list[dict]:
             for dname, dt in (("float32", torch.float32), ("float64", torch.float64)):
                 res = {False: {"fwd": np.inf, "fb": np.inf}, True: {"fwd": np.inf, "fb": np.inf}}
                 sig = {}
+                S.LINE_MACS = []
+                with torch.no_grad():  # the line path's operation count of one forward
+                    simulate(ir, ph, graph=g, grad_mT_per_m=G0, config=PDGConfig(signal_method="separable"), dtype=dt)
+                macs = sum(S.LINE_MACS)
+                S.LINE_MACS = None
                 for _ in range(repeats):
                     for la in (False, True):
                         cfg = PDGConfig(signal_method="separable", line_aware=la)
@@ -94,6 +100,7 @@ def run(repeats: int) -> list[dict]:
                         diff=diff,
                         n_adc=int(ir.n_adc_samples),
                         voxels=int((ph.pd > 0).sum()),
+                        macs=macs,
                     )
                 )
                 print(rows[-1], flush=True)
@@ -107,19 +114,29 @@ def _ms(x: float) -> str:
 def render(rows: list[dict], peak: float) -> str:
     lines = [
         "| case | gradient | dtype | per-sample windows fwd / fwd+bwd | line-aware fwd / fwd+bwd | speed-up fwd / "
-        "fwd+bwd | max difference (rel.) |",
-        "|---|---|---|---|---|---|---|",
+        "fwd+bwd | max difference (rel.) | line path GFLOP/s fwd (share of GEMM peak) | GEMM floor fwd |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         o, n = r["old"], r["new"]
         lines.append(
             f"| {r['case']} | {r['wave']} | {r['dtype']} | {_ms(o['fwd'])} / {_ms(o['fb'])} | {_ms(n['fwd'])} / "
-            f"{_ms(n['fb'])} | **{o['fwd'] / n['fwd']:.1f}x** / **{o['fb'] / n['fb']:.1f}x** | {r['diff']:.1e} |"
+            f"{_ms(n['fb'])} | **{o['fwd'] / n['fwd']:.1f}x** / **{o['fb'] / n['fb']:.1f}x** | {r['diff']:.1e} | "
+            + (
+                f"{8e-9 * r['macs'] / n['fwd']:.1f} ({100 * 8e-9 * r['macs'] / n['fwd'] / peak[r['dtype']]:.0f} %) | "
+                f"{_ms(8e-9 * r['macs'] / peak[r['dtype']])} |"
+                if r["macs"]
+                else "- (per-sample path) | - |"
+            )
         )
     return (
         "\n".join(lines)
         + f"\n\nWhole `simulate` calls (graph prebuilt; the 3 emitting states of a single-shot EPI). This machine's "
-        f"complex64 GEMM, 1 thread: {peak:.1f} GFLOP/s. The per-sample path contracts the readout axis for every "
+        f"complex GEMM, 1 thread: {peak['float32']:.1f} GFLOP/s (complex64), {peak['float64']:.1f} GFLOP/s "
+        "(complex128). GFLOP/s: 8 x the line path's complex multiply-adds (its two products, counted by "
+        "`dtoc.sim.pdg_signal.LINE_MACS`) over the whole forward time; 'GEMM floor': those operations at the GEMM "
+        "peak -- the distance of the whole call (PDG propagation, factors, gathers included) to the limit of this "
+        "algorithm. The per-sample path contracts the readout axis for every "
         "sample (T x V x terms complex multiply-adds as matrix products); the line path contracts the phase-encoded "
         "axis once per line and the readout axis per sample (n_lines x V x terms + T x n_ro x terms), the realized "
         "phase drift along a line by a Jacobi-Anger series whose length sets the gain (docs/simulator.md, "
@@ -133,7 +150,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-write", action="store_true")
     a = ap.parse_args()
-    peak = gemm_peak_gflops()
+    torch.set_num_threads(1)
+    peak = {"float32": gemm_peak_gflops(torch.complex64), "float64": gemm_peak_gflops(torch.complex128)}
     rows = run(a.repeats)
     text = render(rows, peak)
     print(text)

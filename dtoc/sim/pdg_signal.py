@@ -574,6 +574,10 @@ def _line_windows(m_pe: np.ndarray, m_ro: np.ndarray, W: int) -> np.ndarray | No
     return np.asarray(out, dtype=np.int64)
 
 
+#: when a list: every line-aware evaluation appends its complex multiply-add count (bench.sim.line_aware)
+LINE_MACS: list | None = None
+
+
 def _drift_terms(x: float, tol: float) -> int:
     """Terms of the Jacobi-Anger series of exp(-i x u), |u| <= 1, for a truncation below ``tol``
     (|J_n(x)| <= (x / 2)^n / n!; twice the first dropped bound, with a margin of 2)."""
@@ -677,6 +681,8 @@ def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: in
     X = _cis(-m_ro * g_ro)  # (nW, W, n_ro)
     dlp = torch.as_tensor(np.stack([dl**r for r in range(R)], -1), dtype=rdt, device=dev).to(cdt)  # (nW, W, R)
     dq = _chebyshev(delta / d_max, S).to(cdt)  # (nW, W, S): T_s(delta / d_max)
+    if LINE_MACS is not None:  # benchmark accounting: complex multiply-adds of the two products below
+        LINE_MACS.append(nW * S * ny * nx * M * R + nW * W * n_ro * M * R * S)
     bs = max(1, int(cfg.chunk_elems // max(1, S * ny * nx)))
     decay = None
     steps: dict = {}
