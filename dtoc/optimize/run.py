@@ -426,7 +426,7 @@ def optimize_sequence(
 
     if with_image is None and ir.meta.get("grid3d") is not None:
         # a 3D-encoded sequence: the image term when a 3D phantom is given (then not windowed), else k-space only
-        with_image = True if is_3d_spec(phantom) else False
+        with_image = is_3d_spec(phantom)
     window = _window_plan(ir, hardware, cfg, free, with_image)
     if window is not None:  # long sequence: period by period, k-space terms only
         if with_image:

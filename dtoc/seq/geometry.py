@@ -190,13 +190,7 @@ def infer_cartesian_grid(k0_rad_per_m, adc_sizes) -> InferredGrid | None:
     if k.ndim != 2 or k.shape[0] != 3 or edges[-1] != k.shape[1] or k.shape[1] == 0:
         return None
     scale = max(float(np.abs(k).max()), 1e-12)
-    within = np.zeros(3)
-    between = np.zeros(3)
-    for a in range(3):
-        spreads = [np.ptp(k[a, s:e]) for s, e in zip(edges[:-1], edges[1:]) if e > s]
-        within[a] = max(spreads) if spreads else 0.0
-        means = [np.mean(k[a, s:e]) for s, e in zip(edges[:-1], edges[1:]) if e > s]
-        between[a] = np.ptp(means) if means else 0.0
+    within, between = _spread_within_between(k, edges)
     varies = within > 1e-4 * scale
     if varies.sum() != 1:
         return None  # no readout, or k moves on two axes within one ADC (radial, spiral): not Cartesian
@@ -220,6 +214,20 @@ def infer_cartesian_grid(k0_rad_per_m, adc_sizes) -> InferredGrid | None:
     if fov[pe] == 0.0:
         fov[pe] = fov[ro] * out_n[pe] / out_n[ro]  # one line: a nominal FOV, the recon needs one
     return InferredGrid(ro, pe, (out_n[ro], out_n[pe]), (fov[0], fov[1], fov[2]), (off[0], off[1], off[2]))
+
+
+def _spread_within_between(k, edges) -> tuple:
+    """Per axis (3,): the largest k spread within one ADC event, and the spread of the events' mean k."""
+    import numpy as np
+
+    within = np.zeros(3)
+    between = np.zeros(3)
+    for a in range(3):
+        spreads = [np.ptp(k[a, s:e]) for s, e in zip(edges[:-1], edges[1:]) if e > s]
+        within[a] = max(spreads) if spreads else 0.0
+        means = [np.mean(k[a, s:e]) for s, e in zip(edges[:-1], edges[1:]) if e > s]
+        between[a] = np.ptp(means) if means else 0.0
+    return within, between
 
 
 def _axis_grid(values) -> tuple[int, float, float] | None:
@@ -294,9 +302,7 @@ def infer_cartesian_grid_3d(k0_rad_per_m, adc_sizes) -> InferredGrid3D | None:
     if k.ndim != 2 or k.shape[0] != 3 or edges[-1] != k.shape[1] or k.shape[1] == 0:
         return None
     scale = max(float(np.abs(k).max()), 1e-12)
-    bounds = [(s, e) for s, e in zip(edges[:-1], edges[1:]) if e > s]
-    within = np.array([max(np.ptp(k[a, s:e]) for s, e in bounds) for a in range(3)])
-    between = np.array([np.ptp([np.mean(k[a, s:e]) for s, e in bounds]) for a in range(3)])
+    within, between = _spread_within_between(k, edges)
     varies = within > 1e-4 * scale
     if varies.sum() != 1:
         return None

@@ -91,7 +91,7 @@ class VoxelData:
         )
         return out.reshape(*shape, self.n)
 
-    def spatial_phase_3d(self, k: torch.Tensor) -> torch.Tensor:
+    def spatial_phase_of(self, k: torch.Tensor) -> torch.Tensor:
         """(..., V) complex exp(-i k.r_v) for k (..., >=3) rad/m: :meth:`spatial_phase` times the z factor
         of a 3D phantom (plain autograd for kz), or :meth:`spatial_phase` alone in 2D."""
         sp = self.spatial_phase(k[..., 0], k[..., 1])
@@ -172,10 +172,7 @@ class VoxelData:
         """Voxel-mean Mz (V,) of longitudinal states A (Z, V) with k K (Z, 4) and dephasing time tau (Z,)."""
         tau = torch.as_tensor(tau_s, dtype=self.r2d.dtype, device=A.device)
         k = K.to(self.x.dtype)
-        if self.z is None:
-            ph = -(k[:, 0:1] * self.x[None] + k[:, 1:2] * self.y[None] + tau[:, None] * self.omega[None])
-        else:
-            ph = -(self.phase_of(k) + tau[:, None] * self.omega[None])
+        ph = -(self.phase_of(k) + tau[:, None] * self.omega[None])
         mag = -(tau.abs()[:, None] * self.r2d[None])
         E = torch.exp(torch.complex(mag, ph))
         vf = voxel_factor(K, self).to(A.dtype)
@@ -289,13 +286,7 @@ def emit_signal_direct(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -
         mag = -dtr[sl][None, :, None] * vox.r2[None, None, :] - ta.abs()[:, :, None] * vox.r2d[None, None, :]
         if bD is not None:
             mag = mag - bD[:, sl, None] * vox.d[None, None, :]
-        ph = -(
-            kk[:, :, 0:1] * vox.x[None, None, :]
-            + kk[:, :, 1:2] * vox.y[None, None, :]
-            + ta[:, :, None] * vox.omega[None, None, :]
-        )
-        if vox.z is not None:
-            ph = ph - kk[:, :, 2:3] * vox.z[None, None, :]
+        ph = -(vox.phase_of(kk) + ta[:, :, None] * vox.omega[None, None, :])
         E = torch.exp(torch.complex(mag, ph))  # (J, t, V)
         s = torch.einsum("jtv,cjv->cjt", E, AC)
         out.append((s * vf[None, :, sl]).sum(1))
@@ -370,9 +361,7 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
     Aj = A.index_select(0, Jn)
     kj = Kj.to(rdt)
     tau_t = torch.as_tensor(tau, dtype=rdt, device=dev)
-    ph = -(kj[:, 0:1] * vox.x[None] + kj[:, 1:2] * vox.y[None] + tau_t[:, None] * vox.omega[None])
-    if vox.z is not None:
-        ph = ph - kj[:, 2:3] * vox.z[None]
+    ph = -(vox.phase_of(kj) + tau_t[:, None] * vox.omega[None])
     mag0 = torch.zeros_like(ph)
     if dif is not None:
         mag0 = mag0 - dif[0][:, None] * vox.d[None]
@@ -493,12 +482,8 @@ def _kernel(mt_r, dtr, rate, vox: VoxelData, key=None) -> torch.Tensor:
     if key is not None:
         tf = _time_factor(dtr, rate, vox, key)
         if tf is not None:
-            if vox.z is not None:
-                return vox.spatial_phase_3d(mt_r) * tf
-            return vox.spatial_phase(mt_r[:, 0], mt_r[:, 1]) * tf
-    kph = -(mt_r[:, 0:1] * vox.x[None] + mt_r[:, 1:2] * vox.y[None] + dtr[:, None] * vox.omega[None])
-    if vox.z is not None:
-        kph = kph - mt_r[:, 2:3] * vox.z[None]
+            return vox.spatial_phase_of(mt_r) * tf
+    kph = -(vox.phase_of(mt_r) + dtr[:, None] * vox.omega[None])
     # clamp: the mirrored (tau < 0) kernel grows as exp(+dt/T2'); only masked-out samples can get there
     return torch.exp(torch.complex(torch.clamp(-dtr[:, None] * rate[None], max=80.0), kph))
 
@@ -544,6 +529,17 @@ def _taylor_terms(x: float, tol: float) -> int:
         r += 1
         term = term * x / r
     return r
+
+
+def _on_grid(Cm, sgn, use_t2d, vox: VoxelData) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """The separable evaluations' inputs on the full (ny * nx) voxel grid (zero off the phantom): the weights
+    Cm (M, ny nx), the decay rates lam = 1/T2 + sgn/T2' + i omega (ny nx,) and max |lam|."""
+    ny, nx = vox.shape
+    full = torch.zeros((Cm.shape[0], ny * nx), dtype=Cm.dtype, device=Cm.device).index_copy(1, vox.index, Cm)
+    lam_v = torch.complex(vox.r2 + (sgn * vox.r2d if use_t2d else 0.0), vox.omega)  # (V,)
+    lam = torch.zeros(ny * nx, dtype=Cm.dtype, device=Cm.device).index_copy(0, vox.index, lam_v)
+    lam_max = float(lam_v.detach().abs().max()) if lam_v.numel() else 0.0
+    return full, lam, lam_max
 
 
 #: longest line window of the line-aware evaluation, samples (a whole readout line up to this: each window
@@ -640,10 +636,8 @@ def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: in
         a = a.reshape(*a.shape[:-1], ny, nx)
         return a.transpose(-1, -2) if pe == 1 else a
 
-    full = torch.zeros((M, ny * nx), dtype=cdt, device=dev).index_copy(1, vox.index, Cm)
-    lam_v = torch.complex(vox.r2 + (sgn * vox.r2d if use_t2d else 0.0), vox.omega).detach()  # (V,)
-    lam = torch.zeros(ny * nx, dtype=cdt, device=dev).index_copy(0, vox.index, lam_v)
-    lam_max = float(lam_v.abs().max()) if lam_v.numel() else 0.0
+    full, lam, lam_max = _on_grid(Cm, sgn, use_t2d, vox)
+    lam = lam.detach()
     T = dtt.size
     nW = wins.shape[0]
     W = int((wins[:, 1] - wins[:, 0]).max())
@@ -745,10 +739,7 @@ def _apply_kernel_separable(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg) ->
             per_line = int(np.median(wins[:, 1] - wins[:, 0]))
             if 4 * _drift_terms(x_d, cfg.taylor_tol) <= min(ny if pe == 1 else nx, per_line):
                 return _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox, cfg, pe, wins)
-    full = torch.zeros((M, ny * nx), dtype=cdt, device=dev).index_copy(1, vox.index, Cm)
-    lam_v = torch.complex(vox.r2 + (sgn * vox.r2d if use_t2d else 0.0), vox.omega)  # (V,)
-    lam = torch.zeros(ny * nx, dtype=cdt, device=dev).index_copy(0, vox.index, lam_v)
-    lam_max = float(lam_v.detach().abs().max()) if lam_v.numel() else 0.0
+    full, lam, lam_max = _on_grid(Cm, sgn, use_t2d, vox)
     T = dtt.size
     W = max(1, min(int(cfg.window_samples), T))
     nW = -(-T // W)

@@ -306,12 +306,7 @@ def brain_phantom(
     counts = _label_counts(ny, nx, os_, seed, lesion, scalp)
     fractions = {name: c / os_**2 for name, c in counts.items() if c.any()}
     maps = _mix(fractions, params)
-    # smooth maps evaluated at voxel centres
-    yc = (np.arange(ny) - ny / 2) * 2.0 / ny
-    xc = (np.arange(nx) - nx / 2) * 2.0 / nx
-    vc, uc = np.meshgrid(yc, xc, indexing="ij")
-    b0_map = _smooth_b0_hz(uc, vc, float(field_T), seed) if b0 else np.zeros((ny, nx))
-    b1_map = _smooth_b1(uc, vc, float(field_T)) if b1 else np.ones((ny, nx))
+    b0_map, b1_map = _field_maps(ny, nx, field_T, seed, b0, b1)
     return Phantom(
         pd=maps["pd"],
         t1_s=maps["t1_s"],
@@ -323,6 +318,16 @@ def brain_phantom(
         fov_m=fov,
         voxel_shape="box",
     )
+
+
+def _field_maps(ny: int, nx: int, field_T: float, seed: int, b0: bool, b1: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(ny, nx) B0 (Hz) and relative B1 maps at the voxel centres: the smooth maps when asked, else 0 and 1."""
+    yc = (np.arange(ny) - ny / 2) * 2.0 / ny
+    xc = (np.arange(nx) - nx / 2) * 2.0 / nx
+    vc, uc = np.meshgrid(yc, xc, indexing="ij")
+    b0_map = _smooth_b0_hz(uc, vc, float(field_T), seed) if b0 else np.zeros((ny, nx))
+    b1_map = _smooth_b1(uc, vc, float(field_T)) if b1 else np.ones((ny, nx))
+    return b0_map, b1_map
 
 
 def _label_counts(ny: int, nx: int, os_: int, seed: int, lesion: bool, scalp: bool, scale: float = 1.0) -> dict:
@@ -392,9 +397,7 @@ def brain_phantom_3d(
             for name, c in _label_counts(ny, nx, os_, seed, lesion, scalp, scale).items():
                 fr[name][iz] += c / (os_**2 * os_z)
     maps = _mix({k: v for k, v in fr.items() if v.any()}, params)
-    vc, uc = np.meshgrid((np.arange(ny) - ny / 2) * 2.0 / ny, (np.arange(nx) - nx / 2) * 2.0 / nx, indexing="ij")
-    b0_map = _smooth_b0_hz(uc, vc, float(field_T), seed) if b0 else np.zeros((ny, nx))
-    b1_map = _smooth_b1(uc, vc, float(field_T)) if b1 else np.ones((ny, nx))
+    b0_map, b1_map = _field_maps(ny, nx, field_T, seed, b0, b1)
     return Phantom(
         pd=maps["pd"],
         t1_s=maps["t1_s"],
