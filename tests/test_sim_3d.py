@@ -171,3 +171,28 @@ def test_simulate_and_optimize_cli_image_term_on_the_3d_head(gre3d_path, tmp_pat
     )  # fmt: skip
     assert code == 0, err
     assert json.loads(m2.read_text())["sequence"]["image_term"] is False
+
+
+def test_a_phantom_of_the_wrong_dimension_is_refused_by_the_cli(gre3d_path, tmp_path, capsys):
+    """One line and exit 2, no output written: a 2D phantom on a 3D file (simulate and optimize: a given phantom
+    is never silently ignored) and the built-in 3D head on a 2D file."""
+    from tests.cli_helpers import run_cli
+    from tests.foreign.writers import gre
+
+    p2 = tmp_path / "p2.npz"
+    save_phantom(brain_phantom(8, fov_m=0.2), p2)
+    g2 = tmp_path / "gre.seq"
+    g2.write_bytes(gre(n=8))
+    lim = ("--girf", "girf/example_7T.npz", "--gmax", "32", "--smax", "130")
+    cases = [
+        (("simulate", gre3d_path, "--phantom", p2), "needs a 3D phantom"),
+        (("simulate", gre3d_path, "--phantom", "brain"), "needs a 3D phantom"),
+        (("optimize", gre3d_path, *lim, "--phantom", p2, "-o", tmp_path / "a.seq"), "needs a 3D phantom"),
+        (("simulate", g2, "--phantom", "brain3d"), "needs a 3D-encoded sequence"),
+        (("optimize", g2, *lim, "--phantom", "brain3d", "-o", tmp_path / "b.seq"), "needs a 3D-encoded sequence"),
+    ]
+    for argv, msg in cases:
+        code, _, err = run_cli(capsys, *argv, "-q")
+        lines = [ln for ln in err.strip().splitlines() if not ln.startswith("note:")]
+        assert code == 2 and len(lines) == 1 and msg in lines[0], (argv, err)
+    assert not (tmp_path / "a.seq").exists() and not (tmp_path / "b.seq").exists()

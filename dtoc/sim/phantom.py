@@ -719,12 +719,15 @@ def is_3d_spec(spec) -> bool:
     return False
 
 
-def check_phantom_matches(ir, phantom: Phantom) -> None:
-    """A 3D-encoded sequence (``ir.meta['grid3d']``) images a 3D phantom, a 2D one a 2D phantom: one line otherwise."""
+def check_phantom_matches(ir, phantom) -> None:
+    """A 3D-encoded sequence (``ir.meta['grid3d']``) images a 3D phantom, a 2D one a 2D phantom: one line otherwise.
+    ``phantom``: a :class:`Phantom` or a spec (:func:`is_3d_spec`; None = the default 'brain')."""
     three_d = (getattr(ir, "meta", None) or {}).get("grid3d") is not None
-    if three_d and not phantom.is_3d:
+    ph_3d = is_3d_spec(phantom)
+    if three_d and not ph_3d:
         raise InputError(
             "the sequence is 3D-encoded: its image needs a 3D phantom (--phantom brain3d, or a .npz with (nz, ny, nx) maps)"
         )
-    if phantom.is_3d and not three_d:
-        raise InputError(f"a 3D phantom {phantom.shape} needs a 3D-encoded sequence (k on a 3D Cartesian grid)")
+    if ph_3d and not three_d:
+        what = f"a 3D phantom {phantom.shape}" if isinstance(phantom, Phantom) else f"the 3D phantom {phantom}"
+        raise InputError(f"{what} needs a 3D-encoded sequence (k on a 3D Cartesian grid)")
