@@ -314,11 +314,49 @@ def test_unique_rows_equals_numpy_unique():
 
     rng = np.random.default_rng(3)
     for n in (0, 1, 7, 5000):
-        a = rng.integers(-4, 4, size=(n, 5)).astype(np.int64)
-        a[:, 2] *= 10**12
-        u0, i0 = np.unique(a, axis=0, return_inverse=True)
-        u1, i1 = unique_rows(a)
-        assert np.array_equal(u0, u1) and np.array_equal(i0.reshape(-1), i1)
+        for scale in (1, 10**12, 10**17):  # packed single key (first two) and the lexsort fallback (spans > 2^62)
+            a = rng.integers(-4, 4, size=(n, 5)).astype(np.int64)
+            a[:, 2] *= scale
+            u0, i0 = np.unique(a, axis=0, return_inverse=True)
+            u1, i1 = unique_rows(a)
+            assert np.array_equal(u0, u1) and np.array_equal(i0.reshape(-1), i1)
+
+
+def test_first_max_by_group_equals_lexsort_choice():
+    """The representative edge of each merged state (largest amplitude bound, ties to the lowest edge index)
+    is the same as the first entry per group of ``np.lexsort((-value, group))``, empty groups -1."""
+    from dtoc.sim.pdg_graph import first_max_by_group
+
+    rng = np.random.default_rng(4)
+    group = rng.integers(0, 40, 600)
+    value = rng.integers(0, 5, 600).astype(float) * 0.25  # many ties
+    order = np.lexsort((-value, group))
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = group[order][1:] != group[order][:-1]
+    want = np.full(45, -1)
+    want[group[order][first]] = order[first]
+    got = first_max_by_group(group, value, 45)
+    assert np.array_equal(got, want) and (got[40:] == -1).all() and (got[:40] >= 0).sum() == np.unique(group).size
+
+
+def test_envelopes_per_axis_broadcast_equal_full_bit_for_bit():
+    """The emission bound passes readout-constant k axes with a length-1 dimension: the voxel envelope and the
+    object-spectrum estimate are then the same numbers as on the full (S, T) arrays."""
+    from dtoc.sim.pdg_graph import ObjectSpectrum, voxel_envelope, voxel_envelope_axes
+    from dtoc.sim.phantom import brain_phantom
+
+    rng = np.random.default_rng(6)
+    kx = rng.normal(0, 3000, (50, 17))
+    ky = rng.normal(0, 3000, (50, 1))
+    ky[3] = 0.0
+    kz = np.zeros((1, 1))
+    full = np.stack(np.broadcast_arrays(kx, ky, kz), axis=-1)
+    for shape in ("box", "sinc", "none"):
+        want = voxel_envelope(full, (1e-3, 2e-3, 5e-3), shape)
+        assert np.array_equal(voxel_envelope_axes((kx, ky, kz), (1e-3, 2e-3, 5e-3), shape), want)
+    spec = ObjectSpectrum(brain_phantom(32, fov_m=(0.2, 0.2)))
+    assert np.array_equal(spec.at_axes(kx, ky, kz), spec(full))
+    assert 0 < spec(full).min() and spec(full).max() <= 1
 
 
 def test_row_sums_by_bincount_equal_add_at_bit_for_bit():
@@ -334,3 +372,21 @@ def test_row_sums_by_bincount_equal_add_at_bit_for_bit():
     np.add.at(want, idx, rows)
     got = add_rows_by_index(idx, rows, 60)
     assert np.array_equal(got.view(np.int64), want.view(np.int64))
+
+
+def test_top_k_mask_and_dense_rank_equal_the_sorts_they_replace():
+    """``top_k_mask`` keeps the same set as ``np.argsort(-score, kind='stable')[:k]`` (ties to the lowest index,
+    +inf kept, -1 fillers last); ``_dense_rank`` is ``np.unique``'s inverse."""
+    from dtoc.sim.pdg_graph import _dense_rank, top_k_mask
+
+    rng = np.random.default_rng(7)
+    score = np.round(rng.random(3000), 2)  # many ties
+    score[rng.integers(0, 3000, 400)] = -1.0
+    score[17] = np.inf
+    for k in (0, 1, 5, 100, 2599, 2999, 3000, 5000):
+        want = np.zeros(score.size, dtype=bool)
+        want[np.argsort(-score, kind="stable")[:k]] = True
+        assert np.array_equal(top_k_mask(score, k), want), k
+    c = rng.integers(-(10**15), 10**15, 500)
+    c[::3] = c[0]
+    assert np.array_equal(_dense_rank(c), np.unique(c, return_inverse=True)[1].reshape(-1))
