@@ -85,8 +85,10 @@ def run(argv: list[str] | None = None) -> None:
     """Console-script entry point."""
     from dtoc.errors import DtocError, describe
     from dtoc.util import interrupt
+    from dtoc.util.allocator import keep_freed_memory
 
     interrupt.install()
+    keep_freed_memory()
     try:
         app(args=argv, standalone_mode=True)
     except SystemExit as e:
