@@ -22,7 +22,7 @@ import pytest
 
 from dtoc.seq.load import load_sequence
 from dtoc.sim import pdg
-from dtoc.sim.pdg_dummies import _dummy_train, detect_rf_spoiling
+from dtoc.sim.pdg_dummies import detect_rf_spoiling, dummy_train
 from dtoc.sim.pdg_graph import build_graph
 from dtoc.sim.phantom import brain_phantom
 
@@ -72,7 +72,7 @@ def _cases():
         yield f"{name}/default/steady", build_graph(ir, CONFIGS["default"], ph, final_z_readout=True)
     # the paper GRE's 300-cycle dummy train at the steady-state thresholds (~2e5 states, max_states truncation)
     ir = load_sequence(REPO / "sequences" / "gre_paper.seq")
-    train = _dummy_train(ir, 300, None, detect_rf_spoiling(ir))
+    train = dummy_train(ir, 300, None, detect_rf_spoiling(ir))
     cfg = pdg.PDGConfig(min_latent_signal=1e-6, min_emitted_signal=1e-6, min_magnitude=1e-7)
     yield (
         "gre_paper/dummies300",

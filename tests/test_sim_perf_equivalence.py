@@ -376,8 +376,8 @@ def test_row_sums_by_bincount_equal_add_at_bit_for_bit():
 
 def test_top_k_mask_and_dense_rank_equal_the_sorts_they_replace():
     """``top_k_mask`` keeps the same set as ``np.argsort(-score, kind='stable')[:k]`` (ties to the lowest index,
-    +inf kept, -1 fillers last); ``_dense_rank`` is ``np.unique``'s inverse."""
-    from dtoc.sim.pdg_graph import _dense_rank, top_k_mask
+    +inf kept, -1 fillers last); ``dense_rank`` is ``np.unique``'s inverse."""
+    from dtoc.sim.pdg_graph import dense_rank, top_k_mask
 
     rng = np.random.default_rng(7)
     score = np.round(rng.random(3000), 2)  # many ties
@@ -389,4 +389,4 @@ def test_top_k_mask_and_dense_rank_equal_the_sorts_they_replace():
         assert np.array_equal(top_k_mask(score, k), want), k
     c = rng.integers(-(10**15), 10**15, 500)
     c[::3] = c[0]
-    assert np.array_equal(_dense_rank(c), np.unique(c, return_inverse=True)[1].reshape(-1))
+    assert np.array_equal(dense_rank(c), np.unique(c, return_inverse=True)[1].reshape(-1))

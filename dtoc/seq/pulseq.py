@@ -18,9 +18,12 @@ from pathlib import Path
 import numpy as np
 
 #: pypulseq modules its ``Sequence`` imports at load time for plotting, PNS and gradient spectra -- which pull in
-#: matplotlib and scipy.signal (~0.45 s of the ~0.75 s that ``import pypulseq`` costs) -- and the names it takes
-#: from them.  dtoc uses none of them; :func:`import_pypulseq` defers each until one of its names is called.
+#: matplotlib and scipy.signal (~0.45 s of the ~0.75 s that ``import pypulseq`` costs) -- and for ``PPoly``
+#: (``Sequence.get_gradients`` only: scipy.interpolate, with scipy.special/optimize/linalg/sparse, ~0.2 s), and the
+#: names it takes from them.  dtoc uses none of them; :func:`import_pypulseq` defers each until one of its names is
+#: called.
 _DEFERRED = {
+    "scipy.interpolate": ("PPoly",),
     "pypulseq.Sequence.calc_grad_spectrum": ("calculate_gradient_spectrum",),
     "pypulseq.Sequence.calc_pns": ("calc_pns",),
     "pypulseq.utils.paper_plot": ("paper_plot",),

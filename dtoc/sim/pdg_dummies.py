@@ -29,7 +29,7 @@ def detect_rf_spoiling(ir: SequenceIR) -> float:
     return 0.0
 
 
-def _dummy_train(ir: SequenceIR, n: int, block_range, rf_spoil_rad: float = 0.0) -> SequenceIR:
+def dummy_train(ir: SequenceIR, n: int, block_range, rf_spoil_rad: float = 0.0) -> SequenceIR:
     """IR of ``n`` repetitions (block ranges) played back to back, without ADC.
 
     With ``rf_spoil_rad`` = c, the RF phases of repetition d are shifted by q(d) - q(d mod n_template)
@@ -101,7 +101,7 @@ def run_dummies(ir, phantom, n_dummies, block_range, cfg, dtype, device, rf_spoi
         return torch.as_tensor(phantom.pd, dtype=dtype, device=device)
     if rf_spoil_rad is None:
         rf_spoil_rad = detect_rf_spoiling(ir)
-    train = _dummy_train(ir, n_dummies, block_range, rf_spoil_rad)
+    train = dummy_train(ir, n_dummies, block_range, rf_spoil_rad)
     with torch.no_grad():
         p = prepare(train, phantom, None, cfg, None, None, None, dtype, device, final_z=True)
         graph, vox = p.graph, p.vox

@@ -342,7 +342,7 @@ def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         j = int(np.argmax(span))
         if ranked[j]:
             break
-        cols[j] = _dense_rank(cols[j])
+        cols[j] = dense_rank(cols[j])
         lo[j], span[j], ranked[j] = 0, int(cols[j].max()) + 1, True
     if np.prod(span, dtype=object) < 2**62:
         mult = np.cumprod([1] + span[:0:-1])[::-1].astype(np.int64)  # radix of each column
@@ -361,7 +361,7 @@ def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return a[order[new]], inv
 
 
-def _dense_rank(c: np.ndarray) -> np.ndarray:
+def dense_rank(c: np.ndarray) -> np.ndarray:
     """(n,) int64 rank of each value of ``c`` among its distinct values (0 = smallest)."""
     order = np.argsort(c)
     sc = c[order]
