@@ -58,7 +58,7 @@ def simulate_cmd(
 
     from dtoc.sim.comparison import check_device, compare_ideal_realized, plot_comparison, torch_dtype
     from dtoc.sim.metrics import report_figures
-    from dtoc.sim.phantom import check_phantom_matches, is_3d_spec, phantom_for
+    from dtoc.sim.phantom import check_phantom_matches, phantom_for
     from dtoc.util.atomic import atomic_write_bytes, check_outputs, outputs_together, sha256_file
     from dtoc.util.jsonout import strict_json
     from dtoc.version import __version__
@@ -90,9 +90,7 @@ def simulate_cmd(
         hw = RotatedChain(hw, R)
     if phantom is None and ir.meta.get("grid3d") is not None:
         phantom = "brain3d"  # a 3D-encoded sequence images the built-in 3D head
-    if ir.meta.get("grid3d") is not None or is_3d_spec(phantom):
-        check_phantom_matches(ir, phantom)  # one line for a 2D phantom on a 3D file and the reverse
-    else:
+    if not check_phantom_matches(ir, phantom):  # one line for a 2D phantom on a 3D file and the reverse
         ir.require_geometry(f"{seq}: simulate")
     ph = phantom_for(ir, phantom, field_T=field_T, b0=b0_map, b1=b1_map)
     res = compare_ideal_realized(

@@ -422,13 +422,13 @@ def optimize_sequence(
     dtype = torch.float64
     twin = EdgeTwin(ir, hardware, projector, dtype=dtype, device=device)
     ctx = L.build_context(ir, limits, dtype=dtype, device=device)
-    from dtoc.sim.phantom import check_phantom_matches, is_3d_spec
+    from dtoc.sim.phantom import check_phantom_matches
 
-    if phantom is not None and (ir.meta.get("grid3d") is not None or is_3d_spec(phantom)):
-        check_phantom_matches(ir, phantom)  # a given phantom of the wrong dimension: one line, never ignored
+    # a given phantom of the wrong dimension: one line, never ignored
+    phantom_3d = phantom is not None and check_phantom_matches(ir, phantom)
     if with_image is None and ir.meta.get("grid3d") is not None:
         # a 3D-encoded sequence: the image term when a 3D phantom is given (then not windowed), else k-space only
-        with_image = is_3d_spec(phantom)
+        with_image = phantom_3d
     window = _window_plan(ir, hardware, cfg, free, with_image)
     if window is not None:  # long sequence: period by period, k-space terms only
         if with_image:

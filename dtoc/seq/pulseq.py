@@ -60,8 +60,9 @@ def _deferred_module(name: str, names: tuple[str, ...]) -> types.ModuleType:
 
 
 def import_pypulseq() -> types.ModuleType:
-    """``import pypulseq``, with its plotting / PNS / spectrum modules deferred (:data:`_DEFERRED`) when pypulseq
-    is not loaded yet: every dtoc command that reads or writes a ``.seq`` starts ~0.45 s faster."""
+    """``import pypulseq``, with its plotting / PNS / spectrum modules and scipy.interpolate deferred
+    (:data:`_DEFERRED`) when pypulseq is not loaded yet: every dtoc command that reads or writes a ``.seq``
+    starts ~0.65 s faster (docs/benchmarks.md, "CLI start-up")."""
     if "pypulseq" not in sys.modules:
         for name, names in _DEFERRED.items():
             if name not in sys.modules:

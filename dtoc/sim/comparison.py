@@ -90,8 +90,7 @@ def compare_ideal_realized(
 
     note = step or (lambda _s: None)
     ndft = ir.meta.get("recon") == "ndft"  # non-Cartesian: non-uniform DFT on the nominal trajectory
-    check_phantom_matches(ir, phantom)
-    three_d = phantom.is_3d
+    three_d = check_phantom_matches(ir, phantom)
     grid = None if ndft else (cartesian_grid_3d(ir, keep_mask) if three_d else cartesian_grid(ir, keep_mask))
     matrix = list(ir.require_geometry("simulate").image_shape[::-1] if grid is None else grid.shape[::-1])
     note("graph" if not n_dummies or n_dummies <= 0 else f"graph, {n_dummies} dummy cycles, ideal simulation")

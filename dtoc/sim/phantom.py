@@ -719,9 +719,10 @@ def is_3d_spec(spec) -> bool:
     return False
 
 
-def check_phantom_matches(ir, phantom) -> None:
+def check_phantom_matches(ir, phantom) -> bool:
     """A 3D-encoded sequence (``ir.meta['grid3d']``) images a 3D phantom, a 2D one a 2D phantom: one line otherwise.
-    ``phantom``: a :class:`Phantom` or a spec (:func:`is_3d_spec`; None = the default 'brain')."""
+    ``phantom``: a :class:`Phantom` or a spec (:func:`is_3d_spec`; None = the default 'brain').  Returns whether
+    both are 3D (the phantom's :func:`is_3d_spec`, read once)."""
     three_d = (getattr(ir, "meta", None) or {}).get("grid3d") is not None
     ph_3d = is_3d_spec(phantom)
     if three_d and not ph_3d:
@@ -731,3 +732,4 @@ def check_phantom_matches(ir, phantom) -> None:
     if ph_3d and not three_d:
         what = f"a 3D phantom {phantom.shape}" if isinstance(phantom, Phantom) else f"the 3D phantom {phantom}"
         raise InputError(f"{what} needs a 3D-encoded sequence (k on a 3D Cartesian grid)")
+    return ph_3d
