@@ -164,7 +164,6 @@ def run(seq_path, phantom_path, strict: bool = True, repeats: int = 0, n_dummies
     signal = forward(True)
     (signal.real**2 + signal.imag**2).sum().backward()
     t_first = time.perf_counter() - t0
-    signal = signal.detach()
     out = {
         "signal": signal.detach().numpy().astype(np.complex128).T,  # (n_coils, N_adc)
         "t_import_s": t_import,
