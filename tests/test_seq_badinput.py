@@ -28,7 +28,8 @@ CASES = {
     "binary": (b"\x89PNG\r\n\x1a\n\x00\x00\x00", r"binary data"),
     "not_pulseq": (b"hello world\n", r"content before the first section"),
     "no_version": (b"[BLOCKS]\n1 1 0 0 0 0 0 0\n", r"no \[VERSION\] section"),
-    "wrong_version": (RAW.replace(b"minor 5", b"minor 3", 1), r"version 1\.3\.0 is not supported"),
+    "wrong_version": (RAW.replace(b"minor 5", b"minor 6", 1), r"version 1\.6\.0 is not supported"),
+    "pulseq_binary": (b"\x01pulseq\x02" + bytes(24), r"a binary Pulseq file .*'Binary files'"),
     "truncated_mid_shapes": (RAW[: RAW.find(b"shape_id 9")], r"shape 9 is not defined \(file truncated\?\)"),
     "truncated_mid_gradients": (
         RAW[: RAW.find(b"[GRADIENTS]") + 40],
@@ -41,7 +42,6 @@ CASES = {
         r"compressed data do not expand to 9 samples",
     ),
     "bad_signature": (RAW.replace(b"Created by PyPulseq", b"Created by PyPulsex"), r"signature mismatch"),
-    "unsigned": (BODY + b"\n", r"unsigned: no \[SIGNATURE\]"),
 }
 
 

@@ -39,6 +39,7 @@ from dtoc.errors import InputError
 from dtoc.seq.ir import ADCEvent, RFEvent, SequenceIR
 from dtoc.seq.pulseq import quiet
 from dtoc.seq.seqtext import parse_seq_text, verify_signature
+from dtoc.seq.versions import reader_text, version_str
 
 _TIME_TOL = 1e-9  # s: times closer than this to a grid point are on it
 
@@ -59,13 +60,14 @@ def read_pypulseq(path: str | Path, require_signature: bool = True):
     p = Path(path)
     st = parse_seq_text(p)
     if require_signature:
-        verify_signature(st)
-    # pypulseq loops forever on a file ending inside [SHAPES] without a blank line: read a copy that
-    # always ends with one (the signature was checked on the original bytes above).
+        verify_signature(st, require=False)  # the signature is optional (specification); a present one must match
+    # pypulseq reads dtoc's 1.5.0 rendering of the file, whatever its version (dtoc.seq.versions): it
+    # always ends with a blank line (pypulseq loops forever on a file ending inside [SHAPES] without one).
+    text, st.layout = reader_text(st)
     fd, tmp = tempfile.mkstemp(suffix=".seq")
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(st.raw.rstrip(b"\n") + b"\n\n")
+            f.write(text)
         seq = pp.Sequence()
         with quiet():
             seq.read(tmp)
@@ -103,8 +105,24 @@ def read_seq(
             f"{path}: CR/CRLF line endings: Pulseq files use LF (convert with dos2unix, then re-sign; "
             "'dtoc check' lists what else differs)"
         )
-    ir = from_pypulseq(seq, free_slice_axis=free_slice_axis, free_unused_axes=free_unused_axes, rf_guard=rf_guard)
+    lay = st.layout
+    ir = from_pypulseq(
+        seq,
+        free_slice_axis=free_slice_axis,
+        free_unused_axes=free_unused_axes,
+        rf_guard=rf_guard,
+        rotations=lay.rotation_matrices(),
+    )
     ir.meta["path"] = str(path)
+    ir.meta["format_version"] = version_str(st.version)
+    if st.signature_hash is None:
+        ir.meta["unsigned"] = True
+    if lay.rotations:
+        ir.meta["rotations"] = {int(b): list(q) for b, q in lay.rotations.items()}
+    if lay.shims:
+        ir.meta["rf_shims"] = {int(b): list(q) for b, q in lay.shims.items()}
+    if lay.notes:
+        ir.meta.setdefault("notes", []).extend(lay.notes)
     return ir
 
 
@@ -142,9 +160,17 @@ def grad_vertices(grad, raster_s: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def from_pypulseq(
-    seq, *, free_slice_axis: bool = False, free_unused_axes: bool = False, rf_guard: str = "block"
+    seq,
+    *,
+    free_slice_axis: bool = False,
+    free_unused_axes: bool = False,
+    rf_guard: str = "block",
+    rotations: dict[int, np.ndarray] | None = None,
 ) -> SequenceIR:
     """Convert a ``pypulseq.Sequence`` (read or built) into a :class:`SequenceIR`.
+
+    ``rotations``: {block index: 3x3 matrix} of the 1.5.1 rotation extension: that block's gradients are played
+    as ``R @ (gx, gy, gz)`` (the IR holds the played, rotated gradients).
 
     Raises:
         InputError: a block duration that is not a whole number of gradient rasters (the fine grid
@@ -179,6 +205,9 @@ def from_pypulseq(
             soft.append(b)
         t0 = edges[b]
         m0, m1 = 2 * int(edge_idx[b]), 2 * int(edge_idx[b + 1])
+        rot = rotations.get(b) if rotations else None
+        local = np.zeros((3, m1 - m0 + 1)) if rot is not None else None
+        covered = np.zeros(m1 - m0 + 1, dtype=bool)
         for a, ch in enumerate(("gx", "gy", "gz")):
             gr = getattr(blk, ch, None)
             if gr is None:
@@ -190,7 +219,15 @@ def from_pypulseq(
             lo = m0 + int(np.clip(np.ceil(pos[0] - 1e-6), 0, m1 - m0))
             hi = m0 + int(np.clip(np.floor(pos[-1] + 1e-6), 0, m1 - m0))
             mm = np.arange(lo, hi + 1)
-            g[a, mm] = mT_per_m_from_hz_per_m(np.interp((mm - m0) * dtf, tv, vv))
+            vals = mT_per_m_from_hz_per_m(np.interp((mm - m0) * dtf, tv, vv))
+            if local is None:
+                g[a, mm] = vals
+            else:
+                local[a, mm - m0] = vals
+                covered[mm - m0] = True
+        if local is not None and covered.any():  # the rotation acts on the block's gradients as a whole
+            idx = np.flatnonzero(covered)
+            g[:, m0 + idx] = rot @ local[:, idx]
         if getattr(blk, "rf", None) is not None:
             rf = blk.rf
             rf_blocks.append(b)

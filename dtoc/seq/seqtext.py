@@ -16,13 +16,18 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from dtoc.errors import InputError
+from dtoc.seq.versions import BINARY_MAGIC, KNOWN_EXTENSIONS, check_known
 
 #: Number of fields (including the id) per line in each event section, by (major, minor).
 _FIELDS = {
     (1, 5): {"[BLOCKS]": 8, "[RF]": 12, "[GRADIENTS]": 7, "[TRAP]": 6, "[ADC]": 9},
     (1, 4): {"[BLOCKS]": 8, "[RF]": 8, "[GRADIENTS]": 5, "[TRAP]": 6, "[ADC]": 6},
+    # before 1.4: the block's 2nd column is a [DELAYS] id; RF and arbitrary gradients have no time shape
+    (1, 3): {"[BLOCKS]": 8, "[RF]": 7, "[GRADIENTS]": 4, "[TRAP]": 6, "[ADC]": 6, "[DELAYS]": 2},
+    (1, 2): {"[BLOCKS]": 7, "[RF]": 7, "[GRADIENTS]": 4, "[TRAP]": 6, "[ADC]": 6, "[DELAYS]": 2},
 }
 #: Columns (0-based, id = 0) that the format defines as integers, per section and version.
 INTEGER_COLUMNS = {
@@ -41,6 +46,15 @@ INTEGER_COLUMNS = {
         "[ADC]": (0, 1, 2, 3),
     },
 }
+for _mm in ((1, 3), (1, 2)):
+    INTEGER_COLUMNS[_mm] = {
+        "[BLOCKS]": tuple(range(_FIELDS[_mm]["[BLOCKS]"])),
+        "[RF]": (0, 2, 3, 4),  # id, mag_id, phase_id, delay [us]
+        "[GRADIENTS]": (0, 2, 3),  # id, shape_id, delay [us]
+        "[TRAP]": (0, 2, 3, 4, 5),
+        "[ADC]": (0, 1, 2, 3),
+        "[DELAYS]": (0, 1),
+    }
 _NUM = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$|^[+-]?(nan|inf)$", re.IGNORECASE)
 
 
@@ -66,6 +80,7 @@ class SeqText:
     signature_hash: str | None = None
     signature_type: str | None = None
     shapes: dict[int, tuple[int, list[float], int]] = field(default_factory=dict)  # id -> (num_samples, data, line)
+    layout: Any = None  # dtoc.seq.versions.Layout, set by the reader
 
     @property
     def major_minor(self) -> tuple[int, int]:
@@ -119,6 +134,12 @@ def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
             raise _err(p, f"cannot read ({e.strerror})") from None
     if not raw.strip():
         raise _err(p, "empty file")
+    if raw.startswith(BINARY_MAGIC):
+        raise _err(
+            p,
+            "a binary Pulseq file (the specification's 'Binary files' format): dtoc reads the text format; "
+            "export the sequence as text (seq.write)",
+        )
     if b"\x00" in raw:
         raise _err(p, "not a Pulseq text file (binary data)")
     try:
@@ -166,9 +187,7 @@ def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
     if "major" not in ver or "minor" not in ver:
         raise _err(p, "[VERSION] lacks major/minor")
     st.version = (ver["major"], ver["minor"], ver.get("revision", 0))
-    if st.major_minor not in _FIELDS:
-        v = ".".join(map(str, st.version))
-        raise _err(p, f"Pulseq format version {v} is not supported (dtoc reads 1.4.x and 1.5.x)")
+    check_known(st.version, p)
     if "[SIGNATURE]" in st.sections:
         for ln in st.sections["[SIGNATURE]"]:
             t = ln.tokens
@@ -182,12 +201,8 @@ def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
     return st
 
 
-#: Extensions this reader (pypulseq 1.5.0) understands; any other is refused by name.
-SUPPORTED_EXTENSIONS = ("TRIGGERS", "LABELSET", "LABELINC", "DELAYS")
-_EXTENSION_MEANING = {
-    "ROTATIONS": "the 1.5.1 rotation extension: its blocks would be played unrotated",
-    "RF_SHIMS": "the 1.5.1 RF shim extension",
-}
+#: Extensions dtoc reads (:mod:`dtoc.seq.versions`); any other is refused by name.
+SUPPORTED_EXTENSIONS = KNOWN_EXTENSIONS
 
 
 def _check_extensions(st: SeqText, p: Path) -> None:
@@ -197,10 +212,10 @@ def _check_extensions(st: SeqText, p: Path) -> None:
         parts = name.split()
         kind = parts[1] if len(parts) > 1 else "?"
         if kind not in SUPPORTED_EXTENSIONS:
-            what = _EXTENSION_MEANING.get(kind, "an extension this reader does not know")
             raise _err(
                 p,
-                f"'extension {kind}' is not supported ({what}); dtoc reads {', '.join(SUPPORTED_EXTENSIONS)}",
+                f"'extension {kind}' is not supported (an extension dtoc does not know); dtoc reads "
+                f"{', '.join(SUPPORTED_EXTENSIONS)}",
             )
 
 
@@ -286,7 +301,12 @@ def _check_structure(st: SeqText, p: Path) -> None:
     # references
     ext_ids = _extension_ids(st, p)
     grad_ids = ids["[GRADIENTS]"] | ids["[TRAP]"]
+    old = st.major_minor < (1, 4)
     for lineno, t in blocks:
+        if old and len(t) < 8:
+            t = [*t, 0]  # 1.2.x: no extension column
+        if old and t[1] and t[1] not in ids.get("[DELAYS]", set()):
+            raise _err(p, f"line {lineno}: block {t[0]} uses delay {t[1]}, which is not defined{hint}")
         refs = (
             ("RF", t[2], ids["[RF]"]),
             ("gradient", t[3], grad_ids),
@@ -297,7 +317,10 @@ def _check_structure(st: SeqText, p: Path) -> None:
         for name, ref, have in (*refs, ("extension list", t[7], ext_ids)):
             if ref and ref not in have:
                 raise _err(p, f"line {lineno}: block {t[0]} uses {name} {ref}, which is not defined{hint}")
-    shape_cols = {"[RF]": (2, 3, 4), "[GRADIENTS]": (4, 5) if st.major_minor == (1, 5) else (2, 3)}
+    shape_cols = {
+        (1, 5): {"[RF]": (2, 3, 4), "[GRADIENTS]": (4, 5)},
+        (1, 4): {"[RF]": (2, 3, 4), "[GRADIENTS]": (2, 3)},
+    }.get(st.major_minor, {"[RF]": (2, 3), "[GRADIENTS]": (2,)})
     for sec, cols in shape_cols.items():
         for ln in st.sections.get(sec, []):
             for c in cols:
@@ -318,6 +341,8 @@ _NONNEGATIVE = {
         "[TRAP]": ((2, "rise time"), (3, "flat time"), (4, "fall time"), (5, "delay")),
         "[ADC]": ((1, "number of samples"), (2, "dwell"), (3, "delay")),
     },
+    (1, 3): {"[RF]": ((4, "delay"),), "[GRADIENTS]": ((3, "delay"),), "[DELAYS]": ((1, "delay"),)},
+    (1, 2): {"[RF]": ((4, "delay"),), "[GRADIENTS]": ((3, "delay"),), "[DELAYS]": ((1, "delay"),)},
     (1, 4): {
         "[BLOCKS]": ((1, "duration"),),
         "[RF]": ((5, "delay"),),
@@ -388,7 +413,11 @@ def _check_sizes(st: SeqText, blocks: list[tuple[int, list[int]]], p: Path) -> N
 
     block_raster = num("BlockDurationRaster", 10e-6)
     grad_raster = num("GradientRasterTime", 10e-6)
-    duration_s = sum(t[1] for _, t in blocks) * block_raster  # durations in block-raster ticks (1.4 and 1.5)
+    if st.major_minor >= (1, 4):
+        duration_s = sum(t[1] for _, t in blocks) * block_raster  # durations in block-raster ticks (1.4 and 1.5)
+    else:  # before 1.4 the column is a [DELAYS] id: the delays give a lower bound
+        dl = {int(float(ln.tokens[0])): float(ln.tokens[1]) * 1e-6 for ln in st.sections.get("[DELAYS]", [])}
+        duration_s = sum(dl.get(t[1], 0.0) for _, t in blocks)
     n_raster = duration_s / grad_raster
     adc_num = {int(float(ln.tokens[0])): int(float(ln.tokens[1])) for ln in st.sections.get("[ADC]", [])}
     n_adc = sum(adc_num.get(t[6], 0) for _, t in blocks)
@@ -430,7 +459,7 @@ def verify_signature(st: SeqText, require: bool = True) -> None:
     """Raise :class:`InputError` if the md5 signature is absent (when ``require``) or does not match."""
     if st.signature_hash is None:
         if require:
-            raise _err(st.path, "unsigned: no [SIGNATURE] md5 hash (file truncated or not written by Pulseq)")
+            raise _err(st.path, "unsigned: no [SIGNATURE] md5 hash, and a signed file was required")
         return
     if st.signature_type not in (None, "md5"):
         raise _err(st.path, f"unsupported signature type {st.signature_type!r} (expected md5)")

@@ -1,0 +1,479 @@
+"""Pulseq format versions: every released text layout in (1.2.0-1.5.2), the version the interpreter reads out.
+
+Reading (:func:`reader_text`): pypulseq 1.5.0's reader handles the older layouts only partly (its 1.4 port
+leaves the RF use table empty, so writing such a sequence fails with ``KeyError``; it extrapolates edge
+values of arbitrary gradients that the file never states; it cannot read a 1.4 gradient that no block uses
+on one axis, nor 1.5.1 oversampled gradients or the 1.5.1 extensions).  dtoc therefore rewrites every file
+into the 1.5.0 text layout itself, from its own parse (:mod:`dtoc.seq.seqtext`), and pypulseq reads that:
+
+* 1.2.x / 1.3.x: the block's second column is a [DELAYS] id (1.2.x has no extension column); the block
+  duration is the longest of its events and its delay, on the block raster; RF and arbitrary gradients
+  have no time shape; missing raster definitions take the reference readers' defaults (10 us gradient and
+  block raster, 1 us RF raster, 100 ns ADC raster); shapes are always run-length compressed.
+* 1.2.x-1.4.x: RF pulses get their centre (time of the peak magnitude, as Pulseq's ``calcRfCenter``) and
+  use ``u`` (undefined: the format had no field for it); ADC events get zero ppm offsets and no phase shape.
+* Arbitrary gradients of 1.2.x-1.4.x state no edge values (``first``/``last``: samples sit at raster
+  centres).  The edge a gradient shares with its neighbour takes the value the neighbour states there
+  (a trapezoid's 0, an extended trapezoid's vertex); between two such gradients the mean of the two
+  centre samples next to it (the straight line the samples describe); an edge with nothing played beyond it
+  is 0.  No centre sample is extrapolated to an edge (pypulseq and Pulseq MATLAB extrapolate half a raster,
+  which reports steps the scanner never plays: issue "what dtoc says must be true").  One gradient used
+  with different edges is split into one event per edge pair.
+* 1.5.1: ``time_id`` -1 (oversampled arbitrary gradients, samples every half raster) becomes an explicit
+  time shape; the ROTATIONS and RF_SHIMS extensions are taken out of the text and kept per block
+  (:class:`Layout`), the rotations applied to the gradients by :func:`dtoc.seq.read.from_pypulseq` and both
+  written back by :func:`dtoc.seq.write.seq_bytes_of`.  Extensions named in ``RequiredExtensions`` that dtoc
+  does not know are refused by name.
+* The binary format of the specification's "Binary files" section is refused by name in one line.
+
+Writing (:func:`format_text`): 1.5.0 text from pypulseq, set to the target revision (1.5.1 / 1.5.2 add the
+extensions kept on read); 1.4.x through pypulseq's 1.4.1 writer, after :func:`unwritable` found nothing the
+target cannot express (RF use other than what 1.4 readers detect, ppm offsets, ADC phase shapes, soft delays,
+1.4.1 labels in 1.4.0, rotations and RF shimming before 1.5.1).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dtoc.errors import InputError
+
+#: Released format versions (the specification's revision table); the newest revision of each minor.
+RELEASED = (
+    (1, 2, 0),
+    (1, 2, 1),
+    (1, 3, 0),
+    (1, 3, 1),
+    (1, 4, 0),
+    (1, 4, 1),
+    (1, 4, 2),
+    (1, 5, 0),
+    (1, 5, 1),
+    (1, 5, 2),
+)
+#: Versions dtoc writes.
+WRITABLE = ((1, 4, 0), (1, 4, 1), (1, 4, 2), (1, 5, 0), (1, 5, 1), (1, 5, 2))
+#: Extensions dtoc reads (pypulseq's four, and the two 1.5.1 ones kept per block).
+KNOWN_EXTENSIONS = ("TRIGGERS", "LABELSET", "LABELINC", "DELAYS", "ROTATIONS", "RF_SHIMS")
+KEPT_EXTENSIONS = ("ROTATIONS", "RF_SHIMS")
+#: Labels that 1.4.1 added (not expressible in 1.4.0).
+LABELS_141 = ("PMC", "NOROT", "NOPOS", "NOSLC", "ONCE")
+#: The binary file header of the specification's "Binary files" section.
+BINARY_MAGIC = b"\x01pulseq\x02"
+#: Defaults of the reference readers for pre-1.4 files without raster definitions, s.
+OLD_RASTER_DEFAULTS = {
+    "GradientRasterTime": 10e-6,
+    "RadiofrequencyRasterTime": 1e-6,
+    "AdcRasterTime": 100e-9,
+    "BlockDurationRaster": 10e-6,
+}
+
+
+def version_str(v) -> str:
+    return ".".join(str(int(x)) for x in v)
+
+
+def parse_version(s: str) -> tuple[int, int, int]:
+    """'1.4' / '1.4.1' -> (1, 4, 1) (a missing revision is the newest released of that minor)."""
+    m = re.fullmatch(r"\s*(\d+)\.(\d+)(?:\.(\d+))?\s*", str(s))
+    if not m:
+        raise InputError(f"format version {s!r}: expected MAJOR.MINOR[.REVISION], e.g. 1.4.1 or 1.5.0")
+    if m.group(3) is None:
+        same = [v for v in WRITABLE if v[:2] == (int(m.group(1)), int(m.group(2)))]
+        if not same:
+            raise InputError(f"format version {s}: dtoc writes {', '.join(map(version_str, WRITABLE))}")
+        return same[-1]
+    return int(m.group(1)), int(m.group(2)), int(m.group(3))
+
+
+def check_writable(v: tuple[int, int, int]) -> None:
+    if tuple(v) not in WRITABLE:
+        raise InputError(
+            f"format version {version_str(v)}: dtoc writes {', '.join(map(version_str, WRITABLE))} "
+            "(1.2.x and 1.3.x are read, not written: their interpreters are a decade old)"
+        )
+
+
+def check_known(v: tuple[int, int, int], path) -> None:
+    """Refuse a version outside the released ones by name."""
+    if v[:2] not in {r[:2] for r in RELEASED} or v > RELEASED[-1]:
+        raise InputError(
+            f"{path}: Pulseq format version {version_str(v)} is not supported "
+            f"(dtoc reads the released versions {version_str(RELEASED[0])} to {version_str(RELEASED[-1])})"
+        )
+
+
+@dataclass
+class Layout:
+    """What a file's version and extensions mean beyond what pypulseq reads.
+
+    Attributes:
+        version: the file's format version.
+        rotations: {block index: (q0, qx, qy, qz)} of the ROTATIONS extension (1.5.1).
+        shims: {block index: (num_chan, mag1, phase1, ...)} of the RF_SHIMS extension (1.5.1).
+        notes: what the reader inferred (one line each).
+    """
+
+    version: tuple[int, int, int] = (1, 5, 0)
+    rotations: dict[int, tuple[float, ...]] = field(default_factory=dict)
+    shims: dict[int, tuple[float, ...]] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    def rotation_matrices(self) -> dict[int, np.ndarray]:
+        return {b: quaternion_matrix(q) for b, q in self.rotations.items()}
+
+
+def quaternion_matrix(q) -> np.ndarray:
+    """The rotation matrix of a unit quaternion (q0, qx, qy, qz) (Pulseq ``mr.aux.quat.toRotMat``): applied to
+    a column vector of logical (x, y, z) gradients it gives the played ones."""
+    w, x, y, z = (float(v) for v in q)
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if not (0.99 < n < 1.01):
+        raise InputError(f"rotation quaternion {tuple(q)} is not normalised (|q| = {n:.4g})")
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def decompress(data: list[float], num: int, always_compressed: bool = False) -> np.ndarray:
+    """Pulseq shape samples: run-length compressed derivative, or stored as is when ``len(data) == num``
+    (1.4.0 on; before, every shape was compressed)."""
+    if len(data) == num and not always_compressed:
+        return np.asarray(data, dtype=np.float64)
+    out: list[float] = []
+    k = 0
+    while k < len(data):
+        if k + 2 < len(data) and data[k] == data[k + 1]:
+            out.extend([data[k]] * (int(round(data[k + 2])) + 2))
+            k += 3
+        else:
+            out.append(data[k])
+            k += 1
+    w = np.cumsum(np.asarray(out, dtype=np.float64))
+    return w[:num]
+
+
+def _g(v: float) -> str:
+    """A number as the shortest text that reads back to the same float."""
+    f = float(v)
+    if f.is_integer() and abs(f) < 1e15:
+        return "-0" if f == 0 and math.copysign(1.0, f) < 0 else str(int(f))
+    return repr(f)
+
+
+# ------------------------------------------------------------------------------------------------ reading
+def reader_text(st) -> tuple[bytes, Layout]:
+    """The 1.5.0 text of a parsed file (:class:`dtoc.seq.seqtext.SeqText`) for pypulseq, and its :class:`Layout`."""
+    v = st.version
+    lay = Layout(version=tuple(v))
+    old = v[:2] < (1, 4)
+    defs = [ln.text for ln in st.sections.get("[DEFINITIONS]", [])]
+    names = {d.split()[0] for d in defs if d.split()}
+    if old:
+        for k, val in OLD_RASTER_DEFAULTS.items():
+            if k not in names:
+                defs.append(f"{k} {val:g}")
+                lay.notes.append(f"format {version_str(v)} without {k}: {val:g} s (the reference readers' default)")
+    _check_required_extensions(st)
+    dmap = _defs(defs)
+    grad_raster = dmap["GradientRasterTime"]
+    rf_raster = dmap["RadiofrequencyRasterTime"]
+    block_raster = dmap["BlockDurationRaster"]
+    shapes = {sid: decompress(data, num, always_compressed=old) for sid, (num, data, _) in st.shapes.items()}
+    # shapes go to pypulseq as the file states them (compressed or not); only a pre-1.4 compressed shape whose
+    # length happens to equal its sample count (read as uncompressed from 1.4 on) is written expanded
+    out_shapes: dict[int, list[float] | np.ndarray] = {
+        sid: (shapes[sid] if old and len(data) == num else data) for sid, (num, data, _) in st.shapes.items()
+    }
+    nums = {sid: num for sid, (num, _, _) in st.shapes.items()}
+    next_shape = max(shapes, default=0) + 1
+
+    def new_shape(values) -> int:
+        nonlocal next_shape
+        out_shapes[next_shape] = np.asarray(values, dtype=np.float64)
+        nums[next_shape] = len(values)
+        next_shape += 1
+        return next_shape - 1
+
+    rows = lambda sec: [[float(x) if _isnum(x) else x for x in ln.tokens] for ln in st.sections.get(sec, [])]  # noqa: E731
+    # ---- events, in 1.5 columns
+    rf: dict[int, list] = {}
+    for t in rows("[RF]"):
+        i = int(t[0])
+        if v[:2] >= (1, 5):
+            rf[i] = t[1:]
+            continue
+        if old:  # id amp mag phase delay freq phase
+            amp, mag, ph, delay, freq, phase = t[1:7]
+            tid = 0
+        else:  # id amp mag phase time delay freq phase
+            amp, mag, ph, tid, delay, freq, phase = t[1:8]
+        m = shapes[int(mag)]
+        tt = shapes[int(tid)] * rf_raster if tid else (np.arange(len(m)) + 0.5) * rf_raster
+        a = np.abs(m)
+        pk = np.flatnonzero(a >= a.max() * 0.99999) if a.size else np.array([0])
+        center_us = 1e6 * 0.5 * (tt[pk[0]] + tt[pk[-1]]) if a.size else 0.0
+        rf[i] = [amp, mag, ph, tid, center_us, delay, 0.0, 0.0, freq, phase, "u"]
+    traps = {int(t[0]): t[1:6] for t in rows("[TRAP]")}
+    adc: dict[int, list] = {}
+    for t in rows("[ADC]"):
+        adc[int(t[0])] = t[1:] if v[:2] >= (1, 5) else [t[1], t[2], t[3], 0.0, 0.0, t[4], t[5], 0]
+    grads: dict[int, list] = {}  # id -> [amp, first|None, last|None, shape, time, delay]
+    for t in rows("[GRADIENTS]"):
+        i = int(t[0])
+        if v[:2] >= (1, 5):
+            amp, first, last, sid, tid, delay = t[1:7]
+        elif old:
+            amp, sid, delay = t[1:4]
+            first = last = None
+            tid = 0
+        else:
+            amp, sid, tid, delay = t[1:5]
+            first = last = None
+        if int(tid) == -1:  # 1.5.1 oversampling: samples every half raster -> explicit time shape with the edges
+            w = shapes[int(sid)]
+            n = len(w)
+            vals = np.concatenate([[first / amp if amp else 0.0], w, [last / amp if amp else 0.0]])
+            sid = new_shape(vals)
+            tid = new_shape(np.arange(n + 2) * 0.5)
+        grads[i] = [amp, first, last, int(sid), int(tid), delay]
+    # ---- blocks: (duration in block rasters, rf, gx, gy, gz, adc, ext)
+    delays = {int(t[0]): t[1] * 1e-6 for t in rows("[DELAYS]")}
+    blocks: list[list[int]] = []
+    for ln in st.sections["[BLOCKS]"]:
+        t = [int(float(x)) for x in ln.tokens]
+        if old:
+            ev = t[2:7] + ([t[7]] if len(t) > 7 else [0])
+            dur = _old_block_duration(t[1], ev, delays, rf, grads, traps, adc, shapes, grad_raster, rf_raster)
+            blocks.append([int(math.ceil(dur / block_raster - 1e-6)), *ev])
+        else:
+            blocks.append(t[1:8])
+    if old:
+        lay.notes.append(f"format {version_str(v)}: block durations from their events and [DELAYS]")
+    if v[:2] < (1, 5):
+        _infer_edges(blocks, grads, traps, shapes, grad_raster, block_raster, lay)
+    ext_lines, ext_sections = _extensions(st, blocks, lay)
+    # ---- emit 1.5.0
+    out = ["[VERSION]", "major 1", "minor 5", "revision 0", ""]
+    if defs:
+        out += ["[DEFINITIONS]", *defs, ""]
+    out += ["[BLOCKS]"] + [" ".join(str(x) for x in [i + 1, *b]) for i, b in enumerate(blocks)] + [""]
+    if rf:
+        out += ["[RF]"]
+        for i, r in rf.items():
+            out.append(" ".join([str(i), *(_g(x) if not isinstance(x, str) else x for x in r)]))
+        out.append("")
+    if grads:
+        out += ["[GRADIENTS]"]
+        for i, g in grads.items():
+            amp, first, last, sid, tid, delay = g
+            out.append(f"{i} {_g(amp)} {_g(first or 0.0)} {_g(last or 0.0)} {sid} {tid} {_g(delay)}")
+        out.append("")
+    if traps:
+        out += ["[TRAP]"] + [" ".join([str(i), *map(_g, t)]) for i, t in traps.items()] + [""]
+    if adc:
+        out += ["[ADC]"] + [" ".join([str(i), *map(_g, a)]) for i, a in adc.items()] + [""]
+    if ext_lines:
+        out += ["[EXTENSIONS]", *ext_lines, ""]
+        for head, lines in ext_sections:
+            out += [head, *lines, ""]
+    if out_shapes:
+        out += ["[SHAPES]", ""]
+        for sid, w in out_shapes.items():
+            out += [f"shape_id {sid}", f"num_samples {nums[sid]}", *(_g(x) for x in w), ""]
+    return ("\n".join(out) + "\n\n").encode(), lay
+
+
+def _isnum(x: str) -> bool:
+    try:
+        float(x)
+        return True
+    except ValueError:
+        return False
+
+
+def _defs(lines: list[str]) -> dict[str, float]:
+    out = dict(OLD_RASTER_DEFAULTS)
+    for d in lines:
+        p = d.split()
+        if len(p) == 2 and p[0] in out:
+            out[p[0]] = float(p[1])
+    return out
+
+
+def _check_required_extensions(st) -> None:
+    req = st.definitions().get("RequiredExtensions", "").split()
+    unknown = [e for e in req if e not in KNOWN_EXTENSIONS]
+    if unknown:
+        raise InputError(
+            f"{st.path}: the file requires extension {', '.join(unknown)} (RequiredExtensions), which dtoc does not "
+            f"know (it reads {', '.join(KNOWN_EXTENSIONS)})"
+        )
+
+
+def _grad_span(gid, grads, traps, shapes, raster):
+    """(start s, end s) of a gradient event in its block."""
+    if gid in traps:
+        _, r, f, fa, d = traps[gid]
+        return d * 1e-6, (d + r + f + fa) * 1e-6
+    amp, _, _, sid, tid, delay = grads[gid]
+    n = len(shapes[sid])
+    dur = shapes[tid][-1] * raster if tid else n * raster
+    return delay * 1e-6, delay * 1e-6 + dur
+
+
+def _old_block_duration(delay_id, ev, delays, rf, grads, traps, adc, shapes, raster, rf_raster) -> float:
+    ends = [delays.get(delay_id, 0.0)]
+    if ev[0]:
+        r = rf[ev[0]]
+        ends.append(r[5] * 1e-6 + len(shapes[int(r[1])]) * rf_raster)
+    for g in ev[1:4]:
+        if g:
+            ends.append(_grad_span(g, grads, traps, shapes, raster)[1])
+    if ev[4]:
+        a = adc[ev[4]]
+        ends.append(a[2] * 1e-6 + a[0] * a[1] * 1e-9)
+    return max(ends)
+
+
+def _infer_edges(blocks, grads, traps, shapes, raster, block_raster, lay: Layout) -> None:
+    """Edge values (first/last) of pre-1.5 gradients without stated ones (module doc); splits events used with
+    different edges; rewrites ``blocks`` and ``grads`` in place."""
+    tol = 1e-9
+
+    def stated(gid, end: bool):
+        """The value a gradient states at its start/end edge, or None when it states none."""
+        if gid in traps:
+            return 0.0
+        amp, _, _, sid, tid, _ = grads[gid]
+        if tid == 0:
+            return None
+        tt = shapes[tid]
+        w = amp * shapes[sid]
+        if end:
+            return float(w[-1])
+        return float(w[0]) if abs(tt[0]) < 1e-9 else None
+
+    def centre(gid, end: bool) -> float:
+        amp, _, _, sid, _, _ = grads[gid]
+        w = shapes[sid]
+        return float(amp * (w[-1] if end else w[0]))
+
+    n = len(blocks)
+    firsts: list[list] = [[None] * 3 for _ in range(n)]
+    lasts: list[list] = [[None] * 3 for _ in range(n)]
+    for a in range(3):
+        for b in range(n):
+            gid = blocks[b][1 + a]
+            if not gid or gid in traps or stated(gid, False) is not None and stated(gid, True) is not None:
+                continue
+            dur = blocks[b][0] * block_raster
+            t0, t1 = _grad_span(gid, grads, traps, shapes, raster)
+            # start edge
+            first = 0.0
+            if t0 < tol and b > 0:
+                p = blocks[b - 1][1 + a]
+                if p:
+                    pdur = blocks[b - 1][0] * block_raster
+                    if abs(_grad_span(p, grads, traps, shapes, raster)[1] - pdur) < tol:
+                        s = stated(p, True)
+                        first = s if s is not None else 0.5 * (centre(p, True) + centre(gid, False))
+            last = 0.0
+            if abs(t1 - dur) < tol and b + 1 < n:
+                q = blocks[b + 1][1 + a]
+                if q and _grad_span(q, grads, traps, shapes, raster)[0] < tol:
+                    s = stated(q, False)
+                    last = s if s is not None else 0.5 * (centre(gid, True) + centre(q, False))
+            firsts[b][a] = stated(gid, False) if stated(gid, False) is not None else first
+            lasts[b][a] = stated(gid, True) if stated(gid, True) is not None else last
+    # one event per (id, first, last)
+    new_id = max([*grads, *traps, 0]) + 1
+    seen: dict[tuple, int] = {}
+    orig = {k: list(g) for k, g in grads.items()}
+    used_ids: set[int] = set()
+    for b in range(n):
+        for a in range(3):
+            gid = blocks[b][1 + a]
+            if not gid or firsts[b][a] is None:
+                continue
+            key = (gid, round(firsts[b][a], 9), round(lasts[b][a], 9))
+            if key not in seen:
+                if gid not in used_ids:
+                    seen[key] = gid
+                    used_ids.add(gid)
+                else:
+                    seen[key] = new_id
+                    new_id += 1
+                g = list(orig[gid])
+                g[1], g[2] = firsts[b][a], lasts[b][a]
+                grads[seen[key]] = g
+            blocks[b][1 + a] = seen[key]
+    for g in grads.values():  # events no block uses: no edges to infer
+        if g[1] is None:
+            g[1] = g[2] = 0.0
+
+
+def _extensions(st, blocks, lay: Layout) -> tuple[list[str], list[tuple[str, list[str]]]]:
+    """The [EXTENSIONS] list and extension sections without the kept ones (ROTATIONS, RF_SHIMS), whose
+    objects go to ``lay`` per block; block extension columns rewritten in place."""
+    entries = {}
+    for ln in st.sections.get("[EXTENSIONS]", []):
+        t = [int(x) for x in ln.tokens]
+        entries[t[0]] = (t[1], t[2], t[3])
+    types: dict[int, str] = {}
+    sections: list[tuple[str, list[str]]] = []
+    kept: dict[str, dict[int, tuple[float, ...]]] = {k: {} for k in KEPT_EXTENSIONS}
+    for name in st.section_order:
+        if not name.startswith("extension "):
+            continue
+        p = name.split()
+        kind, tid = p[1], int(p[2])
+        types[tid] = kind
+        lines = [ln.text for ln in st.sections[name]]
+        if kind in KEPT_EXTENSIONS:
+            for x in lines:
+                f = x.split()
+                kept[kind][int(f[0])] = tuple(float(y) for y in f[1:])
+        else:
+            sections.append((name, lines))
+    if not any(kept.values()):
+        return [f"{i} {a} {b} {c}" for i, (a, b, c) in entries.items()], sections
+    new_entries: dict[tuple, int] = {}
+    lines_out: list[str] = []
+    for bi, blk in enumerate(blocks):
+        head = blk[6]
+        chain = []
+        seen = set()
+        while head and head not in seen:
+            seen.add(head)
+            typ, ref, nxt = entries[head]
+            kind = types.get(typ)
+            if kind == "ROTATIONS":
+                lay.rotations[bi] = kept[kind][ref]
+            elif kind == "RF_SHIMS":
+                lay.shims[bi] = kept[kind][ref]
+            else:
+                chain.append((typ, ref))
+            head = nxt
+        nxt = 0
+        for typ, ref in reversed(chain):
+            key = (typ, ref, nxt)
+            if key not in new_entries:
+                new_entries[key] = len(new_entries) + 1
+                lines_out.append(f"{new_entries[key]} {typ} {ref} {nxt}")
+            nxt = new_entries[key]
+        blk[6] = nxt
+    if lay.rotations:
+        lay.notes.append(f"rotation extension: {len(lay.rotations)} block(s) rotated (played as rotated)")
+    if lay.shims:
+        lay.notes.append(f"RF shimming extension on {len(lay.shims)} block(s): kept unchanged on output")
+    return lines_out, sections
