@@ -60,6 +60,12 @@ def optimize_cmd(
     seed: int | None = typer.Option(None, "--seed", help="random seed"),
     threads: int | None = typer.Option(None, "--threads", help="torch threads (fixed for reproducibility)"),
     device: str = typer.Option("cpu", "--device", help="torch device (cpu, cuda, ...)"),
+    format_version: str | None = typer.Option(
+        None,
+        "--format-version",
+        help="Pulseq format of the output: 1.4.0, 1.4.1, 1.5.0, 1.5.1 or 1.5.2 (default: the base's, or the "
+        "--scanner profile's interpreter_version); what it cannot state is refused before any work",
+    ),
     quiet: bool = typer.Option(False, "-q", "--quiet", help="no progress on stderr"),
 ):
     """Digital-twin optimization: write a pre-compensated .seq that stays within the hardware limits."""
@@ -73,7 +79,7 @@ def optimize_cmd(
         force=force, resume=resume, checkpoint=checkpoint, trajectory=trajectory, no_trajectory=no_trajectory,
         orientation=orientation, scanner=scanner, offset=offset, method=method, gmax=gmax, smax=smax, iters=iters,
         warm_iters=warm_iters, lr=lr, w_image=w_image, w_k=w_k, w_rf=w_rf, augment=augment, no_discard=no_discard,
-        phantom=phantom, b0=b0, seed=seed, threads=threads, device=device,
+        phantom=phantom, b0=b0, seed=seed, threads=threads, device=device, format_version=format_version,
     )  # fmt: skip
     outp = Output(json_out)
     m = _run_with_progress(quiet, lambda progress: run_request(req, progress, notes=lambda n: note(f"note: {n}")))

@@ -65,6 +65,7 @@ class ScannerProfile(BaseModel):
     )
     acoustic_max_power_fraction: float = Field(0.1, gt=0, le=1)  # dtoc's criterion (dtoc.seq.acoustics)
     source: str | None = None  # where the numbers come from
+    interpreter_version: str | None = Field(None, pattern=r"^\d+\.\d+(\.\d+)?$")  # Pulseq format it reads
 
     @field_validator("acoustic_forbidden_bands_hz")
     @classmethod

@@ -61,6 +61,7 @@ class OptimizeRequest(BaseModel):
     seed: int | None = None
     threads: int | None = None
     device: str = "cpu"
+    format_version: str | None = None
 
     def trajectory_path(self) -> Path | None:
         """Where the side-car goes (None: not written)."""
@@ -186,5 +187,6 @@ def run_request(
         scanner_path=req.scanner,
         safety=None if prof is None else prof.profile.safety_checks(),
         offset_m=r0,
+        format_version=req.format_version or (None if prof is None else prof.profile.interpreter_version),
     )
     return res.manifest

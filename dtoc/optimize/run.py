@@ -32,7 +32,8 @@ from dtoc.optimize.twin import EdgeTwin
 from dtoc.seq.check import SafetyChecks, check_file, check_ir_limits
 from dtoc.seq.ir import SequenceIR
 from dtoc.seq.system import SystemSpec
-from dtoc.seq.write import seq_bytes_of
+from dtoc.seq.versions import version_str
+from dtoc.seq.write import output_version, preflight_write, seq_bytes_of
 from dtoc.sim import metrics
 from dtoc.sim.imager import Imager
 from dtoc.util.atomic import (
@@ -329,6 +330,7 @@ def optimize_sequence(
     scanner_path=None,
     safety=None,
     offset_m=None,
+    format_version: str | None = None,
 ) -> RunOutputs:
     """Run `dtoc optimize` (see the module doc).
 
@@ -353,6 +355,8 @@ def optimize_sequence(
             rotation is set to ``orientation``).
         offset_m: (3,) physical off-centre position of the slice / FOV, m: the interpreter's FOV-shift phase is
             corrected per ADC event as far as the format allows (:mod:`dtoc.optimize.offcentre`).
+        format_version: Pulseq format of the output (default: the base file's; :func:`dtoc.seq.write.preflight_write`
+            writes the base in it and reads it back before any work).
     Returns:
         :class:`RunOutputs` (manifest dict, output IR, arrays for plots).
     """
@@ -384,6 +388,8 @@ def optimize_sequence(
         raise InputError(
             f"{base if isinstance(base, (str, os.PathLike)) else 'sequence'}: has no ADC event: nothing to optimize for"
         )
+    if out is not None:  # the output's Pulseq format: the base written in it and read back before any work
+        ir.meta["output_format_version"] = version_str(preflight_write(ir, format_version))
     cfg = config if config is not None else load_config(ir.kind, config_path)
     O.set_deterministic(cfg.seed, cfg.threads, device)
     if hardware is None:
@@ -764,12 +770,14 @@ def _write_checked(
     safety: SafetyChecks | None = None,
     adc_offsets=None,
 ) -> dict:
-    """Write via the seq writer into a temporary file, validate it, then move it into place.
+    """Write via the seq writer (Pulseq format ``ir_out.meta['output_format_version']``, default the base's) into
+    a temporary file, validate it, then move it into place.
     ``definitions``: extra [DEFINITIONS] entries (e.g. ``DtocInterrupted 1`` on a best-so-far)."""
     outp = Path(out)
+    version = ir_out.meta.get("output_format_version")
     with tempfile.TemporaryDirectory(dir=outp.parent if str(outp.parent) else ".") as d:
         tmp = Path(d) / outp.name
-        tmp.write_bytes(seq_bytes_of(ir_out, definitions, adc_offsets))  # a private folder: checked before it is staged
+        tmp.write_bytes(seq_bytes_of(ir_out, definitions, adc_offsets, version))  # a private folder: checked first
         sysspec = SystemSpec(
             max_grad_mT_per_m=limits.gmax_mT_per_m,
             max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
@@ -785,6 +793,7 @@ def _write_checked(
             "path": str(outp),
             "check_ok": res.ok,
             "check_other_rules": sorted(res.rules() - lim_rules),
+            "format_version": version_str(output_version(ir_out, version)),
             "checks": list(res.checks),
         }
         data = tmp.read_bytes()

@@ -92,10 +92,11 @@ def representable_amplitudes(amps_hz_per_m) -> np.ndarray:
     return a
 
 
-def seq_bytes(seq) -> bytes:
-    """The signed Pulseq 1.5 text of a Sequence (pypulseq ``write``), as bytes."""
+def seq_bytes(seq, v141: bool = False) -> bytes:
+    """The signed Pulseq 1.5.0 text of a Sequence (pypulseq ``write``), as bytes; ``v141``: pypulseq's 1.4.1
+    writer instead."""
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "out.seq"
         with quiet():
-            seq.write(str(p), create_signature=True)
+            seq.write(str(p), create_signature=True, v141_compat=v141)
         return p.read_bytes()

@@ -42,7 +42,7 @@ import numpy as np
 
 from dtoc.errors import InputError
 
-#: Released format versions (the specification's revision table); the newest revision of each minor.
+#: Released format versions (the specification's revision table; Pulseq 1.4.2 software writes format 1.4.1).
 RELEASED = (
     (1, 2, 0),
     (1, 2, 1),
@@ -56,7 +56,7 @@ RELEASED = (
     (1, 5, 2),
 )
 #: Versions dtoc writes.
-WRITABLE = ((1, 4, 0), (1, 4, 1), (1, 4, 2), (1, 5, 0), (1, 5, 1), (1, 5, 2))
+WRITABLE = ((1, 4, 0), (1, 4, 1), (1, 5, 0), (1, 5, 1), (1, 5, 2))
 #: Extensions dtoc reads (pypulseq's four, and the two 1.5.1 ones kept per block).
 KNOWN_EXTENSIONS = ("TRIGGERS", "LABELSET", "LABELINC", "DELAYS", "ROTATIONS", "RF_SHIMS")
 KEPT_EXTENSIONS = ("ROTATIONS", "RF_SHIMS")
@@ -100,7 +100,7 @@ def check_writable(v: tuple[int, int, int]) -> None:
 
 def check_known(v: tuple[int, int, int], path) -> None:
     """Refuse a version outside the released ones by name."""
-    if v[:2] not in {r[:2] for r in RELEASED} or v > RELEASED[-1]:
+    if tuple(v) not in RELEASED:
         raise InputError(
             f"{path}: Pulseq format version {version_str(v)} is not supported "
             f"(dtoc reads the released versions {version_str(RELEASED[0])} to {version_str(RELEASED[-1])})"
@@ -477,3 +477,91 @@ def _extensions(st, blocks, lay: Layout) -> tuple[list[str], list[tuple[str, lis
     if lay.shims:
         lay.notes.append(f"RF shimming extension on {len(lay.shims)} block(s): kept unchanged on output")
     return lines_out, sections
+
+
+# ------------------------------------------------------------------------------------------------ writing
+def set_revision(text: bytes, version: tuple[int, int, int]) -> bytes:
+    """``text`` with its [VERSION] section saying ``version`` (the writers emit 1.5.0 / 1.4.1)."""
+    i = text.find(b"[VERSION]")
+    j = text.find(b"\n\n", i)
+    if i < 0 or j < 0:
+        raise InputError("written text has no [VERSION] section")
+    head = f"[VERSION]\nmajor {version[0]}\nminor {version[1]}\nrevision {version[2]}".encode()
+    return text[:i] + head + text[j:]
+
+
+def strip_signature(text: bytes) -> bytes:
+    i = text.find(b"\n[SIGNATURE]")
+    return text if i < 0 else text[: i + 1]
+
+
+def add_kept_extensions(text: bytes, rotations: dict, shims: dict) -> bytes:
+    """``text`` (unsigned 1.5 text) with the ROTATIONS / RF_SHIMS objects of ``rotations`` / ``shims`` ({block
+    index: values}) chained into each block's extension list (new list entries, new extension type ids)."""
+    if not rotations and not shims:
+        return text
+    lines = text.decode().split("\n")
+
+    def section(name: str) -> tuple[int, int]:
+        try:
+            i = lines.index(name)
+        except ValueError:
+            return -1, -1
+        j = i + 1
+        while j < len(lines) and lines[j].strip():
+            j += 1
+        return i, j
+
+    b0, b1 = section("[BLOCKS]")
+    e0, e1 = section("[EXTENSIONS]")
+    entries = [ln.split() for ln in lines[e0 + 1 : e1] if ln.strip() and not ln.startswith("#")] if e0 >= 0 else []
+    next_entry = max((int(t[0]) for t in entries), default=0) + 1
+    types = [int(ln.split()[-1]) for ln in lines if ln.startswith("extension ")]
+    t_rot = max(types, default=0) + 1
+    t_shim = t_rot + 1
+    objs: dict[str, dict[tuple, int]] = {"ROTATIONS": {}, "RF_SHIMS": {}}
+    new_entries: dict[tuple, int] = {}
+    rows = [ln for ln in lines[b0 + 1 : b1] if ln.strip() and not ln.startswith("#")]
+    out_rows = []
+    for bi, row in enumerate(rows):
+        t = row.split()
+        head = int(t[7])
+        for kind, typ, table in (("RF_SHIMS", t_shim, shims), ("ROTATIONS", t_rot, rotations)):
+            if bi not in table:
+                continue
+            vals = tuple(float(x) for x in table[bi])
+            ref = objs[kind].setdefault(vals, len(objs[kind]) + 1)
+            key = (typ, ref, head)
+            if key not in new_entries:
+                new_entries[key] = next_entry
+                next_entry += 1
+            head = new_entries[key]
+        t[7] = str(head)
+        out_rows.append(" ".join(t))
+    lines[b0 + 1 : b1] = out_rows
+    ext_rows = [f"{i} {typ} {ref} {nxt}" for (typ, ref, nxt), i in new_entries.items()]
+    spec: list[str] = []
+    if objs["ROTATIONS"]:
+        spec += ["# Extension specification for rotations:", "# id RotQuat0 RotQuatX RotQuatY RotQuatZ"]
+        spec += [f"extension ROTATIONS {t_rot}"] + [
+            " ".join([str(i), *map(_g, q)]) for q, i in objs["ROTATIONS"].items()
+        ]
+        spec += [""]
+    if objs["RF_SHIMS"]:
+        spec += ["# Extension specification for RF shimming:", "# id num_chan magn_c1 phase_c1 magn_c2 phase_c2 ..."]
+        spec += [f"extension RF_SHIMS {t_shim}"]
+        spec += [" ".join([str(i), str(int(q[0])), *map(_g, q[1:])]) for q, i in objs["RF_SHIMS"].items()]
+        spec += [""]
+    e0, e1 = section("[EXTENSIONS]")
+    if e0 >= 0:
+        # after the list and the extension specifications that follow it (up to the next [SECTION] or comment block)
+        k = e1
+        while k < len(lines) and not lines[k].startswith("[") and not lines[k].startswith("# Sequence Shapes"):
+            k += 1
+        lines[e1:e1] = ext_rows
+        k += len(ext_rows)
+        lines[k:k] = spec
+    else:
+        k = next((i for i, ln in enumerate(lines) if ln in ("[SHAPES]", "# Sequence Shapes")), len(lines))
+        lines[k:k] = ["[EXTENSIONS]", *ext_rows, "", *spec]
+    return "\n".join(lines).encode()

@@ -27,10 +27,22 @@ from pathlib import Path
 import numpy as np
 
 from dtoc.constants import AXES, hz_per_m_from_mT_per_m
-from dtoc.errors import DtocError
+from dtoc.errors import DtocError, InputError
 from dtoc.seq.ir import SequenceIR
 from dtoc.seq.pulseq import quiet, representable_amplitudes, seq_bytes
+from dtoc.seq.seqtext import sign_text
 from dtoc.seq.system import SystemSpec
+from dtoc.seq.versions import (
+    LABELS_141,
+    WRITABLE,
+    add_kept_extensions,
+    check_writable,
+    parse_version,
+    quaternion_matrix,
+    set_revision,
+    strip_signature,
+    version_str,
+)
 
 #: a block/axis counts as changed when any fine sample moved by more than this, mT/m
 CHANGE_TOL_MT_PER_M = 1e-9
@@ -104,6 +116,7 @@ def to_pypulseq(ir: SequenceIR, adc_offsets: dict[int, tuple[float, float]] | No
         for a in range(3):
             if abs(g[a, m] - orig[a, m]) > CHANGE_TOL_MT_PER_M:
                 g[a, m] = _round6(np.array([hz_per_m_from_mT_per_m(g[a, m])]))[0] / hz_per_m_from_mT_per_m(1.0)
+    rot = {int(b): quaternion_matrix(q) for b, q in (ir.meta.get("rotations") or {}).items()}
     for b in sorted(set(changes) | set(adc_offsets)):
         axes = changes.get(b, [])
         key = keys[b]
@@ -111,8 +124,12 @@ def to_pypulseq(ir: SequenceIR, adc_offsets: dict[int, tuple[float, float]] | No
             blk = seq.get_block(key)
         m0, m1 = int(m_edges[b]), int(m_edges[b + 1])
         dur = float(seq.block_durations[key])
+        played, edges_g = ir.grad_mT_per_m[:, m0 : m1 + 1], g[:, m0 : m1 + 1]
+        if b in rot and axes:  # a rotated block: its events are logical gradients, R^T of the played ones
+            played, edges_g = rot[b].T @ played, rot[b].T @ edges_g
+            axes = [0, 1, 2]
         for a in axes:
-            seg = ir.grad_mT_per_m[a, m0 : m1 + 1]
+            seg = played[a]
             edges_v, mids = seg[::2], seg[1::2]
             want = 0.5 * (edges_v[1:] + edges_v[:-1])
             if np.any(np.abs(mids - want) > 1e-9 + 1e-9 * np.abs(seg).max()):
@@ -121,7 +138,7 @@ def to_pypulseq(ir: SequenceIR, adc_offsets: dict[int, tuple[float, float]] | No
                     f"block {key} axis {AXES[a]}: raster-centre sample {m0 + 2 * i + 1} is not the mean of its raster edges "
                     "(the writer plays straight lines between raster edges; build waveforms with dtoc.seq.ir.edges_to_fine)"
                 )
-            hz = hz_per_m_from_mT_per_m(g[a, m0 : m1 + 1 : 2])
+            hz = hz_per_m_from_mT_per_m(edges_g[a, ::2])
             ch = "g" + AXES[a]
             if np.all(np.abs(hz) < 1e-9):
                 setattr(blk, ch, None)
@@ -174,22 +191,213 @@ def set_block_in_place(seq, keys: list, b: int, *events) -> None:
     full[key] = local[key]
 
 
-def seq_bytes_of(ir: SequenceIR, definitions: dict | None = None, adc_offsets=None) -> bytes:
-    """The signed Pulseq 1.5 text of :func:`to_pypulseq` (ir), with ``definitions`` added to [DEFINITIONS]
-    (names: letters and digits; values: numbers)."""
+def seq_bytes_of(
+    ir: SequenceIR,
+    definitions: dict | None = None,
+    adc_offsets=None,
+    version: tuple[int, int, int] | str | None = None,
+    verify: bool = True,
+) -> bytes:
+    """The signed Pulseq text of :func:`to_pypulseq` (ir) in format ``version`` (default :func:`output_version`),
+    with ``definitions`` added to [DEFINITIONS] (names: letters and digits; values: numbers).
+
+    What the version cannot express is refused by name first (:func:`unwritable`); with ``verify`` the text is
+    read back by dtoc's reader and by pypulseq and must play what ``ir`` plays (:func:`verify_written`).
+
+    Raises:
+        InputError: the version is not one dtoc writes, or cannot state something ``ir`` holds.
+        DtocError: the written text does not read back to ``ir``."""
+    v = output_version(ir, version)
+    check_writable(v)
+    reasons = unwritable(ir, v)
+    if reasons:
+        more = f" (and {len(reasons) - 1} more)" if len(reasons) > 1 else ""
+        raise InputError(f"cannot write Pulseq format {version_str(v)}: {reasons[0]}{more}")
     seq = to_pypulseq(ir, adc_offsets)
-    for k, v in (definitions or {}).items():
-        vals = [float(x) for x in np.ravel(v)] if isinstance(v, (list, tuple, np.ndarray)) else v
+    for k, val in (definitions or {}).items():
+        vals = [float(x) for x in np.ravel(val)] if isinstance(val, (list, tuple, np.ndarray)) else val
         ok_val = isinstance(vals, (int, float)) or (isinstance(vals, list) and vals and all(np.isfinite(vals)))
         if not str(k).isalnum() or not ok_val:
             raise DtocError(f"definition {k!r}: names are letters/digits and values numbers")
         seq.set_definition(str(k), vals)
-    return seq_bytes(seq)
+    rotations, shims = ir.meta.get("rotations") or {}, ir.meta.get("rf_shims") or {}
+    if v >= (1, 5, 0):
+        data = seq_bytes(seq)
+        if v != (1, 5, 0) or rotations or shims:
+            text = set_revision(strip_signature(data), v)
+            data = sign_text(add_kept_extensions(text, rotations, shims))
+    else:
+        data = sign_text(set_revision(strip_signature(seq_bytes(seq, v141=True)), v))
+    if verify:
+        verify_written(ir, data, v, adc_offsets)
+    return data
 
 
-def write_seq(ir: SequenceIR, path: str | Path, force: bool = False) -> Path:
-    """Write ``ir`` as a signed Pulseq 1.5 ``.seq`` atomically (no overwrite without ``force``)."""
+def output_version(ir: SequenceIR, version: tuple[int, int, int] | str | None = None) -> tuple[int, int, int]:
+    """The format version to write: ``version`` if given; else the input file's (``ir.meta['format_version']``),
+    1.4.1 for a 1.2.x/1.3.x input (dtoc writes no older format), 1.5.0 for a sequence built from a spec."""
+    if version is not None:
+        return parse_version(version) if isinstance(version, str) else tuple(int(x) for x in version)  # type: ignore[return-value]
+    src = ir.meta.get("format_version")
+    if not src:
+        return (1, 5, 0)
+    v = parse_version(src)
+    return v if v in WRITABLE else ((1, 4, 1) if v < (1, 4, 0) else WRITABLE[-1])
+
+
+def unwritable(ir: SequenceIR, version: tuple[int, int, int]) -> list[str]:
+    """What ``ir`` holds that format ``version`` cannot state, one phrase each (empty: writable)."""
+    v = tuple(version)
+    out: list[str] = []
+    n_rot, n_shim = len(ir.meta.get("rotations") or {}), len(ir.meta.get("rf_shims") or {})
+    if v < (1, 5, 1) and n_rot:
+        out.append(f"the rotation extension ({n_rot} rotated blocks) needs format 1.5.1 or later")
+    if v < (1, 5, 1) and n_shim:
+        out.append(f"the RF shimming extension ({n_shim} blocks) needs format 1.5.1 or later")
+    src = ir.source
+    if v >= (1, 5, 0) or src is None:
+        return out
+    if ir.meta.get("soft_delay_blocks"):
+        out.append(
+            f"soft delays (extension DELAYS, {len(ir.meta['soft_delay_blocks'])} blocks) need format 1.5.0 or later"
+        )
+    from dtoc.seq.pulseq import import_pypulseq
+
+    pp = import_pypulseq()
+    names = {
+        "e": "excitation",
+        "r": "refocusing",
+        "i": "inversion",
+        "s": "saturation",
+        "p": "preparation",
+        "o": "other",
+    }
+    for k, lib in src.rf_library.data.items():
+        use = src.rf_library.type.get(k, "u")
+        if lib[6] or lib[7]:
+            out.append(f"RF event {k} has a frequency/phase offset in ppm (format 1.5.0 on)")
+        with quiet():
+            rf = src.rf_from_lib_data(lib, use)
+            stated = float(rf.center)
+            del rf.center
+            peak = float(pp.calc_rf_center(rf)[0])
+        if abs(stated - peak) > 0.5 * float(src.rf_raster_time):
+            out.append(
+                f"RF event {k} rotates at {stated * 1e6:.6g} us, not at its peak ({peak * 1e6:.6g} us), and format "
+                "1.4 states no centre"
+            )
+        if use in names and use != _detected_use(src, rf):
+            out.append(
+                f"RF event {k} is stated as {names[use]}, which format 1.4 cannot say (1.4 readers would take it as "
+                f"{names[_detected_use(src, rf)]})"
+            )
+    for k, lib in src.adc_library.data.items():
+        if lib[3] or lib[4]:
+            out.append(f"ADC event {k} has a frequency/phase offset in ppm (format 1.5.0 on)")
+        if len(lib) > 7 and lib[7]:
+            out.append(f"ADC event {k} has a phase modulation shape (format 1.5.0 on)")
+    if v < (1, 4, 1):
+        from pypulseq.supported_labels_rf_use import get_supported_labels
+
+        labels = get_supported_labels()
+        used = {
+            labels[int(d[1]) - 1] for lib in (src.label_set_library, src.label_inc_library) for d in lib.data.values()
+        }
+        new = sorted(used & set(LABELS_141))
+        if new:
+            out.append(f"label(s) {', '.join(new)} were added in format 1.4.1")
+    return out
+
+
+def _detected_use(seq, rf) -> str:
+    """The RF use a 1.4 reader detects (pypulseq's and Pulseq MATLAB's ``detectRFuse``)."""
+    flip_deg = float(np.abs(np.sum(rf.signal[:-1] * (rf.t[1:] - rf.t[:-1])))) * 360
+    ppm = 1e6 * rf.freq_offset / seq.system.B0 / seq.system.gamma
+    if flip_deg < 90.01:
+        return "e"
+    return "s" if rf.shape_dur > 6e-3 and -3.5 <= ppm <= -3.4 else "r"
+
+
+def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> None:
+    """Read ``data`` back with dtoc's reader and with pypulseq: it must be format ``version`` and play ``ir``'s
+    gradients (within the writer's precision, module doc), RF centres and ADC samples.
+
+    Raises:
+        DtocError: one line naming the first difference."""
+    import os
+    import tempfile
+
+    from dtoc.seq.pulseq import import_pypulseq
+    from dtoc.seq.read import read_seq
+
+    v = version_str(tuple(version))
+    fd, tmp = tempfile.mkstemp(suffix=".seq")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        try:
+            back = read_seq(tmp)
+        except DtocError as e:
+            raise DtocError(
+                f"the written format {v} text does not read back: {str(e).replace(tmp, 'output')}"
+            ) from None
+        try:
+            with quiet():
+                import_pypulseq().Sequence().read(tmp)
+        except Exception as e:  # noqa: BLE001 - pypulseq raises anything
+            raise DtocError(f"pypulseq cannot read the written format {v} text: {type(e).__name__}: {e}") from None
+    finally:
+        os.unlink(tmp)
+    if back.meta.get("format_version") != v:
+        raise DtocError(f"written text says format {back.meta.get('format_version')}, not {v}")
+    g, gb = ir.grad_mT_per_m, back.grad_mT_per_m
+    if g.shape != gb.shape:
+        raise DtocError(f"format {v} text reads back with {gb.shape[1]} gradient samples, not {g.shape[1]}")
+    tol = 2e-5 * max(float(np.abs(g).max()), 1e-9)
+    d = np.abs(gb - g)
+    if d.max() > tol:
+        a, m = np.unravel_index(int(np.argmax(d)), d.shape)
+        b = int(np.searchsorted(ir.block_edges_s, m * ir.dt_fine_s, side="right")) - 1
+        raise DtocError(
+            f"format {v} text plays another gradient: block {ir.meta.get('block_ids', [])[b] if b < len(ir.meta.get('block_ids', [])) else b + 1} "
+            f"axis {AXES[a]} at {m * ir.dt_fine_s * 1e3:.4f} ms: {gb[a, m]:.6g} instead of {g[a, m]:.6g} mT/m"
+        )
+    if len(back.rf) != len(ir.rf) or len(back.adc) != len(ir.adc):
+        raise DtocError(
+            f"format {v} text reads back with {len(back.rf)} RF / {len(back.adc)} ADC events, not {len(ir.rf)} / {len(ir.adc)}"
+        )
+    for r0, r1 in zip(ir.rf, back.rf, strict=True):
+        if abs(r0.t_center_s - r1.t_center_s) > 1e-7:
+            raise DtocError(
+                f"format {v} text moves the RF centre of block {r0.block + 1}: {r1.t_center_s * 1e3:.6f} ms instead of "
+                f"{r0.t_center_s * 1e3:.6f} ms"
+            )
+    for a0, a1 in zip(ir.adc, back.adc, strict=True):
+        if abs(a0.t_start_s - a1.t_start_s) > 1e-9 or a0.num_samples != a1.num_samples:
+            raise DtocError(f"format {v} text moves the ADC of block {a0.block + 1}")
+
+
+def preflight_write(ir: SequenceIR, version: tuple[int, int, int] | str | None = None) -> tuple[int, int, int]:
+    """Before any work: the format version an output of ``ir`` will be written in (:func:`output_version`), after
+    the unchanged base was written in it and read back (what the version cannot state is refused by name).
+
+    Raises:
+        InputError: one line naming what the version cannot state, or why the base does not read back."""
+    v = output_version(ir, version)
+    check_writable(v)
+    try:
+        seq_bytes_of(ir, version=v)
+    except InputError:
+        raise
+    except DtocError as e:
+        raise InputError(f"the base cannot be written as Pulseq format {version_str(v)}: {e}") from None
+    return v
+
+
+def write_seq(ir: SequenceIR, path: str | Path, force: bool = False, version=None) -> Path:
+    """Write ``ir`` as a signed Pulseq ``.seq`` (format ``version``, default :func:`output_version`) atomically
+    (no overwrite without ``force``), after it read back (:func:`seq_bytes_of`)."""
     from dtoc.util.atomic import atomic_write_bytes, check_output_path
 
     check_output_path(path, force)
-    return atomic_write_bytes(path, seq_bytes_of(ir), force=force)
+    return atomic_write_bytes(path, seq_bytes_of(ir, version=version), force=force)
