@@ -223,6 +223,9 @@ def reader_text(st) -> tuple[bytes, Layout]:
         pk = np.flatnonzero(a >= a.max() * 0.99999) if a.size else np.array([0])
         center_us = 1e6 * 0.5 * (tt[pk[0]] + tt[pk[-1]]) if a.size else 0.0
         rf[i] = [amp, mag, ph, tid, center_us, delay, 0.0, 0.0, freq, phase, "u"]
+    for r in rf.values():  # phase shape 0: no phase modulation (pypulseq needs a shape)
+        if int(r[2]) == 0 and int(r[1]) in shapes:
+            r[2] = new_shape(np.zeros(len(shapes[int(r[1])])))
     traps = {int(t[0]): t[1:6] for t in rows("[TRAP]")}
     adc: dict[int, list] = {}
     for t in rows("[ADC]"):

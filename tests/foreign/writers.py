@@ -128,8 +128,12 @@ def epi(n: int = 32, fov: float = 0.22, slice_thickness: float = 3e-3) -> bytes:
     return _bytes(seq)
 
 
-def radial(n: int = 64, spokes: int = 32, fov: float = 0.22, tr: float = 8e-3) -> bytes:
-    """2D radial GRE: ``spokes`` full diameters over 180 deg, ``n`` samples each, golden-free uniform angles."""
+def radial(
+    n: int = 64, spokes: int = 32, fov: float = 0.22, tr: float = 8e-3, rotation_extension: bool = False
+) -> bytes:
+    """2D radial GRE: ``spokes`` full diameters over 180 deg, ``n`` samples each, golden-free uniform angles.
+    ``rotation_extension``: every spoke is written along x and turned by the 1.5.1 rotation extension (format
+    1.5.1, one quaternion per spoke on its prephaser, readout and spoiler blocks) instead of pre-rotated."""
     import pypulseq as pp
 
     sys = _system(pp)
@@ -151,14 +155,219 @@ def radial(n: int = 64, spokes: int = 32, fov: float = 0.22, tr: float = 8e-3) -
     g_sp = pp.make_trapezoid("x", area=2 * n * dk, system=sys)
     fill = tr - pp.calc_duration(gz) - pp.calc_duration(g_pre, gzr) - pp.calc_duration(g_ro) - pp.calc_duration(g_sp)
     fill = math.ceil(fill / sys.grad_raster_time) * sys.grad_raster_time
+    rotated: dict[int, float] = {}  # 1-based block number -> angle about z
     for i in range(spokes):
         phi = math.pi * i / spokes
         seq.add_block(rf, gz)
-        seq.add_block(*pp.rotate(g_pre, angle=phi, axis="z"), gzr)
-        seq.add_block(*pp.rotate(g_ro, adc, angle=phi, axis="z"))
-        seq.add_block(*pp.rotate(g_sp, angle=phi, axis="z"))
+        if rotation_extension:
+            seq.add_block(g_pre, gzr)
+            seq.add_block(g_ro, adc)
+            seq.add_block(g_sp)
+            rotated.update({5 * i + 2: phi, 5 * i + 3: phi, 5 * i + 4: phi})
+        else:
+            seq.add_block(*pp.rotate(g_pre, angle=phi, axis="z"), gzr)
+            seq.add_block(*pp.rotate(g_ro, adc, angle=phi, axis="z"))
+            seq.add_block(*pp.rotate(g_sp, angle=phi, axis="z"))
         seq.add_block(pp.make_delay(fill))
-    return _bytes(seq)
+    data = _bytes(seq)
+    return _with_rotations(data, rotated) if rotation_extension else data
+
+
+def _sign(body: bytes) -> bytes:
+    """``body`` with a Pulseq md5 [SIGNATURE] (the hash of the bytes before the newline preceding it)."""
+    import hashlib
+
+    body = body.rstrip(b"\n") + b"\n"
+    return body + b"\n[SIGNATURE]\nType md5\nHash " + hashlib.md5(body).hexdigest().encode() + b"\n"
+
+
+def _unsigned(data: bytes) -> bytes:
+    i = data.find(b"\n[SIGNATURE]")
+    return data if i < 0 else data[: i + 1]
+
+
+def _set_version(text: bytes, version: str) -> bytes:
+    import re
+
+    ma, mi, rev = version.split(".")
+    return re.sub(
+        rb"\[VERSION\]\nmajor \d+\nminor \d+\nrevision \d+",
+        f"[VERSION]\nmajor {ma}\nminor {mi}\nrevision {rev}".encode(),
+        text,
+    )
+
+
+def _with_rotations(data: bytes, rotated: dict[int, float]) -> bytes:
+    """A pypulseq 1.5.0 file without extensions, with ``rotated`` blocks turned about z (format 1.5.1)."""
+    lines = _set_version(_unsigned(data), "1.5.1").decode().split("\n")
+    b0 = lines.index("[BLOCKS]") + 1
+    angles = sorted(set(rotated.values()))
+    obj = {phi: i + 1 for i, phi in enumerate(angles)}
+    j = b0
+    while lines[j].strip():
+        t = lines[j].split()
+        if int(t[0]) in rotated:
+            t[7] = str(obj[rotated[int(t[0])]])  # one list entry per rotation object, same id
+        lines[j] = " ".join(t)
+        j += 1
+    ext = ["[EXTENSIONS]"] + [f"{i} 1 {i} 0" for i in obj.values()] + ["", "extension ROTATIONS 1"]
+    ext += [f"{i} {math.cos(phi / 2):.15g} 0 0 {math.sin(phi / 2):.15g}" for phi, i in obj.items()] + [""]
+    k = lines.index("[SHAPES]")
+    lines[k:k] = ext
+    return _sign("\n".join(lines).encode())
+
+
+def as_version(data: bytes, version: str) -> bytes:
+    """A pypulseq 1.5.0 file rewritten in format ``version`` as the writers of that version lay it out:
+    1.4.1 by pypulseq's own 1.4.1 writer (what pypulseq 1.4 example scripts wrote), 1.4.0 the same text
+    labelled 1.4.0, 1.3.x / 1.2.x from that text by the older layouts (block column 2 a [DELAYS] id holding
+    the block duration, no RF/gradient time shapes, every shape run-length compressed, 1.2.x without the
+    block extension column).  Only default-raster RF and arbitrary gradients can go below 1.4."""
+    import os
+    import tempfile
+
+    import pypulseq as pp
+
+    from dtoc.seq.pulseq import quiet
+
+    with tempfile.TemporaryDirectory() as d:
+        src, dst = os.path.join(d, "a.seq"), os.path.join(d, "b.seq")
+        with open(src, "wb") as f:
+            f.write(data)
+        seq = pp.Sequence()
+        with quiet():
+            seq.read(src)
+            seq.write(dst, create_signature=False, v141_compat=True)
+        with open(dst, "rb") as f:
+            text = f.read()
+    if version == "1.4.1":
+        return _sign(text)
+    if version == "1.4.0":
+        return _sign(_set_version(text, "1.4.0"))
+    return _sign(_set_version(_old_layout(text.decode(), version), version))
+
+
+def _compress(w) -> list[str]:
+    """Pulseq shape compression: run-length encoded derivative (repeats of a value: the value twice, then the
+    count of further repeats)."""
+    d = np.diff(np.concatenate([[0.0], np.asarray(w, dtype=np.float64)]))
+    d = np.round(d, 9)
+    out: list[str] = []
+    i = 0
+    while i < len(d):
+        j = i
+        while j + 1 < len(d) and d[j + 1] == d[i]:
+            j += 1
+        run = j - i + 1
+        if run >= 2:
+            out += [f"{d[i]:.9g}", f"{d[i]:.9g}", str(run - 2)]
+        else:
+            out.append(f"{d[i]:.9g}")
+        i = j + 1
+    return out
+
+
+def _decompress(data: list[float], num: int) -> np.ndarray:
+    if len(data) == num:
+        return np.asarray(data)
+    out: list[float] = []
+    k = 0
+    while k < len(data):
+        if k + 2 < len(data) and data[k] == data[k + 1]:
+            out += [data[k]] * (int(data[k + 2]) + 2)
+            k += 3
+        else:
+            out.append(data[k])
+            k += 1
+    return np.cumsum(out)
+
+
+def _old_layout(text: str, version: str) -> bytes:
+    """1.4.1 text -> the 1.3.x / 1.2.x layout (see :func:`as_version`)."""
+    sec = None
+    out: list[str] = []
+    delays: dict[int, int] = {}
+    shape_lines: list[str] = []
+    raster_us = 10
+    for line in text.split("\n"):
+        s = line.strip()
+        if s.startswith("BlockDurationRaster"):
+            raster_us = round(float(s.split()[1]) * 1e6)
+        if s.startswith("["):
+            sec = s
+            if sec == "[SHAPES]":
+                continue
+            out.append(line)
+            continue
+        if sec == "[SHAPES]":
+            shape_lines.append(s)
+            continue
+        if not s or s.startswith("#"):
+            out.append(line)
+            continue
+        t = s.split()
+        if sec == "[BLOCKS]":
+            dur_us = int(t[1]) * raster_us
+            did = delays.setdefault(dur_us, len(delays) + 1)
+            t[1] = str(did)
+            if version.startswith("1.2"):
+                t = t[:7]
+        elif sec == "[RF]":  # id amp mag phase time delay freq phase -> no time shape
+            assert t[4] == "0", "only default-raster RF goes below 1.4"
+            t = t[:4] + t[5:]
+        elif sec == "[GRADIENTS]":  # id amp shape time delay -> no time shape
+            assert t[3] == "0", "only default-raster arbitrary gradients go below 1.4"
+            t = t[:3] + t[4:]
+        out.append(" ".join(t))
+    body = "\n".join(out).rstrip("\n").split("\n")
+    body = [ln for ln in body if not ln.startswith(("TotalDuration", "AdcRasterTime", "BlockDurationRaster"))]
+    body += ["", "[DELAYS]"] + [f"{i} {us}" for us, i in delays.items()] + ["", "[SHAPES]", ""]
+    k = 0
+    while k < len(shape_lines):
+        if shape_lines[k].startswith("shape_id"):
+            sid = shape_lines[k]
+            num = int(shape_lines[k + 1].split()[1])
+            k += 2
+            data = []
+            while k < len(shape_lines) and shape_lines[k] and not shape_lines[k].startswith("shape_id"):
+                data.append(float(shape_lines[k]))
+                k += 1
+            body += [sid, f"num_samples {num}", *_compress(_decompress(data, num)), ""]
+        else:
+            k += 1
+    return ("\n".join(body) + "\n").encode()
+
+
+def spiral_140_ending_on_zero(n_spiral: int = 120, dwell: float = 4e-6) -> bytes:
+    """A field-camera style 1.4.0 file written by hand in the 1.4.0 layout: a hard pulse, then a spiral-out
+    arbitrary gradient on x and y (default raster, samples at raster centres, no first/last: 1.4.0 has none)
+    whose last sample on both axes is exactly 0, an ADC over it, then an empty block. The waveform rises from
+    and returns to 0 within the samples; the scanner plays no step at the spiral's end."""
+    raster = 10e-6
+    t = (np.arange(n_spiral) + 0.5) / n_spiral
+    env = np.sin(np.pi * t) ** 2  # 0 -> 1 -> 0 envelope
+    wx = env * np.cos(6 * np.pi * t)
+    wy = env * np.sin(6 * np.pi * t)
+    wx[-1] = wy[-1] = 0.0  # the last sample is exactly zero
+    amp = 400000.0  # Hz/m (9.4 mT/m)
+    sx, sy = wx / np.abs(wx).max(), wy / np.abs(wy).max()
+    n_adc = int(round(n_spiral * raster / dwell))
+    lines = [
+        "# Pulseq sequence file", "# written by a 1.4.0-era exporter (hand-made test writer)", "",
+        "[VERSION]", "major 1", "minor 4", "revision 0", "",
+        "[DEFINITIONS]", "AdcRasterTime 1e-07", "BlockDurationRaster 1e-05", "GradientRasterTime 1e-05",
+        "RadiofrequencyRasterTime 1e-06", "",
+        "[BLOCKS]", "1 40 1 0 0 0 0 0", f"2 {n_spiral} 0 1 2 0 1 0", "3 100 0 0 0 0 0 0", "4 40 1 0 0 0 0 0",
+        f"5 {n_spiral} 0 1 2 0 1 0", "6 100 0 0 0 0 0 0", "",
+        "[RF]", "1 250 1 0 0 100 0 0", "",
+        "[GRADIENTS]", f"1 {amp * np.abs(wx).max():.9g} 2 0 0", f"2 {amp * np.abs(wy).max():.9g} 3 0 0", "",
+        "[ADC]", f"1 {n_adc} {dwell * 1e9:.0f} 0 0 0", "",
+        "[SHAPES]", "",
+        "shape_id 1", "num_samples 200", "1", "0", "0", "197", "",
+        "shape_id 2", f"num_samples {n_spiral}", *(f"{v:.9g}" for v in sx), "",
+        "shape_id 3", f"num_samples {n_spiral}", *(f"{v:.9g}" for v in sy), "",
+    ]  # fmt: skip
+    return _sign(("\n".join(lines) + "\n").encode())
 
 
 def spiral(interleaves: int = 1, fov: float = 0.22, n: int = 48, tr: float = 30e-3) -> bytes:
@@ -479,3 +688,27 @@ def mprage(
             seq.add_block(_fill(pp, sys, fill_tr))
         seq.add_block(_fill(pp, sys, fill_shot))
     return _bytes(seq)
+
+
+def oversampled_151(n_raster: int = 40, version: str = "1.5.1") -> tuple[bytes, np.ndarray]:
+    """A hand-written 1.5.1 file with an oversampled arbitrary gradient (time shape id -1: samples every half
+    raster between the stated first and last) on x over an ADC, after a hard pulse. Returns (bytes, the
+    played x gradient in Hz/m at every half raster of the gradient, edges included)."""
+    m = np.arange(2 * n_raster + 1) / (2 * n_raster)
+    played = 300000.0 * np.sin(np.pi * m) * (1 + 0.3 * np.cos(5 * np.pi * m))  # 0 at both ends
+    amp = float(np.abs(played).max())
+    inner = played[1:-1] / amp
+    lines = [
+        "[VERSION]", "major 1", "minor 5", f"revision {version.split('.')[2]}", "",
+        "[DEFINITIONS]", "AdcRasterTime 1e-07", "BlockDurationRaster 1e-05", "GradientRasterTime 1e-05",
+        "RadiofrequencyRasterTime 1e-06", "",
+        "[BLOCKS]", "1 40 1 0 0 0 0 0", f"2 {n_raster} 0 1 0 0 1 0", "3 50 0 0 0 0 0 0", "",
+        "[RF]", "1 250 1 2 0 100 100 0 0 0 0 e", "",
+        "[GRADIENTS]", f"1 {amp:.12g} 0 0 3 -1 0", "",
+        "[ADC]", f"1 {n_raster * 2} 5000 0 0 0 0 0 0", "",
+        "[SHAPES]", "",
+        "shape_id 1", "num_samples 200", "1", "0", "0", "197", "",
+        "shape_id 2", "num_samples 200", "0", "0", "198", "",
+        "shape_id 3", f"num_samples {len(inner)}", *(f"{v:.12g}" for v in inner), "",
+    ]  # fmt: skip
+    return _sign(("\n".join(lines) + "\n").encode()), played
