@@ -66,11 +66,11 @@ BAD_SEQ: dict[str, bytes] = {
 
 def _with_rotation_extension() -> bytes:
     i = BODY.find(b"# Sequence Shapes")
-    body = BODY[:i] + b"[EXTENSIONS]\n1 1 1 0\n\nextension ROTATIONS 1\n1 1 0 0 0\n\n" + BODY[i:]
+    body = BODY[:i] + b"[EXTENSIONS]\n1 1 1 0\n\nextension ROTATIONS 1\n1 1 2 0 0\n\n" + BODY[i:]  # |q| != 1
     return sign_text(body.replace(b" 1 200   1   0   0   0  0  0", b" 1 200   1   0   0   0  0  1", 1))
 
 
-BAD_SEQ["rotation_extension_unsupported"] = _with_rotation_extension()
+BAD_SEQ["rotation_not_normalised"] = _with_rotation_extension()
 #: check reads these without failing to parse and reports them as violations (exit 1)
 CHECK_VIOLATION = {"bad_signature", "sha1_signature", "crlf_resigned"}
 

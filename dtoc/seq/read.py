@@ -78,6 +78,10 @@ def read_pypulseq(path: str | Path, require_signature: bool = True):
     finally:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+    try:  # the rotation extension, played by from_pypulseq (pypulseq itself does not know it)
+        seq.dtoc_rotations = st.layout.rotation_matrices()
+    except InputError as e:
+        raise InputError(f"{p}: {e}") from None
     return seq, st
 
 
@@ -111,7 +115,6 @@ def read_seq(
         free_slice_axis=free_slice_axis,
         free_unused_axes=free_unused_axes,
         rf_guard=rf_guard,
-        rotations=lay.rotation_matrices(),
     )
     ir.meta["path"] = str(path)
     ir.meta["format_version"] = version_str(st.version)
@@ -170,12 +173,15 @@ def from_pypulseq(
     """Convert a ``pypulseq.Sequence`` (read or built) into a :class:`SequenceIR`.
 
     ``rotations``: {block index: 3x3 matrix} of the 1.5.1 rotation extension: that block's gradients are played
-    as ``R @ (gx, gy, gz)`` (the IR holds the played, rotated gradients).
+    as ``R @ (gx, gy, gz)`` (the IR holds the played, rotated gradients); default: those :func:`read_pypulseq`
+    found in the file.
 
     Raises:
         InputError: a block duration that is not a whole number of gradient rasters (the fine grid
             could not hold the block boundary).
     """
+    if rotations is None:
+        rotations = getattr(seq, "dtoc_rotations", None)
     if rf_guard not in ("block", "pulse"):
         raise InputError(f"rf_guard must be 'block' or 'pulse', got {rf_guard!r}")
     raster = float(seq.grad_raster_time)

@@ -87,11 +87,16 @@ class SeqText:
         return self.version[:2]
 
     def content_md5(self) -> str | None:
-        """md5 of the bytes before the newline preceding ``[SIGNATURE]`` (None if unsigned)."""
+        """md5 of the bytes before the newline preceding ``[SIGNATURE]`` (None if unsigned).  Files of older
+        writers (JEMRIS, Pulseq before 1.4) hash that newline too: when that hash is the stated one, it is
+        returned."""
         i = self.raw.find(b"\n[SIGNATURE]")
         if i < 0:
             return None
-        return hashlib.md5(self.raw[:i]).hexdigest()
+        md5 = hashlib.md5(self.raw[:i]).hexdigest()
+        if md5 != self.signature_hash and hashlib.md5(self.raw[: i + 1]).hexdigest() == self.signature_hash:
+            return self.signature_hash
+        return md5
 
     def definitions(self) -> dict[str, str]:
         out = {}
@@ -289,9 +294,12 @@ def _check_structure(st: SeqText, p: Path) -> None:
             j += 1
         if not data:
             raise _err(p, f"shape {sid} (line {shp[i].lineno}) has no samples{hint}")
-        if len(data) > num:
+        if st.major_minor < (1, 4):  # always compressed before 1.4 (then possibly longer than num_samples)
+            if not _compressed_length_ok(data, num):
+                raise _err(p, f"shape {sid} (line {shp[i].lineno}): compressed data do not expand to {num} samples")
+        elif len(data) > num:
             raise _err(p, f"shape {sid} (line {shp[i].lineno}): {len(data)} values for num_samples {num}")
-        if len(data) < num and not _compressed_length_ok(data, num):
+        elif len(data) < num and not _compressed_length_ok(data, num):
             raise _err(p, f"shape {sid} (line {shp[i].lineno}): compressed data do not expand to {num} samples{hint}")
         st.shapes[sid] = (num, data, shp[i].lineno)
         i = j

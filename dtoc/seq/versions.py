@@ -50,13 +50,14 @@ RELEASED = (
     (1, 3, 1),
     (1, 4, 0),
     (1, 4, 1),
-    (1, 4, 2),
     (1, 5, 0),
     (1, 5, 1),
     (1, 5, 2),
 )
 #: Versions dtoc writes.
 WRITABLE = ((1, 4, 0), (1, 4, 1), (1, 5, 0), (1, 5, 1), (1, 5, 2))
+#: Also written when the input says so: the label pypulseq 1.4.2 and MRzero put on the 1.4.1 layout.
+WRITABLE_AS_INPUT = ((1, 4, 2),)
 #: Extensions dtoc reads (pypulseq's four, and the two 1.5.1 ones kept per block).
 KNOWN_EXTENSIONS = ("TRIGGERS", "LABELSET", "LABELINC", "DELAYS", "ROTATIONS", "RF_SHIMS")
 KEPT_EXTENSIONS = ("ROTATIONS", "RF_SHIMS")
@@ -91,7 +92,7 @@ def parse_version(s: str) -> tuple[int, int, int]:
 
 
 def check_writable(v: tuple[int, int, int]) -> None:
-    if tuple(v) not in WRITABLE:
+    if tuple(v) not in WRITABLE + WRITABLE_AS_INPUT:
         raise InputError(
             f"format version {version_str(v)}: dtoc writes {', '.join(map(version_str, WRITABLE))} "
             "(1.2.x and 1.3.x are read, not written: their interpreters are a decade old)"
@@ -100,7 +101,7 @@ def check_writable(v: tuple[int, int, int]) -> None:
 
 def check_known(v: tuple[int, int, int], path) -> None:
     """Refuse a version outside the released ones by name."""
-    if tuple(v) not in RELEASED:
+    if tuple(v) not in RELEASED and not ((1, 2) <= tuple(v[:2]) <= (1, 4)):  # 1.2-1.4 layouts are final
         raise InputError(
             f"{path}: Pulseq format version {version_str(v)} is not supported "
             f"(dtoc reads the released versions {version_str(RELEASED[0])} to {version_str(RELEASED[-1])})"
@@ -189,10 +190,10 @@ def reader_text(st) -> tuple[bytes, Layout]:
     rf_raster = dmap["RadiofrequencyRasterTime"]
     block_raster = dmap["BlockDurationRaster"]
     shapes = {sid: decompress(data, num, always_compressed=old) for sid, (num, data, _) in st.shapes.items()}
-    # shapes go to pypulseq as the file states them (compressed or not); only a pre-1.4 compressed shape whose
-    # length happens to equal its sample count (read as uncompressed from 1.4 on) is written expanded
+    # shapes go to pypulseq as the file states them (compressed or not); only a pre-1.4 compressed shape not
+    # shorter than its sample count (read as uncompressed, or invalid, from 1.4 on) is written expanded
     out_shapes: dict[int, list[float] | np.ndarray] = {
-        sid: (shapes[sid] if old and len(data) == num else data) for sid, (num, data, _) in st.shapes.items()
+        sid: (shapes[sid] if old and len(data) >= num else data) for sid, (num, data, _) in st.shapes.items()
     }
     nums = {sid: num for sid, (num, _, _) in st.shapes.items()}
     next_shape = max(shapes, default=0) + 1
@@ -376,7 +377,7 @@ def _infer_edges(blocks, grads, traps, shapes, raster, block_raster, lay: Layout
     lasts: list[list] = [[None] * 3 for _ in range(n)]
     for a in range(3):
         for b in range(n):
-            gid = blocks[b][1 + a]
+            gid = blocks[b][2 + a]
             if not gid or gid in traps or stated(gid, False) is not None and stated(gid, True) is not None:
                 continue
             dur = blocks[b][0] * block_raster
@@ -384,7 +385,7 @@ def _infer_edges(blocks, grads, traps, shapes, raster, block_raster, lay: Layout
             # start edge
             first = 0.0
             if t0 < tol and b > 0:
-                p = blocks[b - 1][1 + a]
+                p = blocks[b - 1][2 + a]
                 if p:
                     pdur = blocks[b - 1][0] * block_raster
                     if abs(_grad_span(p, grads, traps, shapes, raster)[1] - pdur) < tol:
@@ -392,7 +393,7 @@ def _infer_edges(blocks, grads, traps, shapes, raster, block_raster, lay: Layout
                         first = s if s is not None else 0.5 * (centre(p, True) + centre(gid, False))
             last = 0.0
             if abs(t1 - dur) < tol and b + 1 < n:
-                q = blocks[b + 1][1 + a]
+                q = blocks[b + 1][2 + a]
                 if q and _grad_span(q, grads, traps, shapes, raster)[0] < tol:
                     s = stated(q, False)
                     last = s if s is not None else 0.5 * (centre(gid, True) + centre(q, False))
@@ -405,7 +406,7 @@ def _infer_edges(blocks, grads, traps, shapes, raster, block_raster, lay: Layout
     used_ids: set[int] = set()
     for b in range(n):
         for a in range(3):
-            gid = blocks[b][1 + a]
+            gid = blocks[b][2 + a]
             if not gid or firsts[b][a] is None:
                 continue
             key = (gid, round(firsts[b][a], 9), round(lasts[b][a], 9))
@@ -419,7 +420,7 @@ def _infer_edges(blocks, grads, traps, shapes, raster, block_raster, lay: Layout
                 g = list(orig[gid])
                 g[1], g[2] = firsts[b][a], lasts[b][a]
                 grads[seen[key]] = g
-            blocks[b][1 + a] = seen[key]
+            blocks[b][2 + a] = seen[key]
     for g in grads.values():  # events no block uses: no edges to infer
         if g[1] is None:
             g[1] = g[2] = 0.0

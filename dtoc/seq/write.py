@@ -36,6 +36,7 @@ from dtoc.seq.versions import (
     KEPT_EXTENSIONS,
     LABELS_141,
     WRITABLE,
+    WRITABLE_AS_INPUT,
     add_kept_extensions,
     check_writable,
     parse_version,
@@ -243,7 +244,7 @@ def output_version(ir: SequenceIR, version: tuple[int, int, int] | str | None = 
     if not src:
         return (1, 5, 0)
     v = parse_version(src)
-    return v if v in WRITABLE else ((1, 4, 1) if v < (1, 4, 0) else WRITABLE[-1])
+    return v if v in WRITABLE + WRITABLE_AS_INPUT else ((1, 4, 1) if v < (1, 5, 0) else WRITABLE[-1])
 
 
 def unwritable(ir: SequenceIR, version: tuple[int, int, int]) -> list[str]:
