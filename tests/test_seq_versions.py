@@ -254,3 +254,44 @@ def test_152_reads(gre15, tmp_path):
     p.write_bytes(raw[: raw.find(b"\n[SIGNATURE]") + 1].replace(b"minor 5\nrevision 0", b"minor 5\nrevision 2"))
     ir = read_seq(p)
     assert ir.meta["format_version"] == "1.5.2" and _version_of(seq_bytes_of(ir)) == "1.5.2"
+
+
+def _with_empty_block(data: bytes, after: int) -> bytes:
+    """The 1.5 text with a zero-duration block without events after block ``after`` (JEMRIS writes such
+    blocks), blocks renumbered; re-signed."""
+    import hashlib
+
+    t = data[: data.find(b"\n[SIGNATURE]")].decode().split("\n")
+    i = t.index("[BLOCKS]") + 1
+    j = i
+    while t[j].strip():
+        j += 1
+    rows = [r.split()[1:] for r in t[i:j] if not r.startswith("#")]
+    rows.insert(after, ["0"] * 7)
+    t[i:j] = [" ".join([str(k + 1), *r]) for k, r in enumerate(rows)]
+    body = ("\n".join(t) + "\n").encode()
+    return body + b"\n[SIGNATURE]\nType md5\nHash " + hashlib.md5(body).hexdigest().encode() + b"\n"
+
+
+def test_zero_duration_block_between_gradients_is_written(tmp_path):
+    """A zero-duration block between two readout blocks shares their boundary sample but holds no gradient:
+    an optimized output (every free sample moved) is written and reads back; the pre-flight says so first."""
+    from dtoc.seq.write import preflight_write
+
+    base = epi(n=16)
+    ir0 = read_seq(_write(tmp_path / "a.seq", base))
+    ro = next(a.block for a in ir0.adc)  # the first readout block (0-based)
+    p = _write(tmp_path / "b.seq", _with_empty_block(base, ro + 1))
+    ir = read_seq(p)
+    assert len(ir.block_edges_s) == len(ir0.block_edges_s) + 1
+    assert preflight_write(ir) == (1, 5, 0)
+    e = ir.edge_grad_mT_per_m.copy()
+    e[ir.free_mask[:, ::2]] += 0.05  # mT/m: the boundary samples move too
+    new = ir.with_grad(edges_to_fine(e))
+    back = read_seq(_write(tmp_path / "c.seq", seq_bytes_of(new)))
+    assert np.abs(back.grad_mT_per_m - new.grad_mT_per_m).max() < 1e-5 * np.abs(new.grad_mT_per_m).max()
+
+
+def _write(p: Path, data: bytes) -> Path:
+    p.write_bytes(data)
+    return p

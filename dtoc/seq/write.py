@@ -28,7 +28,7 @@ import numpy as np
 
 from dtoc.constants import AXES, hz_per_m_from_mT_per_m
 from dtoc.errors import DtocError, InputError
-from dtoc.seq.ir import SequenceIR
+from dtoc.seq.ir import SequenceIR, edges_to_fine
 from dtoc.seq.pulseq import quiet, representable_amplitudes, seq_bytes
 from dtoc.seq.seqtext import sign_text
 from dtoc.seq.system import SystemSpec
@@ -70,6 +70,8 @@ def changed_blocks(ir: SequenceIR) -> dict[int, list[int]]:
     diff = np.abs(ir.grad_mT_per_m - orig) > CHANGE_TOL_MT_PER_M
     out: dict[int, list[int]] = {}
     for b in range(len(m_edges) - 1):
+        if m_edges[b + 1] == m_edges[b]:  # a zero-duration block (labels only) holds no gradient
+            continue
         axes = [a for a in range(3) if diff[a, m_edges[b] : m_edges[b + 1] + 1].any()]
         if axes:
             out[b] = axes
@@ -383,18 +385,30 @@ def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> No
 
 def preflight_write(ir: SequenceIR, version: tuple[int, int, int] | str | None = None) -> tuple[int, int, int]:
     """Before any work: the format version an output of ``ir`` will be written in (:func:`output_version`), after
-    the unchanged base was written in it and read back (what the version cannot state is refused by name).
+    the base was written in it and read back, unchanged and with every free gradient sample moved by 0.1 %
+    (each block the optimizer may change rewritten, as the export does); what the version cannot state is
+    refused by name.
 
     Raises:
         InputError: one line naming what the version cannot state, or why the base does not read back."""
     v = output_version(ir, version)
     check_writable(v)
-    try:
-        seq_bytes_of(ir, version=v)
-    except InputError:
-        raise
-    except DtocError as e:
-        raise InputError(f"the base cannot be written as Pulseq format {version_str(v)}: {e}") from None
+    # the base as it is, and with every sample an optimizer may change moved (each such block rewritten, as
+    # the export will): both written in the version and read back
+    e = ir.edge_grad_mT_per_m.copy()
+    free = ir.free_mask[:, ::2]
+    e[free] += 1e-3 * max(float(np.abs(e).max()), 1e-3)
+    for what, case in (("", ir), (" with its free gradients changed", ir.with_grad(edges_to_fine(e)))):
+        try:
+            seq_bytes_of(case, version=v)
+        except InputError:
+            raise
+        except DtocError as err:
+            raise InputError(f"the base{what} cannot be written as Pulseq format {version_str(v)}: {err}") from None
+        except Exception as err:  # noqa: BLE001 - pypulseq's writer raises anything
+            raise InputError(
+                f"the base{what} cannot be written as Pulseq format {version_str(v)}: {type(err).__name__}: {err}"
+            ) from None
     return v
 
 
