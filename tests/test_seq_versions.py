@@ -295,3 +295,25 @@ def test_zero_duration_block_between_gradients_is_written(tmp_path):
 def _write(p: Path, data: bytes) -> Path:
     p.write_bytes(data)
     return p
+
+
+def test_rf_shimming_extension_read_kept_and_refused_where_it_would_be_lost(tmp_path):
+    """RF_SHIMS (1.5.1) on every excitation: read, written back unchanged (1.5.1 on, also after a gradient
+    change), refused by name for 1.4.x and 1.5.0."""
+    from foreign.writers import with_extension
+
+    base = gre(n=8)
+    ir0 = read_seq(_write(tmp_path / "a.seq", base))
+    rf_blocks = {r.block + 1: (2.0, 1.0, 0.0, 0.7, 1.5708) for r in ir0.rf}
+    ir = read_seq(_write(tmp_path / "s.seq", with_extension(base, "RF_SHIMS", rf_blocks)))
+    assert ir.meta["rf_shims"] == {b - 1: list(v) for b, v in rf_blocks.items()}
+    assert np.array_equal(ir.grad_mT_per_m, ir0.grad_mT_per_m)
+    e = ir.edge_grad_mT_per_m.copy()
+    e[ir.free_mask[:, ::2]] += 0.05
+    new = ir.with_grad(edges_to_fine(e))
+    for version in ("1.5.1", "1.5.2"):
+        back = read_seq(_write(tmp_path / f"o{version}.seq", seq_bytes_of(new, version=version)))
+        assert back.meta["rf_shims"] == ir.meta["rf_shims"]
+    for version in ("1.4.1", "1.5.0"):
+        with pytest.raises(InputError, match=r"RF shimming extension \(8 blocks\) needs format 1\.5\.1"):
+            seq_bytes_of(new, version=version)

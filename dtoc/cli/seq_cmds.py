@@ -17,8 +17,11 @@ def build_cmd(
     spec: Path = typer.Argument(..., help="spec YAML (kind gre or epi; examples in sequences/*.yaml)"),
     out: Path = typer.Option(..., "-o", "--out", help="output .seq (its folder must exist)"),
     force: bool = typer.Option(False, "--force", help="overwrite an existing output"),
+    format_version: str | None = typer.Option(
+        None, "--format-version", help="Pulseq format of the output: 1.4.0, 1.4.1, 1.5.0 (default), 1.5.1 or 1.5.2"
+    ),
 ):
-    """Build a base sequence from a spec and write a signed Pulseq 1.5 .seq (deterministic).
+    """Build a base sequence from a spec and write a signed Pulseq .seq (format 1.5.0 unless --format-version; deterministic).
 
     Spec fields carry their units in the name (fov_mm, dwell_us, te_ms, ...; docs/sequences.md). A spec
     whose ideal waveforms exceed its system limits still builds (an optimization target) with a warning
@@ -36,7 +39,7 @@ def build_cmd(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", SpecLimitWarning)
         try:
-            p = build_to_file(s, out, force=force)
+            p = build_to_file(s, out, force=force, version=format_version)
         except InputError as e:
             msg = str(e)
             raise InputError(

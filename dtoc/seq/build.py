@@ -388,12 +388,18 @@ def build_ir(spec: BaseSpec, **kwargs):
     return ir
 
 
-def build_to_file(spec: BaseSpec, out: str | Path, force: bool = False) -> Path:
-    """Build ``spec`` and write the signed ``.seq`` atomically (refuses to overwrite without ``force``)."""
+def build_to_file(spec: BaseSpec, out: str | Path, force: bool = False, version: str | None = None) -> Path:
+    """Build ``spec`` and write the signed ``.seq`` atomically (refuses to overwrite without ``force``): Pulseq
+    1.5.0, or format ``version`` (:func:`dtoc.seq.write.seq_bytes_of`: refused by name where it cannot state
+    the sequence, read back before it is written)."""
     from dtoc.util.atomic import atomic_write_bytes, check_output_path
 
     check_output_path(out, force)
-    return atomic_write_bytes(out, seq_bytes(build(spec)), force=force)
+    if version is None:
+        return atomic_write_bytes(out, seq_bytes(build(spec)), force=force)
+    from dtoc.seq.write import seq_bytes_of
+
+    return atomic_write_bytes(out, seq_bytes_of(build_ir(spec), version=version), force=force)
 
 
 __all__ = ["build", "build_ir", "build_to_file", "seq_bytes", "SpecLimitWarning", "representable_amplitudes"]

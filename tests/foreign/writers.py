@@ -199,19 +199,28 @@ def _set_version(text: bytes, version: str) -> bytes:
 
 def _with_rotations(data: bytes, rotated: dict[int, float]) -> bytes:
     """A pypulseq 1.5.0 file without extensions, with ``rotated`` blocks turned about z (format 1.5.1)."""
+    quats = {b: (math.cos(phi / 2), 0.0, 0.0, math.sin(phi / 2)) for b, phi in rotated.items()}
+    return with_extension(data, "ROTATIONS", quats)
+
+
+def with_extension(data: bytes, kind: str, per_block: dict[int, tuple]) -> bytes:
+    """A pypulseq 1.5.0 file without extensions, with the 1.5.1 extension ``kind`` (ROTATIONS: quaternions;
+    RF_SHIMS: (num_chan, mag1, phase1, ...)) on the given 1-based blocks; labelled format 1.5.1, signed."""
     lines = _set_version(_unsigned(data), "1.5.1").decode().split("\n")
     b0 = lines.index("[BLOCKS]") + 1
-    angles = sorted(set(rotated.values()))
-    obj = {phi: i + 1 for i, phi in enumerate(angles)}
+    obj: dict[tuple, int] = {}
+    for v in per_block.values():
+        obj.setdefault(tuple(v), len(obj) + 1)
     j = b0
     while lines[j].strip():
         t = lines[j].split()
-        if int(t[0]) in rotated:
-            t[7] = str(obj[rotated[int(t[0])]])  # one list entry per rotation object, same id
+        if int(t[0]) in per_block:
+            t[7] = str(obj[tuple(per_block[int(t[0])])])  # one list entry per object, same id
         lines[j] = " ".join(t)
         j += 1
-    ext = ["[EXTENSIONS]"] + [f"{i} 1 {i} 0" for i in obj.values()] + ["", "extension ROTATIONS 1"]
-    ext += [f"{i} {math.cos(phi / 2):.15g} 0 0 {math.sin(phi / 2):.15g}" for phi, i in obj.items()] + [""]
+    fmt = lambda v: str(int(v)) if float(v).is_integer() else f"{v:.15g}"  # noqa: E731
+    ext = ["[EXTENSIONS]"] + [f"{i} 1 {i} 0" for i in obj.values()] + ["", f"extension {kind} 1"]
+    ext += [" ".join([str(i), *map(fmt, v)]) for v, i in obj.items()] + [""]
     k = lines.index("[SHAPES]")
     lines[k:k] = ext
     return _sign("\n".join(lines).encode())
