@@ -93,15 +93,15 @@ def read_seq(
     rf_guard: str = "block",
     require_signature: bool = True,
 ) -> SequenceIR:
-    """Read a Pulseq 1.4/1.5 ``.seq`` file into a :class:`SequenceIR` (see module doc).
+    """Read a Pulseq ``.seq`` file (format 1.2.0-1.5.2, docs/contracts.md §6) into a :class:`SequenceIR` (see module doc).
 
     Args:
         path: the ``.seq`` file.
         free_slice_axis: let the optimizer change the slice-select axis too (outside RF).
         free_unused_axes: let the optimizer use axes on which the sequence plays no gradient.
         rf_guard: 'block' (default) or 'pulse': what is fixed around RF pulses.
-        require_signature: reject unsigned files and files whose md5 signature does not match (default;
-            pass False for hand-edited files).
+        require_signature: reject files whose md5 signature does not match (default; the signature itself is
+            optional; pass False for hand-edited files).
     """
     seq, st = read_pypulseq(path, require_signature=require_signature)
     if b"\r" in st.raw:

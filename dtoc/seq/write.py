@@ -1,4 +1,6 @@
-"""Write a (modified) :class:`SequenceIR` back to a Pulseq 1.5 ``.seq`` file.
+"""Write a (modified) :class:`SequenceIR` back to a Pulseq ``.seq`` file, in the format version the interpreter
+reads (1.4.0-1.5.2: :func:`seq_bytes_of`, docs/contracts.md §6; default the input's), read back before it is
+published.
 
 :func:`to_pypulseq` copies ``ir.source`` (the pypulseq ``Sequence`` the IR was read or built from) and
 replaces, block by block and axis by axis, only the gradients whose played waveform changed: such a
