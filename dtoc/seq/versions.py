@@ -150,16 +150,19 @@ def decompress(data: list[float], num: int, always_compressed: bool = False) -> 
     (1.4.0 on; before, every shape was compressed)."""
     if len(data) == num and not always_compressed:
         return np.asarray(data, dtype=np.float64)
-    out: list[float] = []
+    vals: list[float] = []
+    reps: list[int] = []
     k = 0
     while k < len(data):
         if k + 2 < len(data) and data[k] == data[k + 1]:
-            out.extend([data[k]] * (int(round(data[k + 2])) + 2))
+            vals.append(data[k])
+            reps.append(int(round(data[k + 2])) + 2)
             k += 3
         else:
-            out.append(data[k])
+            vals.append(data[k])
+            reps.append(1)
             k += 1
-    w = np.cumsum(np.asarray(out, dtype=np.float64))
+    w = np.cumsum(np.repeat(np.asarray(vals, dtype=np.float64), reps))
     return w[:num]
 
 
@@ -208,6 +211,7 @@ def reader_text(st) -> tuple[bytes, Layout]:
     rows = lambda sec: [[float(x) if _isnum(x) else x for x in ln.tokens] for ln in st.sections.get(sec, [])]  # noqa: E731
     # ---- events, in 1.5 columns
     rf: dict[int, list] = {}
+    centres: dict[tuple[int, int], float] = {}
     for t in rows("[RF]"):
         i = int(t[0])
         if v[:2] >= (1, 5):
@@ -218,12 +222,14 @@ def reader_text(st) -> tuple[bytes, Layout]:
             tid = 0
         else:  # id amp mag phase time delay freq phase
             amp, mag, ph, tid, delay, freq, phase = t[1:8]
-        m = shapes[int(mag)]
-        tt = shapes[int(tid)] * rf_raster if tid else (np.arange(len(m)) + 0.5) * rf_raster
-        a = np.abs(m)
-        pk = np.flatnonzero(a >= a.max() * 0.99999) if a.size else np.array([0])
-        center_us = 1e6 * 0.5 * (tt[pk[0]] + tt[pk[-1]]) if a.size else 0.0
-        rf[i] = [amp, mag, ph, tid, center_us, delay, 0.0, 0.0, freq, phase, "u"]
+        key = (int(mag), int(tid))
+        if key not in centres:  # the peak (plateau centre) of the magnitude, as Pulseq's calcRfCenter
+            m = shapes[key[0]]
+            a = np.abs(m)
+            pk = np.flatnonzero(a >= a.max() * 0.99999) if a.size else np.array([0])
+            t_pk = shapes[key[1]][[pk[0], pk[-1]]] if tid else pk[[0, -1]] + 0.5
+            centres[key] = 1e6 * rf_raster * 0.5 * float(t_pk[0] + t_pk[1]) if a.size else 0.0
+        rf[i] = [amp, mag, ph, tid, centres[key], delay, 0.0, 0.0, freq, phase, "u"]
     for r in rf.values():  # phase shape 0: no phase modulation (pypulseq needs a shape)
         if int(r[2]) == 0 and int(r[1]) in shapes:
             r[2] = new_shape(np.zeros(len(shapes[int(r[1])])))
