@@ -317,3 +317,23 @@ def test_rf_shimming_extension_read_kept_and_refused_where_it_would_be_lost(tmp_
     for version in ("1.4.1", "1.5.0"):
         with pytest.raises(InputError, match=r"RF shimming extension \(8 blocks\) needs format 1\.5\.1"):
             seq_bytes_of(new, version=version)
+
+
+def test_rotated_trapezoids_without_shapes_are_written(tmp_path):
+    """A file without [SHAPES] (trapezoids only) whose rotated blocks the optimizer changes: written (pypulseq's
+    reader leaves it a shape library its writer cannot extend), the rotations kept, the gradients read back."""
+    from foreign.writers import rotated_trapezoids_151
+
+    from dtoc.seq.write import preflight_write
+
+    ir = read_seq(_write(tmp_path / "r.seq", rotated_trapezoids_151()))
+    assert len(ir.meta["rotations"]) == 5
+    gy = ir.grad_mT_per_m[1]
+    assert np.abs(gy).max() == pytest.approx(np.abs(ir.grad_mT_per_m[0]).max(), rel=1e-9)  # the 90 deg block
+    assert preflight_write(ir) == (1, 5, 1)
+    e = ir.edge_grad_mT_per_m.copy()
+    e[:2, 1:-1] *= 1.01
+    new = ir.with_grad(edges_to_fine(e))
+    back = read_seq(_write(tmp_path / "o.seq", seq_bytes_of(new)))
+    assert back.meta["rotations"] == ir.meta["rotations"]
+    assert np.abs(back.grad_mT_per_m - new.grad_mT_per_m).max() < 1e-5 * np.abs(new.grad_mT_per_m).max()

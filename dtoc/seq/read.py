@@ -78,6 +78,8 @@ def read_pypulseq(path: str | Path, require_signature: bool = True):
     finally:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+    if not seq.shape_library.data:  # no [SHAPES]: pypulseq's reader leaves a library its writer cannot extend
+        seq.shape_library = type(seq.shape_library)(numpy_data=True)
     try:  # the rotation extension, played by from_pypulseq (pypulseq itself does not know it)
         seq.dtoc_rotations = st.layout.rotation_matrices()
     except InputError as e:

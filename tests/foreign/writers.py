@@ -721,3 +721,22 @@ def oversampled_151(n_raster: int = 40, version: str = "1.5.1") -> tuple[bytes, 
         "shape_id 3", f"num_samples {len(inner)}", *(f"{v:.12g}" for v in inner), "",
     ]  # fmt: skip
     return _sign(("\n".join(lines) + "\n").encode()), played
+
+
+def rotated_trapezoids_151() -> bytes:
+    """A hand-written 1.5.1 file in the style of Pulseq's rotation demos: five ADC readouts on one x trapezoid,
+    turned by 0, 45, 90, 45, 0 degrees about z with the rotation extension; no RF, hence no [SHAPES] section."""
+    c, s = math.cos(math.pi / 8), math.sin(math.pi / 8)
+    h = math.sqrt(0.5)
+    lines = [
+        "[VERSION]", "major 1", "minor 5", "revision 1", "",
+        "[DEFINITIONS]", "AdcRasterTime 1e-07", "BlockDurationRaster 1e-05", "GradientRasterTime 1e-05",
+        "RadiofrequencyRasterTime 1e-06", "RequiredExtensions ROTATIONS", "",
+        "[BLOCKS]", "1 40 0 1 0 0 1 1", "2 40 0 1 0 0 1 2", "3 40 0 1 0 0 1 3", "4 40 0 1 0 0 1 2",
+        "5 40 0 1 0 0 1 1", "",
+        "[TRAP]", "1 100000 100 200 100 0", "",
+        "[ADC]", "1 8 25000 100 0 0 0 0 0", "",
+        "[EXTENSIONS]", "1 1 1 0", "2 1 2 0", "3 1 3 0", "",
+        "extension ROTATIONS 1", "1 1 0 0 0", f"2 {c:.15g} 0 0 {s:.15g}", f"3 {h:.15g} 0 0 {h:.15g}", "",
+    ]  # fmt: skip
+    return _sign(("\n".join(lines) + "\n").encode())
