@@ -132,11 +132,16 @@ def test_151_oversampled_gradient_plays_its_half_raster_samples(tmp_path):
     assert _version_of(seq_bytes_of(ir)) == "1.5.1"
 
 
-def _realized_k(ir):
+def _realized_k(ir, orientation: str | None = None):
+    """Realized k through the example GIRF, the file played at ``orientation`` (as --orientation)."""
     from dtoc.api import load_model
+    from dtoc.hardware.orientation import RotatedChain, parse_orientation
     from dtoc.sim.twin import Twin
 
-    return Twin(ir, load_model(girf=GIRF)).forward(moments=False).kspace_rad_per_m.detach().numpy()
+    hw = load_model(girf=GIRF)
+    if orientation is not None:
+        hw = RotatedChain(hw, parse_orientation(orientation))
+    return Twin(ir, hw).forward(moments=False).kspace_rad_per_m.detach().numpy()
 
 
 def test_rotation_extension_equals_its_prerotated_twin(tmp_path):
@@ -155,9 +160,10 @@ def test_rotation_extension_equals_its_prerotated_twin(tmp_path):
     k_nom_a, k_nom_b = a.nominal_kspace_rad_per_m(), b.nominal_kspace_rad_per_m()
     assert np.abs(k_nom_a - k_nom_b).max() < 1e-4 * dk
     if GIRF.exists():
-        ka, kb = _realized_k(a), _realized_k(b)
-        assert np.abs(ka - k_nom_a).max() > 0.01 * dk  # the GIRF moves k ...
-        assert np.abs(ka - kb).max() < 1e-4 * dk  # ... identically for both files
+        for orientation in (None, "sag", "0.8,0,0.6, 0,1,0, -0.6,0,0.8"):  # composed with --orientation
+            ka, kb = _realized_k(a, orientation), _realized_k(b, orientation)
+            assert np.abs(ka - k_nom_a).max() > 0.01 * dk  # the GIRF moves k ...
+            assert np.abs(ka - kb).max() < 1e-4 * dk  # ... identically for both files
     # preserved on output, with a changed gradient in rotated blocks
     e = a.edge_grad_mT_per_m.copy()
     e[a.free_mask[:, ::2]] *= 1.02
