@@ -29,7 +29,7 @@ CASES = {
     "not_pulseq": (b"hello world\n", r"content before the first section"),
     "no_version": (b"[BLOCKS]\n1 1 0 0 0 0 0 0\n", r"no \[VERSION\] section"),
     "wrong_version": (RAW.replace(b"minor 5", b"minor 6", 1), r"version 1\.6\.0 is not supported"),
-    "pulseq_binary": (b"\x01pulseq\x02" + bytes(24), r"a binary Pulseq file .*'Binary files'"),
+    "pulseq_binary_truncated": (b"\x01pulseq\x02" + bytes(10), r"binary Pulseq file truncated at byte 8"),
     "truncated_mid_shapes": (RAW[: RAW.find(b"shape_id 9")], r"shape 9 is not defined \(file truncated\?\)"),
     "truncated_mid_gradients": (
         RAW[: RAW.find(b"[GRADIENTS]") + 40],

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from dtoc.errors import InputError
-from dtoc.seq.versions import BINARY_MAGIC, KNOWN_EXTENSIONS, check_known
+from dtoc.seq.versions import BINARY_MAGIC, KNOWN_EXTENSIONS, binary_to_text, check_known
 
 #: Number of fields (including the id) per line in each event section, by (major, minor).
 _FIELDS = {
@@ -81,6 +81,7 @@ class SeqText:
     signature_type: str | None = None
     shapes: dict[int, tuple[int, list[float], int]] = field(default_factory=dict)  # id -> (num_samples, data, line)
     layout: Any = None  # dtoc.seq.versions.Layout, set by the reader
+    binary: bool = False  # read from the binary format (``raw`` is its text)
 
     @property
     def major_minor(self) -> tuple[int, int]:
@@ -139,19 +140,16 @@ def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
             raise _err(p, f"cannot read ({e.strerror})") from None
     if not raw.strip():
         raise _err(p, "empty file")
-    if raw.startswith(BINARY_MAGIC):
-        raise _err(
-            p,
-            "a binary Pulseq file (the specification's 'Binary files' format): dtoc reads the text format; "
-            "export the sequence as text (seq.write)",
-        )
+    binary = raw.startswith(BINARY_MAGIC)
+    if binary:  # the specification's "Binary files" format: its text (signature checked on the binary bytes)
+        raw = binary_to_text(raw, p)
     if b"\x00" in raw:
         raise _err(p, "not a Pulseq text file (binary data)")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:
         raise _err(p, "not a Pulseq text file (not UTF-8/ASCII: corrupt?)") from None
-    st = SeqText(path=str(p), raw=raw)
+    st = SeqText(path=str(p), raw=raw, binary=binary)
     current = None
     for i, line in enumerate(text.split("\n"), start=1):
         s = line.strip()

@@ -740,3 +740,85 @@ def rotated_trapezoids_151() -> bytes:
         "extension ROTATIONS 1", "1 1 0 0 0", f"2 {c:.15g} 0 0 {s:.15g}", f"3 {h:.15g} 0 0 {h:.15g}", "",
     ]  # fmt: skip
     return _sign(("\n".join(lines) + "\n").encode())
+
+
+def as_binary(data: bytes, sign: bool = True) -> bytes:
+    """A pypulseq 1.5 text file (no extensions) in the binary format of the specification's "Binary files"
+    section: header ``0x01 pulseq 0x02``, version, sections each with code ``0xFFFFFFFF_000000NN`` (int64,
+    little-endian), times in ps, shapes float32, then the md5 signature section over the bytes before it."""
+    import hashlib
+    import struct
+
+    sec: dict[str, list[list[str]]] = {}
+    cur = None
+    shapes: list[tuple[int, int, list[float]]] = []
+    text = _unsigned(data).decode()
+    for line in text.split("\n"):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        if s.startswith("["):
+            cur = s
+            sec[cur] = []
+            continue
+        if cur == "[SHAPES]":
+            t = s.split()
+            if t[0] == "shape_id":
+                shapes.append((int(t[1]), 0, []))
+            elif t[0] == "num_samples":
+                shapes[-1] = (shapes[-1][0], int(t[1]), [])
+            else:
+                shapes[-1][2].append(float(s))
+            continue
+        sec[cur].append(s.split())
+    ver = {t[0]: int(t[1]) for t in sec["[VERSION]"]}
+
+    def code(n: int) -> bytes:
+        return struct.pack("<Q", (0xFFFFFFFF << 32) | n)
+
+    def ps(us: str) -> int:
+        return round(float(us) * 1e6)
+
+    b = bytearray(b"\x01pulseq\x02" + struct.pack("<qqq", ver["major"], ver["minor"], ver["revision"]))
+    defs = sec.get("[DEFINITIONS]", [])
+    b += code(1) + struct.pack("<q", len(defs))
+    for key, *vals in defs:
+        b += struct.pack("<i", len(key)) + key.encode()
+        try:
+            nums = [float(v) for v in vals]
+            b += struct.pack("<i", len(nums)) + b"f" + struct.pack(f"<{len(nums)}d", *nums)
+        except ValueError:
+            sval = " ".join(vals)
+            b += struct.pack("<i", len(sval)) + b"c" + sval.encode()
+    blocks = sec["[BLOCKS]"]
+    b += code(2) + struct.pack("<q", len(blocks))
+    for t in blocks:
+        b += struct.pack("<q6i", int(t[1]), *map(int, t[2:8]))
+    rf = sec.get("[RF]", [])
+    b += code(3) + struct.pack("<q", len(rf))
+    for t in rf:
+        b += struct.pack("<idiiiqqdddd", int(t[0]), float(t[1]), *map(int, t[2:5]), ps(t[5]), ps(t[6]),
+                         *map(float, t[7:11])) + t[11].encode()  # fmt: skip
+    grads = sec.get("[GRADIENTS]", [])
+    if grads:
+        b += code(4) + struct.pack("<q", len(grads))
+        for t in grads:
+            b += struct.pack("<idddiiq", int(t[0]), *map(float, t[1:4]), int(t[4]), int(t[5]), ps(t[6]))
+    traps = sec.get("[TRAP]", [])
+    b += code(5) + struct.pack("<q", len(traps))
+    for t in traps:
+        b += struct.pack("<idqqqq", int(t[0]), float(t[1]), *map(ps, t[2:6]))
+    adc = sec.get("[ADC]", [])
+    b += code(6) + struct.pack("<q", len(adc))
+    for t in adc:
+        b += struct.pack("<iqqqddddi", int(t[0]), int(t[1]), round(float(t[2]) * 1e3), ps(t[3]),
+                         *map(float, t[4:8]), int(t[8]))  # fmt: skip
+    b += code(8) + struct.pack("<q", len(shapes))
+    for sid, num, vals in shapes:
+        b += struct.pack("<iqq", sid, num, len(vals)) + struct.pack(f"<{len(vals)}f", *vals)
+    if sign:
+        digest = hashlib.md5(bytes(b)).digest()
+        orig = len(b)
+        b += code(0x00FFFFFF) + struct.pack("<i", 3) + b"md5" + struct.pack("<i", len(digest)) + digest
+        b += struct.pack("<q", orig)
+    return bytes(b)
