@@ -91,6 +91,8 @@ class SeqText:
         """md5 of the bytes before the newline preceding ``[SIGNATURE]`` (None if unsigned).  Files of older
         writers (JEMRIS, Pulseq before 1.4) hash that newline too: when that hash is the stated one, it is
         returned."""
+        if self.binary:  # checked over the binary bytes when the text was made
+            return self.signature_hash
         i = self.raw.find(b"\n[SIGNATURE]")
         if i < 0:
             return None
@@ -141,8 +143,9 @@ def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
     if not raw.strip():
         raise _err(p, "empty file")
     binary = raw.startswith(BINARY_MAGIC)
+    binary_md5 = None
     if binary:  # the specification's "Binary files" format: its text (signature checked on the binary bytes)
-        raw = binary_to_text(raw, p)
+        raw, binary_md5 = binary_to_text(raw, p)
     if b"\x00" in raw:
         raise _err(p, "not a Pulseq text file (binary data)")
     try:
@@ -150,6 +153,8 @@ def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
     except UnicodeDecodeError:
         raise _err(p, "not a Pulseq text file (not UTF-8/ASCII: corrupt?)") from None
     st = SeqText(path=str(p), raw=raw, binary=binary)
+    if binary_md5 is not None:
+        st.signature_hash, st.signature_type = binary_md5, "md5"
     current = None
     for i, line in enumerate(text.split("\n"), start=1):
         s = line.strip()

@@ -585,9 +585,9 @@ BINARY_LABELS = (
 )  # fmt: skip
 
 
-def binary_to_text(raw: bytes, path) -> bytes:
+def binary_to_text(raw: bytes, path) -> tuple[bytes, str | None]:
     """The text of a binary Pulseq file (the specification's "Binary files" section: little-endian, times in
-    ps, shapes float32), with its md5 signature checked when it has one.
+    ps, shapes float32) and its md5 signature (None: unsigned), checked over the binary bytes before it.
 
     Raises:
         InputError: truncated or malformed binary data, an unknown section code, a signature mismatch."""
@@ -737,4 +737,4 @@ def binary_to_text(raw: bytes, path) -> bytes:
             raise InputError(
                 f"{path}: signature mismatch: md5 of content is {got}, file says {digest} (modified after writing?)"
             )
-    return ("\n".join(out + sections + ext_sections) + "\n\n").encode()
+    return ("\n".join(out + sections + ext_sections) + "\n\n").encode(), (signature[1] if signature else None)
