@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, note, sequence_notes
-from dtoc.cli.scanner import ORIENTATION_HELP, scanner_option
+from dtoc.cli.scanner import ORIENTATION_HELP, rf_use_option, scanner_option
 from dtoc.constants import DEFAULT_B0_T
 
 
@@ -52,6 +52,7 @@ def simulate_cmd(
     quiet: bool = typer.Option(False, "-q", "--quiet", help="No progress on stderr."),
     orientation: str | None = typer.Option(None, "--orientation", help=ORIENTATION_HELP),
     scanner: Path | None = scanner_option(),
+    rf_use: str | None = rf_use_option(),
 ):
     """Simulate ideal versus realized images of SEQ on a phantom; NRMSE, EPI ghost ratio, k-space error."""
     from rich.table import Table
@@ -77,7 +78,7 @@ def simulate_cmd(
     from dtoc.seq.load import load_sequence
 
     rep = ProgressReporter("dtoc simulate", quiet=quiet)
-    ir = load_sequence(seq)
+    ir = load_sequence(seq, rf_use=sc.rf_use(rf_use))
     sequence_notes(ir)
     prof = sc.load(scanner)
     hw = sc.resolve(prof, girf, model)

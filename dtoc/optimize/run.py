@@ -609,6 +609,7 @@ def optimize_sequence(
                 "n_free_variables": int(free.sum()),
                 "duration_s": ir.duration_s,
                 "notes": list(ir.meta.get("notes", [])),
+                "rf_use": ir.meta.get("rf_use"),  # per [RF] event: use and how decided (dtoc.seq.rfuse)
                 "image_term": with_image,
                 "dk_rad_per_m": [float(x) for x in ctx.dk_rad_per_m.cpu().numpy()],
                 "dk_source": "grid (2 pi / FOV)" if ir.dk_rad_per_m is not None else "sampling step of the readouts",

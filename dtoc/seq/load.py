@@ -20,6 +20,9 @@ def load_sequence(path_or_spec, **kwargs) -> SequenceIR:
     This is what every command that takes a base sequence (simulate, predict, optimize) calls.
     Keyword arguments go to :func:`read_seq` / :func:`from_pypulseq`.
     """
+    rf_use = kwargs.pop("rf_use", None)
+    if rf_use and (isinstance(path_or_spec, BaseSpec) or Path(path_or_spec).suffix.lower() != ".seq"):
+        raise InputError("--rf-use applies to .seq files (a spec states each pulse's use)")
     if isinstance(path_or_spec, BaseSpec):
         return build_ir(path_or_spec, **kwargs)
     p = Path(path_or_spec)
@@ -29,7 +32,7 @@ def load_sequence(path_or_spec, **kwargs) -> SequenceIR:
         return ir
     if p.suffix.lower() != ".seq" and p.exists():
         raise InputError(f"{p}: expected a .seq file or a spec .yaml")
-    ir = read_seq(p, **kwargs)
+    ir = read_seq(p, rf_use=rf_use, **kwargs)
     infer_missing_geometry(ir)
     return ir
 
