@@ -85,6 +85,8 @@ def optimize_cmd(
         sys.stderr.write(f"dtoc: warning: {w}\n")
     if m.get("interrupted"):
         interrupted_exit(m)
+    if not (m.get("output") or {}).get("check_ok", True):
+        raise typer.Exit(1)  # the written file fails a check the user asked for (docs/cli.md, exit codes)
 
 
 def request_from_options(**options):
@@ -161,11 +163,19 @@ def _print_summary(m: dict, con) -> None:
     src = lim.get("source", {})
     from dtoc.cli.output import note
 
-    note(
-        f"wrote {out.get('path')} in {m['run_time_s']:.1f} s; limits verified, 0 violations at "
+    if m["before"].get("image_reason"):
+        note(f"note: image figures '-': {m['before']['image_reason']}")
+    at = (
         f"gmax {lim['gmax_mT_per_m']:g} mT/m ({src.get('gmax_mT_per_m', '?')}), "
         f"smax {lim['smax_T_per_m_per_s']:g} T/m/s ({src.get('smax_T_per_m_per_s', '?')})"
     )
+    if out.get("check_ok", True):
+        note(f"wrote {out.get('path')} in {m['run_time_s']:.1f} s; limits verified, 0 violations at {at}")
+    else:  # never "0 violations" for a file dtoc check fails (exit 1 in optimize_cmd)
+        note(
+            f"wrote {out.get('path')} in {m['run_time_s']:.1f} s; within the limits at {at}, but dtoc check of the "
+            f"written file FAILED: {out.get('check_failed') or ', '.join(out.get('check_other_rules', []))}"
+        )
     for c in (m.get("output") or {}).get("checks", []):
         note(c)
     oc = m.get("offcentre")

@@ -157,9 +157,12 @@ def quality(
             km = None if keep_mask is None else torch.as_tensor(np.asarray(keep_mask))
             im = imager.image(sig, keep_mask=km)
             m = metrics.image_metrics(
-                im, imager.targets[0], epi=twin.ir.kind == "epi", phase_dim=twin.ir.phase_image_dim
-            )
+                im, imager.targets[0], epi=twin.ir.kind == "epi", phase_dim=twin.ir.phase_image_dim,
+                rf_flips_rad=[r.flip_angle_rad for r in twin.ir.rf],
+            )  # fmt: skip
             out["nrmse"] = m["nrmse"]
+            if m.get("image_reason"):
+                out["image_reason"] = m["image_reason"]  # no signal: no image figure (dtoc.sim.metrics)
             if m["ghost_ratio"] is not None:
                 out["ghost_ratio"] = m["ghost_ratio"]
                 out["ghost_ratio_ideal"] = m["ghost_ratio_ideal"]
@@ -777,7 +780,7 @@ def _write_checked(
             grad_raster_s=ir_out.raster_s,
             block_raster_s=_block_raster(ir_out),
         )
-        res = check_file(tmp, sysspec, safety)
+        res = check_file(tmp, sysspec, safety, conventions=None)  # the format's rules and the limits, as given
         lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector", "pns", "acoustic"}
         bad = [v for v in res.violations if v.rule in lim_rules]
         if bad:
@@ -786,7 +789,9 @@ def _write_checked(
             "path": str(outp),
             "check_ok": res.ok,
             "check_other_rules": sorted(res.rules() - lim_rules),
+            "check_failed": res.summary() if not res.ok else None,  # by kind, with the worst values
             "checks": list(res.checks),
+            "check_not_checked": list(res.not_checked),
         }
         data = tmp.read_bytes()
     atomic_write_bytes(outp, data, force=force)

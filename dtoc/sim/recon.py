@@ -115,6 +115,11 @@ def cartesian_grid(
         )
     jx = r[0].astype(np.int64) + nx // 2
     jy = r[1].astype(np.int64) + ny // 2
+    # an even grid is periodic: k = +N/2 dk is the -N/2 point (a mirrored layout -N/2+1 .. N/2, e.g. JEMRIS)
+    if nx % 2 == 0:
+        jx[jx == nx] = 0
+    if ny % 2 == 0:
+        jy[jy == ny] = 0
     outside = keep & ((jx < 0) | (jx >= nx) | (jy < 0) | (jy >= ny))
     if outside.any():
         i = int(np.argmax(outside))

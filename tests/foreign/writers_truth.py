@@ -10,7 +10,9 @@ offsets and phase shape, as Pulseq 1.4 writers (MATLAB, KomaMRI, pypulseq 1.4) e
 
 from __future__ import annotations
 
-from foreign.writers import se_epi
+import math
+
+from foreign.writers import _bytes, se_epi
 
 
 def to_v141(seq_bytes: bytes) -> bytes:
@@ -56,3 +58,44 @@ def se_epi_v14(n: int = 32, fov: float = 0.22, te: float = 60e-3) -> bytes:
     the file carries no RF use: only the pulses tell excitation from refocusing.  The readout pre-phaser is
     positive before the 180 (which negates it), so k is centred only when the 180 is taken as a refocusing pulse."""
     return to_v141(se_epi(n, fov, te))
+
+
+def gre_variant(
+    n: int = 16,
+    fov: float = 0.22,
+    flip_deg: float = 10.0,
+    rf_ringdown_s: float = 30e-6,
+    rf_raster_s: float = 1e-6,
+    adc_samples: int | None = None,
+    adc_dwell_s: float = 10e-6,
+    max_adc_segment: int | None = None,
+) -> bytes:
+    """A small 2D spoiled GRE (n x n) as other writers make it, with what they set differently from dtoc's default
+    system: the RF ring-down (Pulseq MATLAB's ``mr.opts`` default is 20 us), the RF raster (a legal 10 us), the
+    readout's samples (``adc_samples`` over the ``n``-step readout area: e.g. 12,000 oversampled samples that a
+    Siemens interpreter plays in ``max_adc_segment``-sample segments, declared as ``MaxAdcSegmentLength``), the flip
+    angle (field-camera exports carry RF of ~1e-100 deg: nothing excited)."""
+    import pypulseq as pp
+
+    sys = pp.Opts(
+        max_grad=32, grad_unit="mT/m", max_slew=130, slew_unit="T/m/s", rf_ringdown_time=rf_ringdown_s,
+        rf_dead_time=100e-6, adc_dead_time=10e-6, rf_raster_time=rf_raster_s,
+    )  # fmt: skip
+    seq = pp.Sequence(sys)
+    rf = pp.make_block_pulse(flip_angle=math.radians(flip_deg), duration=0.5e-3, system=sys, delay=sys.rf_dead_time)
+    dk = 1 / fov
+    ns = adc_samples or n
+    ro_time = math.ceil(ns * adc_dwell_s / 10e-6) * 10e-6
+    gx = pp.make_trapezoid("x", flat_area=n * dk * ro_time / (ns * adc_dwell_s), flat_time=ro_time, system=sys)
+    adc = pp.make_adc(ns, dwell=adc_dwell_s, delay=gx.rise_time, system=sys)
+    gxpre = pp.make_trapezoid("x", area=-gx.area / 2, duration=1e-3, system=sys)
+    spoil = pp.make_trapezoid("x", area=2 * n * dk, system=sys)
+    for i in range(n):
+        gy = pp.make_trapezoid("y", area=(i - n / 2) * dk, duration=1e-3, system=sys)
+        seq.add_block(rf)
+        seq.add_block(gxpre, gy)
+        seq.add_block(gx, adc)
+        seq.add_block(spoil, pp.scale_grad(gy, -1))
+    if max_adc_segment is not None:
+        seq.set_definition("MaxAdcSegmentLength", max_adc_segment)
+    return _bytes(seq)
