@@ -356,6 +356,16 @@ as `convention (--scanner NAME): 16 x rf_ringdown (worst 20 us vs 30 us)`. `dtoc
 the format and the limits (and PNS / acoustics of the profile); an output that fails any of them is never
 reported as "0 violations": the summary names the failed rules with their values and the command exits 1.
 
+## Figures for files dtoc did not write
+Each printed figure is meaningful or replaced by a reason: no signal (RF flips below 1e-6 rad: "no signal: ...",
+no NRMSE of 0 %); grid and FOV from the file's `FOV` and `MatrixSize`/`Matrix` definitions where it has them,
+the notes comparing them with the grid of the ADC k positions (e.g. "the ADC positions step by 2 pi / 500 mm
+along x (readout), not 2 pi / the defined 250 mm (oversampled 2x)"); ramp-sampled readouts take the file's FOV
+(the readout's mean sampling step, the fallback without one, says nothing of the designed FOV when the ramps are
+sampled too); phase lines -N/2+1 .. N/2 (encoded from the top, as JEMRIS writes them) are an N grid, not N+2; a
+file whose samples are on no grid is told why (e.g. "k steps along z too ...: blocks whose z gradient area is not
+rewound (e.g. field-camera sync blocks) accumulate kz"). simulate and optimize share one "before" (docs/metrics.md).
+
 ## Reading the table
 - Column "image": whether the file gets an image term (and NRMSE): a Cartesian grid inferred from the ADC k
   positions (iFFT), or a 2D non-Cartesian trajectory with a known FOV -- radial with a constant step (FOV = 2 pi /

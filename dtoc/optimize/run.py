@@ -418,7 +418,10 @@ def optimize_sequence(
             limit_sources = {k: f"{v}, x {f:.4g} on the logical axes (oblique)" for k, v in limit_sources.items()}
     free = free_edges(ir)
     if not free.any():
-        raise InputError("sequence has no optimizable gradient samples (free_mask is empty)")
+        raise InputError(
+            "nothing to optimize: every gradient sample is held (inside RF blocks, on the slice-select axis, in "
+            "soft-delay blocks, or on axes that play no gradient)"
+        )
     projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
     check_area_reachable(ir, limits)
     warnings_out = base_limit_warnings(ir, limits)
@@ -580,7 +583,7 @@ def optimize_sequence(
             adc_offsets = {a.block: (float(p), float(f)) for a, p, f in zip(ir.adc, oc.adc_phase_rad, oc.adc_freq_hz)}
             extra["offcentre"] = {"offset_m": [float(x) for x in offset_m], **oc.summary()}
         nb, na = before.get("nrmse"), after.get("nrmse")
-        if nb is not None and na is not None and na > nb:
+        if nb is not None and na is not None and na > nb * (1 + 1e-6) + 1e-9:  # not float noise (1e-13 % vs 0)
             warnings_out.append(
                 f"the output's image NRMSE ({100 * na:.3g} %) is worse than the base's ({100 * nb:.3g} %): "
                 "the limits or the model leave no better waveform; do not upload it without review"

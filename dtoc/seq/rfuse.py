@@ -185,7 +185,30 @@ def resolve_rf_use(
     if n_undef:
         ir.meta["rf_use_undefined"] = n_undef
         notes.append(undefined_note(n_undef))
+    _sync_source(ir)
     return changed
+
+
+def _sync_source(ir) -> None:
+    """Give the pypulseq Sequence the IR was read from the resolved uses (its RF library's types), so that a file
+    written from it states them (format 1.5) instead of the reader's guess or nothing."""
+    seq = ir.source
+    lib = getattr(seq, "rf_library", None)
+    bids = ir.meta.get("block_ids") or []
+    if lib is None or not hasattr(lib, "type") or not hasattr(seq, "block_events"):
+        return
+    initial = {v: k for k, v in USES.items()}
+    touched = False
+    for r in ir.rf:
+        if r.block >= len(bids):
+            return
+        ev = seq.block_events.get(int(bids[r.block]))
+        if ev is None or len(ev) < 2 or not ev[1]:
+            continue
+        lib.type[int(ev[1])] = initial.get(r.use, "u")
+        touched = True
+    if touched and hasattr(seq, "block_cache"):
+        seq.block_cache.clear()  # blocks read before carry the old use
 
 
 _UNDEFINED_NOTE_START = "RF pulse(s) with use 'undefined'"
