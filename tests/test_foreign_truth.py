@@ -300,3 +300,30 @@ def test_pre15_file_optimizes_with_its_detected_rf_use_recorded_and_written(se14
     ir = load_sequence(out)
     assert [r.use for r in ir.rf] == ["excitation", "refocusing"]
     np.testing.assert_allclose(ir.nominal_kspace_rad_per_m(), load_sequence(se14).nominal_kspace_rad_per_m(), atol=1e-6)
+
+
+def test_a_file_with_definitions_is_told_the_real_cause(tmp_path):
+    """FOV and Matrix defined: never 'no FOV/matrix definitions'; when the samples are on no grid, the note names
+    why (kz accumulated by unrewound z blocks), and where they are, it compares the grid with the definitions."""
+    defs = {"FOV": [0.22, 0.22, 0.005], "Matrix": [16, 16, 1]}
+    p = tmp_path / "kz.seq"
+    p.write_bytes(gre_variant(sync_kz_per_m=5.0, definitions=defs))
+    notes = " ".join(load_sequence(p).meta["notes"])
+    assert (
+        "no FOV/matrix definitions" not in notes
+        and "the file defines FOV 220 x 220 x 5 mm and matrix 16 x 16 x 1" in notes
+    )
+    assert "k steps along z too" in notes and "accumulate kz" in notes
+    q = tmp_path / "defs.seq"
+    q.write_bytes(gre_variant(definitions=defs))
+    ir = load_sequence(q)
+    notes = " ".join(ir.meta["notes"])
+    assert "no FOV/matrix definitions" not in notes and "they agree with the definitions" in notes
+    assert ir.geometry.matrix_readout_phase == (16, 16)
+    r = tmp_path / "defs2.seq"
+    r.write_bytes(gre_variant(definitions={"FOV": [0.11, 0.22, 0.005]}))
+    notes = " ".join(load_sequence(r).meta["notes"])
+    assert (
+        "the ADC positions step by 2 pi / 220 mm along x (readout), not 2 pi / the defined 110 mm (oversampled 2x)"
+        in notes
+    )

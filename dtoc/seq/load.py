@@ -64,7 +64,13 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
         g3 = infer_cartesian_grid_3d(k0, sizes)
         if g3 is not None:
             ir.meta["grid3d"] = g3.as_meta()
-            notes.append(g3.describe())
+            note = g3.describe()
+            if declared is not None and (declared[1] is None or len(declared[1]) < 3 or declared[1][2] <= 1):
+                note += (
+                    f"; the file defines {declared[2]} (2D): the readouts step along z between excitations, as "
+                    "blocks whose z gradient area is not rewound (e.g. field-camera sync blocks) make them"
+                )
+            notes.append(note)
             return
         if not _non_cartesian_image_grid(ir, k0, notes):
             head = "no FOV/matrix definitions and" if declared is None else f"the file defines {declared[2]}, but"

@@ -69,12 +69,16 @@ def gre_variant(
     adc_samples: int | None = None,
     adc_dwell_s: float = 10e-6,
     max_adc_segment: int | None = None,
+    sync_kz_per_m: float = 0.0,
+    definitions: dict | None = None,
 ) -> bytes:
     """A small 2D spoiled GRE (n x n) as other writers make it, with what they set differently from dtoc's default
     system: the RF ring-down (Pulseq MATLAB's ``mr.opts`` default is 20 us), the RF raster (a legal 10 us), the
     readout's samples (``adc_samples`` over the ``n``-step readout area: e.g. 12,000 oversampled samples that a
     Siemens interpreter plays in ``max_adc_segment``-sample segments, declared as ``MaxAdcSegmentLength``), the flip
-    angle (field-camera exports carry RF of ~1e-100 deg: nothing excited)."""
+    angle (field-camera exports carry RF of ~1e-100 deg: nothing excited); ``sync_kz_per_m``: a z gradient of
+    ``sync_kz_per_m * (line + 1)^1.5`` (1/m) before each readout that nothing rewinds (sync blocks whose kz
+    accumulates: the readouts sit at kz off any grid); ``definitions``: extra [DEFINITIONS] (e.g. FOV, Matrix)."""
     import pypulseq as pp
 
     sys = pp.Opts(
@@ -93,9 +97,13 @@ def gre_variant(
     for i in range(n):
         gy = pp.make_trapezoid("y", area=(i - n / 2) * dk, duration=1e-3, system=sys)
         seq.add_block(rf)
+        if sync_kz_per_m:
+            seq.add_block(pp.make_trapezoid("z", area=sync_kz_per_m * (i + 1) ** 1.5, duration=1e-3, system=sys))
         seq.add_block(gxpre, gy)
         seq.add_block(gx, adc)
         seq.add_block(spoil, pp.scale_grad(gy, -1))
     if max_adc_segment is not None:
         seq.set_definition("MaxAdcSegmentLength", max_adc_segment)
+    for k, v in (definitions or {}).items():
+        seq.set_definition(k, v)
     return _bytes(seq)
