@@ -327,3 +327,21 @@ def test_a_file_with_definitions_is_told_the_real_cause(tmp_path):
         "the ADC positions step by 2 pi / 220 mm along x (readout), not 2 pi / the defined 110 mm (oversampled 2x)"
         in notes
     )
+
+
+def test_detected_use_of_a_tse_and_an_inversion_prepared_file(tmp_path):
+    """1.4.1 versions of the CPMG TSE and the MPRAGE-like file: 90s excite and 180s refocus (the reference rule);
+    a 180 followed by an excitation before any ADC sample is an inversion (k at every sample unchanged)."""
+    from foreign.writers import mprage, tse
+    from foreign.writers_truth import to_v141
+
+    p = tmp_path / "tse.seq"
+    p.write_bytes(to_v141(tse()))
+    ir = load_sequence(p)
+    assert [(e["use"], e["count"]) for e in ir.meta["rf_use"]] == [("excitation", 4), ("refocusing", 32)]
+    q = tmp_path / "mprage.seq"
+    q.write_bytes(to_v141(mprage(n=16, nz=2, tr_shot=0.6, ti=0.2)))
+    ir = load_sequence(q)
+    assert [(e["use"], e["flip_deg"]) for e in ir.meta["rf_use"]] == [("inversion", 180.0), ("excitation", 8.0)]
+    k_as_refocusing = load_sequence(q, rf_use={1: "refocusing"}).nominal_kspace_rad_per_m()
+    np.testing.assert_array_equal(ir.nominal_kspace_rad_per_m(), k_as_refocusing)

@@ -19,6 +19,7 @@ calculations do, and said so).
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 
@@ -158,17 +159,19 @@ def resolve_rf_use(
         )
         e["count"] += 1
     # the refinement: a detected 'refocusing' pulse followed by an excitation before any ADC sample (inversion)
-    import bisect
-
+    next_exc = [math.inf] * len(new_rf)  # centre of the next excitation after each pulse (one backward pass)
+    t_next = math.inf
+    for i in range(len(new_rf) - 1, -1, -1):
+        next_exc[i] = t_next
+        if new_rf[i].use == "excitation":
+            t_next = new_rf[i].t_center_s
     for i, (r, rid) in enumerate(zip(new_rf, ids, strict=True)):
         e = per_id[rid]
         if e["how"] != "detected" or e["use"] != "refocusing":
             continue
-        nxt = next((q for q in new_rf[i + 1 :] if q.use == "excitation"), None)
         j = bisect.bisect_right(adc_t, r.t_center_s)
         first_adc = adc_t[j] if j < len(adc_t) else math.inf
-        before_exc = nxt is not None and nxt.t_center_s < first_adc
-        e.setdefault("_inv", []).append(before_exc)
+        e.setdefault("_inv", []).append(next_exc[i] < first_adc)
     for e in per_id.values():
         inv = e.pop("_inv", None)
         if inv and all(inv):
