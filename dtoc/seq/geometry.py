@@ -119,10 +119,17 @@ class InferredGrid:
         n_ro, n_pe = self.matrix_readout_phase
         f = self.fov_m
         head = "no FOV/matrix definitions" if declared is None else f"the file defines {declared}"
-        s = (
-            f"{head}: Cartesian grid inferred from the ADC k positions: {n_ro} ({ro}, readout) x "
-            f"{n_pe} ({pe}, phase), FOV {1e3 * f[self.readout_axis]:.4g} x {1e3 * f[self.phase_axis]:.4g} mm"
-        )
+        if n_pe == 1:  # no phase encoding: a projection; no FOV along the unencoded axis
+            s = (
+                f"{head}: Cartesian grid inferred from the ADC k positions: {n_ro} ({ro}, readout) x 1 ({pe} not "
+                f"encoded: every readout on one line, the image a 1D projection, no figure along {pe}), FOV "
+                f"{1e3 * f[self.readout_axis]:.4g} mm along {ro}"
+            )
+        else:
+            s = (
+                f"{head}: Cartesian grid inferred from the ADC k positions: {n_ro} ({ro}, readout) x "
+                f"{n_pe} ({pe}, phase), FOV {1e3 * f[self.readout_axis]:.4g} x {1e3 * f[self.phase_axis]:.4g} mm"
+            )
         off = [o for o in self.offset_dk if abs(o) > 1e-3]
         if off:
             s += f", samples offset by {', '.join(f'{o:+.3g}' for o in self.offset_dk)} dk"

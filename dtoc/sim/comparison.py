@@ -121,6 +121,10 @@ def compare_ideal_realized(
     note("metrics")
     fov = ir.require_geometry("simulate").fov_xy_m if grid is None else grid.fov_m
     dk = np.array([2 * np.pi / f for f in fov] + ([] if three_d else [np.inf]))
+    if grid is not None and not three_d:  # an axis with one grid point is not encoded: no figure in its dk
+        for a, n in enumerate(grid.shape[::-1]):
+            if n == 1:
+                dk[a] = np.inf
     used = (
         (np.ones(ir.n_adc_samples, dtype=bool) if keep_mask is None else np.asarray(keep_mask, dtype=bool))
         if grid is None
