@@ -159,7 +159,8 @@ def identify_effects(
 
 
 def check(path: PathLike, system: SystemSpec | None = None) -> CheckResult:
-    """Validate a ``.seq`` file: limits, continuity, timing, signature, format (``dtoc check``)."""
+    """Validate a ``.seq`` file (``dtoc check``): the format's rules and the limits, and the vendor conventions of
+    ``system`` (dead times, ADC samples, rasters) when one is given (each violation's ``kind`` and ``source``)."""
     from dtoc.seq.check import check_file
 
     return check_file(path, system)
