@@ -325,6 +325,47 @@ def main() -> None:
 
 
 _NOTES = """
+## RF use of files before format 1.5
+Pulseq files before format 1.5.0 carry no RF `use`, and the k-space of a spin echo depends on it (a refocusing
+pulse negates k, an excitation sets it to 0). dtoc decides it as Pulseq MATLAB's `read(..., 'detectRFuse')` and
+pypulseq's `read(detect_rf_use=True)` (its default for such files) do, per event of the file's `[RF]` section, from
+the pulse alone (`dtoc.seq.rfuse`): flip angle below 90.01 deg: excitation; otherwise a pulse longer than 6 ms at
+-3.4 to -3.5 ppm: (fat) saturation; otherwise refocusing. One refinement that cannot change k at any ADC sample: a
+refocusing-strength pulse followed by an excitation before any ADC sample is an inversion. The notes say, per
+`[RF]` event, its flip, duration, count and use, and how it was decided; `--rf-use ID=use,...` (simulate,
+predict, optimize) overrides any (ID: the event's number in `[RF]`; uses by name or initial), and the optimize
+manifest records the table (`sequence.rf_use`). A 1.4.1 spin-echo EPI (tests/foreign/writers_truth.py) gets k
+centred (the same trajectory as pypulseq's detection) and its 32 x 32 Cartesian grid; read with every pulse as
+an excitation its readout ran from +670 to +1480 rad/m. Format 1.5 files state the use: kept; an explicit
+`undefined` is taken as an excitation, as the reference tools' k-space calculations do, and said so.
+
+## What dtoc check checks
+Three kinds of rule, each violation naming its kind and where its rule or value came from (`kind`, `source` in
+`--json`; columns "kind" and "from" of the table; the summary groups the failures by kind):
+
+| kind | rules | from |
+|---|---|---|
+| `format` | what the file's format version requires: LF line endings, the md5 signature when there is one (the specification makes it optional: an unsigned file gets a warning), integer fields, the raster definitions format 1.4 requires, block durations and event times on the file's own declared rasters, events inside their blocks, gradients continuous between blocks and ending at zero | `Pulseq format 1.4.1` (the file's version) |
+| `limits` | gradient amplitude and slew rate per axis and as vectors; PNS and acoustic bands when a profile has them | as given: `--gmax 32 --smax 130`, `--scanner NAME`, `--system FILE`, or the limits a dtoc-built file records |
+| `convention` | a vendor's: RF dead time and ring-down, ADC dead time, the ADC sample count (a multiple of `adc_samples_divisor`, at most `adc_max_samples`; where the file declares `MaxAdcSegmentLength` the interpreter splits the ADC into segments of that length, and the segment obeys them, a whole number of segments ending on the gradient raster), the file's rasters against the scanner's (the gradient raster equal; the RF, ADC and block rasters whole multiples: a declared 10 us RF raster is legal on a 1 us scanner) | only `--scanner NAME` or `--system FILE`; the ADC sample rules only where the profile names them. Otherwise "not checked", never assumed |
+
+So `dtoc check --gmax G --smax S` checks the format and the limits, and says that the vendor conventions were not
+checked: Pulseq's MATLAB demos with their 20 us ring-down, files declaring `MaxAdcSegmentLength` with 12,000
+samples per ADC and a 10 us RF raster pass; the same files with a profile naming a 30 us ring-down fail on that,
+as `convention (--scanner NAME): 16 x rf_ringdown (worst 20 us vs 30 us)`. `dtoc optimize` checks its output for
+the format and the limits (and PNS / acoustics of the profile); an output that fails any of them is never
+reported as "0 violations": the summary names the failed rules with their values and the command exits 1.
+
+## Figures for files dtoc did not write
+Each printed figure is meaningful or replaced by a reason: no signal (RF flips below 1e-6 rad: "no signal: ...",
+no NRMSE of 0 %); grid and FOV from the file's `FOV` and `MatrixSize`/`Matrix` definitions where it has them,
+the notes comparing them with the grid of the ADC k positions (e.g. "the ADC positions step by 2 pi / 500 mm
+along x (readout), not 2 pi / the defined 250 mm (oversampled 2x)"); ramp-sampled readouts take the file's FOV
+(the readout's mean sampling step, the fallback without one, says nothing of the designed FOV when the ramps are
+sampled too); phase lines -N/2+1 .. N/2 (encoded from the top, as JEMRIS writes them) are an N grid, not N+2; a
+file whose samples are on no grid is told why (e.g. "k steps along z too ...: blocks whose z gradient area is not
+rewound (e.g. field-camera sync blocks) accumulate kz"). simulate and optimize share one "before" (docs/metrics.md).
+
 ## Reading the table
 - Column "image": whether the file gets an image term (and NRMSE): a Cartesian grid inferred from the ADC k
   positions (iFFT), or a 2D non-Cartesian trajectory with a known FOV -- radial with a constant step (FOV = 2 pi /

@@ -69,7 +69,7 @@ def simulate(
     *,
     phantom: Phantom | str | None = None,
     field_T: float = DEFAULT_B0_T,
-    n_dummies: int = 0,
+    n_dummies: int | None = None,
     device: str = "cpu",
 ) -> ComparisonResult:
     """Ideal versus realized images of a Cartesian sequence on a phantom (``dtoc simulate``).
@@ -79,7 +79,8 @@ def simulate(
         model: hardware chain (:func:`load_model`); None: ideal hardware.
         phantom: a :class:`~dtoc.sim.phantom.Phantom` or a spec ('brain', 'brain-noscalp:64', a ``.npz``).
         field_T: field strength of the built-in phantom's tissue values, T.
-        n_dummies: dummy repetitions before the sequence (steady state).
+        n_dummies: dummy repetitions before the sequence (steady state); None: as ``dtoc optimize`` for the kind
+            (:func:`dtoc.constants.default_dummies`).
     Returns:
         :class:`~dtoc.sim.comparison.ComparisonResult` (images, k-space, ``metrics`` dict).
     """
@@ -88,6 +89,10 @@ def simulate(
 
     ir = sequence if isinstance(sequence, SequenceIR) else load_sequence(sequence)
     ph = phantom if isinstance(phantom, Phantom) else phantom_for(ir, phantom, field_T=field_T)
+    if n_dummies is None:
+        from dtoc.constants import default_dummies
+
+        n_dummies = default_dummies(ir.kind)
     return compare_ideal_realized(ir, ph, model, n_dummies=n_dummies, device=device)
 
 
@@ -154,7 +159,8 @@ def identify_effects(
 
 
 def check(path: PathLike, system: SystemSpec | None = None) -> CheckResult:
-    """Validate a ``.seq`` file: limits, continuity, timing, signature, format (``dtoc check``)."""
+    """Validate a ``.seq`` file (``dtoc check``): the format's rules and the limits, and the vendor conventions of
+    ``system`` (dead times, ADC samples, rasters) when one is given (each violation's ``kind`` and ``source``)."""
     from dtoc.seq.check import check_file
 
     return check_file(path, system)

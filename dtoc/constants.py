@@ -35,3 +35,15 @@ def hz_per_m_from_mT_per_m(g_mT_per_m):
 def mT_per_m_from_hz_per_m(g_hz_per_m):
     """Convert a gradient from Pulseq's Hz/m to mT/m."""
     return g_hz_per_m / GAMMA_HZ_PER_T * 1e3
+
+
+#: Dummy repetitions before the sequence that the image figures assume, by sequence kind: a spoiled GRE in its
+#: steady state (the paper's 300), others from equilibrium.  One definition of "before" for ``dtoc simulate``
+#: (its ``--dummies`` default) and ``dtoc optimize`` (its ``n_dummies`` default): the same file and hardware give the
+#: same NRMSE in both.
+DEFAULT_DUMMIES_BY_KIND: dict[str, int] = {"gre": 300, "epi": 0}
+
+
+def default_dummies(kind: str | None) -> int:
+    """:data:`DEFAULT_DUMMIES_BY_KIND` of ``kind`` (0 for any other kind or none)."""
+    return DEFAULT_DUMMIES_BY_KIND.get(kind or "", 0)

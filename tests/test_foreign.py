@@ -54,7 +54,7 @@ def test_reader_notes_the_undefined_rf_use_and_infers_the_grid(files, capsys):
     assert ir.kind == "gre" and abs(ir.meta["grid_offset_dk"][0]) == pytest.approx(0.5, abs=1e-4)
     assert 2 not in np.flatnonzero(ir.free_mask.any(axis=1))  # the slice axis is held
     notes = " ".join(ir.meta["notes"])
-    assert "use 'undefined': taken as excitations" in notes and "grid inferred" in notes
+    assert "use 'undefined': 32, taken as excitations" in notes and "grid inferred" in notes
     assert load_sequence(files / "epi.seq").kind == "epi"
 
 

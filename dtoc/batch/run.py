@@ -27,6 +27,7 @@ def job_figures(manifest: dict) -> dict:
     for k in FIGURES:
         out[k] = {"before": manifest.get("before", {}).get(k), "after": manifest.get("after", {}).get(k)}
     out["limit_violations"] = manifest.get("limit_violations")
+    out["check_failed"] = (manifest.get("output") or {}).get("check_failed")  # the written file's failed rules
     out["n_samples_discarded"] = manifest.get("n_samples_discarded")
     out["run_time_s"] = manifest.get("run_time_s")
     lim = manifest.get("limits", {})

@@ -106,13 +106,15 @@ def _print_table(report: dict, con) -> None:
             f"{f(k.get('before'))} -> {f(k.get('after'))}" if k else "-",
             f((fig.get("nrmse_percent") or {}).get("after")),
             f((fig.get("ghost_ratio_percent") or {}).get("after")),
-            f(fig.get("limit_violations"), "d"),
+            "check FAILED" if fig.get("check_failed") else f(fig.get("limit_violations"), "d"),
             f(r.get("seconds"), ".1f"),
         )
     con.print(t)
     for r in report["jobs"]:
         if r["status"] == "failed":
             con.print(f"{r['name']}: {r.get('error')}", soft_wrap=True, markup=False)
+        elif (r.get("figures") or {}).get("check_failed"):
+            con.print(f"{r['name']}: dtoc check of the output FAILED: {r['figures']['check_failed']}", markup=False)
 
 
 def register(app: typer.Typer) -> None:

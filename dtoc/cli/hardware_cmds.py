@@ -11,7 +11,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, note, sequence_notes
-from dtoc.cli.scanner import ORIENTATION_HELP, scanner_option
+from dtoc.cli.scanner import ORIENTATION_HELP, rf_use_option, scanner_option
 from dtoc.util.jsonout import strict_json
 
 girf_app = typer.Typer(
@@ -220,6 +220,7 @@ def predict_cmd(
     device: str = typer.Option("cpu", "--device", help="torch device (cpu, cuda)"),
     orientation: str | None = typer.Option(None, "--orientation", help=ORIENTATION_HELP),
     scanner: Path | None = scanner_option(),
+    rf_use: str | None = rf_use_option(),
 ):
     """Realized vs demanded: gradient error, k error at ADC samples, B0 phase, EPI odd/even offsets.
 
@@ -247,7 +248,7 @@ def predict_cmd(
     R = parse_orientation(orientation)
     if R is not None:
         m = RotatedChain(m, R)
-    ir = load_sequence(seq)
+    ir = load_sequence(seq, rf_use=sc.rf_use(rf_use))
     sequence_notes(ir)
     res = predict(ir, m, device=device)
     outp = Output(json_out)

@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, note
-from dtoc.cli.scanner import ORIENTATION_HELP, scanner_option
+from dtoc.cli.scanner import ORIENTATION_HELP, rf_use_option, scanner_option
 from dtoc.constants import DEFAULT_B0_T
 from dtoc.util.jsonout import strict_json
 
@@ -67,6 +67,7 @@ def optimize_cmd(
         "--scanner profile's interpreter_version); what it cannot state is refused before any work",
     ),
     quiet: bool = typer.Option(False, "-q", "--quiet", help="no progress on stderr"),
+    rf_use: str | None = rf_use_option(),
 ):
     """Digital-twin optimization: write a pre-compensated .seq that stays within the hardware limits."""
     from dtoc.errors import InputError
@@ -80,6 +81,7 @@ def optimize_cmd(
         orientation=orientation, scanner=scanner, offset=offset, method=method, gmax=gmax, smax=smax, iters=iters,
         warm_iters=warm_iters, lr=lr, w_image=w_image, w_k=w_k, w_rf=w_rf, augment=augment, no_discard=no_discard,
         phantom=phantom, b0=b0, seed=seed, threads=threads, device=device, format_version=format_version,
+        rf_use=rf_use,
     )  # fmt: skip
     outp = Output(json_out)
     m = _run_with_progress(quiet, lambda progress: run_request(req, progress, notes=lambda n: note(f"note: {n}")))
@@ -90,6 +92,8 @@ def optimize_cmd(
         sys.stderr.write(f"dtoc: warning: {w}\n")
     if m.get("interrupted"):
         interrupted_exit(m)
+    if not (m.get("output") or {}).get("check_ok", True):
+        raise typer.Exit(1)  # the written file fails a check the user asked for (docs/cli.md, exit codes)
 
 
 def request_from_options(**options):
@@ -166,11 +170,19 @@ def _print_summary(m: dict, con) -> None:
     src = lim.get("source", {})
     from dtoc.cli.output import note
 
-    note(
-        f"wrote {out.get('path')} in {m['run_time_s']:.1f} s; limits verified, 0 violations at "
+    if m["before"].get("image_reason"):
+        note(f"note: image figures '-': {m['before']['image_reason']}")
+    at = (
         f"gmax {lim['gmax_mT_per_m']:g} mT/m ({src.get('gmax_mT_per_m', '?')}), "
         f"smax {lim['smax_T_per_m_per_s']:g} T/m/s ({src.get('smax_T_per_m_per_s', '?')})"
     )
+    if out.get("check_ok", True):
+        note(f"wrote {out.get('path')} in {m['run_time_s']:.1f} s; limits verified, 0 violations at {at}")
+    else:  # never "0 violations" for a file dtoc check fails (exit 1 in optimize_cmd)
+        note(
+            f"wrote {out.get('path')} in {m['run_time_s']:.1f} s; within the limits at {at}, but dtoc check of the "
+            f"written file FAILED: {out.get('check_failed') or ', '.join(out.get('check_other_rules', []))}"
+        )
     for c in (m.get("output") or {}).get("checks", []):
         note(c)
     oc = m.get("offcentre")

@@ -14,6 +14,23 @@ ORIENTATION_HELP = (
 SCANNER_HELP = "scanner profile YAML (docs/scanner.md): limits, rasters, dead times, hardware model, B0; explicit options override it"
 
 
+RF_USE_HELP = (
+    "RF use by the file's [RF] event number, e.g. 2=refocusing,3=inversion (or initials e/r/i/s/p/o/u): over the "
+    "file's use and over the use detected for files before format 1.5 (docs/foreign.md)"
+)
+
+
+def rf_use_option():
+    return typer.Option(None, "--rf-use", help=RF_USE_HELP)
+
+
+def rf_use(text: str | None) -> dict:
+    """``--rf-use`` parsed (:func:`dtoc.seq.rfuse.parse_rf_use_overrides`)."""
+    from dtoc.seq.rfuse import parse_rf_use_overrides
+
+    return parse_rf_use_overrides(text)
+
+
 def scanner_option():
     return typer.Option(None, "--scanner", help=SCANNER_HELP)
 

@@ -115,8 +115,8 @@ def check_cmd(
                 raise InputError(
                     f"{seq}: the file records no gradient limits: give {missing} too, or --system (limits are never assumed)"
                 )
-            base = "file definitions" if sysspec is not None else "the command line (rasters and dead times: defaults)"
-            sysspec = sysspec or SystemSpec()
+            base = "file definitions" if sysspec is not None else None
+            sysspec = sysspec or SystemSpec()  # its conventions are not checked (conventions=None below)
         upd = {}
         if gmax is not None:
             upd["max_grad_mT_per_m"] = gmax
@@ -131,13 +131,11 @@ def check_cmd(
         except ValidationError as e:
             raise InputError(f"--gmax/--smax: {format_validation_error(e)} (mT/m and T/m/s)") from None
     safety = prof.profile.safety_checks(rotation) if prof is not None else None
-    res = check_file(seq, sysspec, safety)
-    if base is not None:
-        res.limits_source = base
-    if gmax is not None or smax is not None:
-        res.limits_source += " + " + " ".join(
-            f"{n} {v:g}" for n, v in (("--gmax", gmax), ("--smax", smax)) if v is not None
-        )
+    given = " ".join(f"{n} {v:g}" for n, v in (("--gmax", gmax), ("--smax", smax)) if v is not None)
+    limits_source = " + ".join(x for x in (base, given) if x) or None
+    # vendor conventions (dead times, ring-down, ADC samples, rasters): only those a profile or system file names
+    conventions = f"--system {system}" if system else (f"--scanner {prof.profile.name}" if prof is not None else None)
+    res = check_file(seq, sysspec, safety, limits_source=limits_source, conventions=conventions)
     if rotation is not None:
         res.warnings.extend(_orientation_warnings(res.definitions, rotation))
     outp = Output(json_out)
@@ -146,6 +144,8 @@ def check_cmd(
     for w in res.warnings:
         note(f"dtoc: warning: {w}")
     for c in res.checks:
+        note(c)
+    for c in res.not_checked:
         note(c)
     if not res.ok:
         raise typer.Exit(1)
@@ -178,43 +178,31 @@ def _print_check(res, max_rows: int, con) -> None:
 
     s = res.system
     con.print(
-        f"{res.path}: limits from {res.limits_source}: {s.max_grad_mT_per_m:g} mT/m, {s.max_slew_T_per_m_per_s:g} T/m/s"
+        f"{res.path}: limits from {res.limits_source}: {s.max_grad_mT_per_m:g} mT/m, {s.max_slew_T_per_m_per_s:g} T/m/s; "
+        f"rules of {res.sources.get('format', 'the file')}; vendor conventions "
+        + (f"from {res.sources['convention']}" if "convention" in res.sources else "not checked")
     )
     if res.ok:
         con.print("[green]OK[/green]: no violations")
         return
     t = Table(title=f"{len(res.violations)} violation(s)")
-    for c in ("rule", "block", "axis", "value", "limit", "detail"):
+    for c in ("kind", "rule", "block", "axis", "value", "limit", "from", "detail"):
         t.add_column(c)
     for v in res.violations[:max_rows]:
         t.add_row(
+            v.kind,
             v.rule,
             "" if v.block is None else str(v.block),
             v.axis or "",
-            "" if v.value is None else f"{v.value:.5g} {v.unit}",
-            "" if v.limit is None else f"{v.limit:.5g} {v.unit}",
+            "" if v.value is None else f"{v.value:.5g} {v.unit}".strip(),
+            "" if v.limit is None else f"{v.limit:.5g} {v.unit}".strip(),
+            v.source,
             v.message,
         )
     con.print(t)
     if len(res.violations) > max_rows:
         con.print(f"... {len(res.violations) - max_rows} more (use --json for all)")
-    worst = {}
-    for v in res.violations:
-        worst.setdefault(v.rule, v)
-        if (
-            v.value is not None
-            and v.limit
-            and worst[v.rule].value is not None
-            and v.value / v.limit > worst[v.rule].value / worst[v.rule].limit
-        ):
-            worst[v.rule] = v
-    con.print(
-        "[red]FAILED[/red]: "
-        + "; ".join(
-            f"{r} (worst {w.value:.4g} {w.unit} vs {w.limit:.4g})" if w.value is not None and w.limit is not None else r
-            for r, w in sorted(worst.items())
-        )
-    )
+    con.print("[red]FAILED[/red]: " + res.summary())
 
 
 def diff_cmd(

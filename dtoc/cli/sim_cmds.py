@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, note, sequence_notes
-from dtoc.cli.scanner import ORIENTATION_HELP, scanner_option
+from dtoc.cli.scanner import ORIENTATION_HELP, rf_use_option, scanner_option
 from dtoc.constants import DEFAULT_B0_T
 
 
@@ -39,8 +39,11 @@ def simulate_cmd(
     ),
     b0_map: bool = typer.Option(False, "--b0-map", help="Built-in phantom: add its smooth B0 map."),
     b1_map: bool = typer.Option(False, "--b1-map", help="Built-in phantom: add its smooth B1 map."),
-    dummies: int = typer.Option(
-        0, "--dummies", min=0, help="Dummy repetitions before the sequence (steady state; the paper's GRE uses 300)."
+    dummies: int | None = typer.Option(
+        None,
+        "--dummies",
+        min=0,
+        help="Dummy repetitions before the sequence (steady state); default as optimize: 300 for a GRE (the paper's), 0 otherwise.",
     ),
     json_out: str | None = json_option("the metrics"),
     png_out: Path | None = typer.Option(
@@ -52,6 +55,7 @@ def simulate_cmd(
     quiet: bool = typer.Option(False, "-q", "--quiet", help="No progress on stderr."),
     orientation: str | None = typer.Option(None, "--orientation", help=ORIENTATION_HELP),
     scanner: Path | None = scanner_option(),
+    rf_use: str | None = rf_use_option(),
 ):
     """Simulate ideal versus realized images of SEQ on a phantom; NRMSE, EPI ghost ratio, k-space error."""
     from rich.table import Table
@@ -77,7 +81,7 @@ def simulate_cmd(
     from dtoc.seq.load import load_sequence
 
     rep = ProgressReporter("dtoc simulate", quiet=quiet)
-    ir = load_sequence(seq)
+    ir = load_sequence(seq, rf_use=sc.rf_use(rf_use))
     sequence_notes(ir)
     prof = sc.load(scanner)
     hw = sc.resolve(prof, girf, model)
@@ -93,6 +97,12 @@ def simulate_cmd(
     if not check_phantom_matches(ir, phantom):  # one line for a 2D phantom on a 3D file and the reverse
         ir.require_geometry(f"{seq}: simulate")
     ph = phantom_for(ir, phantom, field_T=field_T, b0=b0_map, b1=b1_map)
+    if dummies is None:  # the same "before" as dtoc optimize (dtoc.constants.default_dummies)
+        from dtoc.constants import default_dummies
+
+        dummies = default_dummies(ir.kind)
+        if dummies:
+            note(f"note: {dummies} dummy repetitions before the sequence (steady state of a {ir.kind}, as optimize)")
     res = compare_ideal_realized(
         ir, ph, hw, n_dummies=dummies, dtype=tdtype, device=dev, step=lambda s: rep.step(f"simulating: {s}")
     )
@@ -128,7 +138,9 @@ def simulate_cmd(
                     "kspace_rmse_rad_per_m",
                     "kspace_max_err_rad_per_m",
                     "kspace_max_err_dk",
+                    "image_reason",
                 )
+                if k in m
             }
         ),
     }
@@ -142,7 +154,7 @@ def simulate_cmd(
     t = Table(title=f"dtoc simulate {Path(seq).name}")
     t.add_column("metric")
     t.add_column("value", justify="right")
-    t.add_row("NRMSE", f"{100 * m['nrmse']:.4g} %")
+    t.add_row("NRMSE", m["image_reason"] if m["nrmse"] is None else f"{100 * m['nrmse']:.4g} %")
     if m["ghost_ratio"] is not None:
         t.add_row("ghost ratio (ideal)", f"{100 * m['ghost_ratio']:.4g} % ({100 * m['ghost_ratio_ideal']:.3g} %)")
     t.add_row("k-space RMSE", f"{m['kspace_rmse_rad_per_m']:.4g} rad/m")

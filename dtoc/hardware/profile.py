@@ -64,6 +64,10 @@ class ScannerProfile(BaseModel):
         default_factory=list
     )
     acoustic_max_power_fraction: float = Field(0.1, gt=0, le=1)  # dtoc's criterion (dtoc.seq.acoustics)
+    #: ADC conventions (optional; dtoc check checks only those named): sample count a multiple of, most per ADC
+    #: (segment, when the file declares MaxAdcSegmentLength)
+    adc_samples_divisor: int | None = Field(None, ge=1)
+    adc_max_samples: int | None = Field(None, ge=1)
     source: str | None = None  # where the numbers come from
     interpreter_version: str | None = Field(None, pattern=r"^\d+\.\d+(\.\d+)?$")  # Pulseq format it reads
 
@@ -102,6 +106,11 @@ class ScannerProfile(BaseModel):
             out.append("PNS: not checked (the profile has no SAFE model parameters)")
         if not self.acoustic_forbidden_bands_hz:
             out.append("acoustic bands: not checked (the profile lists no forbidden bands)")
+        if self.adc_samples_divisor is None or self.adc_max_samples is None:
+            out.append(
+                "ADC sample count and segmenting: not checked (the profile names no adc_samples_divisor / "
+                "adc_max_samples)"
+            )
         return out
 
     def safety_checks(self, rotation=None):
@@ -130,6 +139,9 @@ class ScannerProfile(BaseModel):
             rf_dead_time_s=self.dead_times.rf_dead_time_s,
             rf_ringdown_time_s=self.dead_times.rf_ringdown_time_s,
             adc_dead_time_s=self.dead_times.adc_dead_time_s,
+            # not named: nothing to check against (1 divides every count; no count reaches 2^31)
+            adc_samples_divisor=self.adc_samples_divisor or 1,
+            adc_max_samples=self.adc_max_samples or 2**31,
         )
 
 

@@ -12,7 +12,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from dtoc.constants import DEFAULT_B0_T
+from dtoc.constants import DEFAULT_B0_T, default_dummies
 from dtoc.errors import InputError
 
 
@@ -123,11 +123,16 @@ KIND_DEFAULTS: dict[str, dict] = {
         "weights": {"image": 1.0, "kspace": 1.0, "rf": 1.0, "moment": 0.1},
         "lr": 0.05,
         "iters": 0,
-        "n_dummies": 300,
+        "n_dummies": default_dummies("gre"),  # shared with dtoc simulate
         "warm_iters": 300,
         "robust_rounds": 3,
     },
-    "epi": {"weights": {"image": 1.0, "kspace": 4.0, "rf": 1.0}, "lr": 0.01, "iters": 2, "n_dummies": 0},
+    "epi": {
+        "weights": {"image": 1.0, "kspace": 4.0, "rf": 1.0},
+        "lr": 0.01,
+        "iters": 2,
+        "n_dummies": default_dummies("epi"),
+    },
 }
 
 PAPER_RESTARTS = [500, 1500, 3000, 5000, 7500, 10500, 14000, 18000]

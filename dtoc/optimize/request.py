@@ -62,6 +62,7 @@ class OptimizeRequest(BaseModel):
     threads: int | None = None
     device: str = "cpu"
     format_version: str | None = None
+    rf_use: str | None = None  # RF use by [RF] event id, "ID=use,..." (dtoc.seq.rfuse)
 
     def trajectory_path(self) -> Path | None:
         """Where the side-car goes (None: not written)."""
@@ -142,7 +143,9 @@ def run_request(
             b0 = p.b0_T
     if not req.base.exists():
         raise InputError(f"{req.base}: base sequence not found")
-    ir = load_sequence(req.base)
+    from dtoc.seq.rfuse import parse_rf_use_overrides
+
+    ir = load_sequence(req.base, rf_use=parse_rf_use_overrides(req.rf_use))
     if notes is not None:
         for n in ir.meta.get("notes", []):
             notes(n)

@@ -158,9 +158,12 @@ def quality(
             km = None if keep_mask is None else torch.as_tensor(np.asarray(keep_mask))
             im = imager.image(sig, keep_mask=km)
             m = metrics.image_metrics(
-                im, imager.targets[0], epi=twin.ir.kind == "epi", phase_dim=twin.ir.phase_image_dim
-            )
+                im, imager.targets[0], epi=twin.ir.kind == "epi", phase_dim=twin.ir.phase_image_dim,
+                rf_flips_rad=[r.flip_angle_rad for r in twin.ir.rf],
+            )  # fmt: skip
             out["nrmse"] = m["nrmse"]
+            if m.get("image_reason"):
+                out["image_reason"] = m["image_reason"]  # no signal: no image figure (dtoc.sim.metrics)
             if m["ghost_ratio"] is not None:
                 out["ghost_ratio"] = m["ghost_ratio"]
                 out["ghost_ratio_ideal"] = m["ghost_ratio_ideal"]
@@ -421,7 +424,10 @@ def optimize_sequence(
             limit_sources = {k: f"{v}, x {f:.4g} on the logical axes (oblique)" for k, v in limit_sources.items()}
     free = free_edges(ir)
     if not free.any():
-        raise InputError("sequence has no optimizable gradient samples (free_mask is empty)")
+        raise InputError(
+            "nothing to optimize: every gradient sample is held (inside RF blocks, on the slice-select axis, in "
+            "soft-delay blocks, or on axes that play no gradient)"
+        )
     projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
     check_area_reachable(ir, limits)
     warnings_out = base_limit_warnings(ir, limits)
@@ -583,7 +589,7 @@ def optimize_sequence(
             adc_offsets = {a.block: (float(p), float(f)) for a, p, f in zip(ir.adc, oc.adc_phase_rad, oc.adc_freq_hz)}
             extra["offcentre"] = {"offset_m": [float(x) for x in offset_m], **oc.summary()}
         nb, na = before.get("nrmse"), after.get("nrmse")
-        if nb is not None and na is not None and na > nb:
+        if nb is not None and na is not None and na > nb * (1 + 1e-6) + 1e-9:  # not float noise (1e-13 % vs 0)
             warnings_out.append(
                 f"the output's image NRMSE ({100 * na:.3g} %) is worse than the base's ({100 * nb:.3g} %): "
                 "the limits or the model leave no better waveform; do not upload it without review"
@@ -615,6 +621,7 @@ def optimize_sequence(
                 "n_free_variables": int(free.sum()),
                 "duration_s": ir.duration_s,
                 "notes": list(ir.meta.get("notes", [])),
+                "rf_use": ir.meta.get("rf_use"),  # per [RF] event: use and how decided (dtoc.seq.rfuse)
                 "image_term": with_image,
                 "dk_rad_per_m": [float(x) for x in ctx.dk_rad_per_m.cpu().numpy()],
                 "dk_source": "grid (2 pi / FOV)" if ir.dk_rad_per_m is not None else "sampling step of the readouts",
@@ -784,7 +791,7 @@ def _write_checked(
             grad_raster_s=ir_out.raster_s,
             block_raster_s=_block_raster(ir_out),
         )
-        res = check_file(tmp, sysspec, safety)
+        res = check_file(tmp, sysspec, safety, conventions=None)  # the format's rules and the limits, as given
         lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector", "pns", "acoustic"}
         bad = [v for v in res.violations if v.rule in lim_rules]
         if bad:
@@ -794,7 +801,9 @@ def _write_checked(
             "check_ok": res.ok,
             "check_other_rules": sorted(res.rules() - lim_rules),
             "format_version": version_str(output_version(ir_out, version)),
+            "check_failed": res.summary() if not res.ok else None,  # by kind, with the worst values
             "checks": list(res.checks),
+            "check_not_checked": list(res.not_checked),
         }
         data = tmp.read_bytes()
     atomic_write_bytes(outp, data, force=force)

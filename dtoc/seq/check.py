@@ -12,8 +12,17 @@ Two layers:
   gradient timing on the gradient raster, the md5 signature, LF line endings, integer fields without
   scientific notation or decimals, rasters equal to the system's, and required definitions.
 
-Each problem is a :class:`Violation` (rule, block, axis, value, limit, unit, message).  Limits are
-aggregated per (rule, block, axis): one row with the worst value.
+Each problem is a :class:`Violation` (rule, block, axis, value, limit, unit, message) of one of three kinds
+(:data:`RULE_KINDS`, docs/foreign.md "What dtoc check checks"), each with where its value came from:
+
+* ``format``: what the file's format version requires (structure, signature when present, integer fields, required
+  definitions, events on the file's own rasters and inside their blocks, continuous gradients that end at zero);
+* ``limits``: the user's limits or scanner profile (gradient amplitude and slew per axis and vector, PNS, acoustics);
+* ``convention``: a vendor's conventions (RF dead time and ring-down, ADC dead time, ADC sample count and
+  segmenting, the file's rasters against the scanner's), checked only when a scanner profile or a system file
+  names them (``conventions``); otherwise listed in ``CheckResult.not_checked``, never assumed.
+
+Limits are aggregated per (rule, block, axis): one row with the worst value.
 """
 
 from __future__ import annotations
@@ -38,6 +47,32 @@ _RTOL = 1e-6  # relative tolerance on limits (file precision: 6 significant digi
 _TTOL = 1e-9  # s, timing tolerance
 
 
+FORMAT, LIMITS, CONVENTION = "format", "limits", "convention"
+#: the kind of each rule (module doc)
+RULE_KINDS = {
+    **dict.fromkeys(
+        (
+            "line_endings",
+            "signature",
+            "integer_format",
+            "definitions",
+            "block_raster",
+            "grad_raster",
+            "rf_raster",
+            "adc_raster",
+            "block_duration",
+            "continuity",
+            "grad_start_nonzero",
+            "grad_end_nonzero",
+        ),
+        FORMAT,
+    ),
+    **dict.fromkeys(("grad_amplitude", "slew_rate", "grad_vector", "slew_vector", "pns", "acoustic"), LIMITS),
+    **dict.fromkeys(("rf_dead_time", "rf_ringdown", "adc_dead_time", "adc_samples", "raster"), CONVENTION),
+}
+_AUTO = "auto"
+
+
 @dataclass
 class Violation:
     rule: str
@@ -47,6 +82,8 @@ class Violation:
     limit: float | None = None
     unit: str = ""
     message: str = ""
+    kind: str = ""  # format / limits / convention (RULE_KINDS)
+    source: str = ""  # where the limit or rule came from (e.g. "format 1.4.1", "--gmax 32", "--scanner terra")
 
     def __post_init__(self):
         self.block = None if self.block is None else int(self.block)
@@ -69,6 +106,10 @@ class CheckResult:
     checks: list[str] = field(default_factory=list)
     #: the file's [DEFINITIONS] as text (name -> value string), for checks made on top (e.g. orientation)
     definitions: dict[str, str] = field(default_factory=dict)
+    #: rules not checked and why (e.g. vendor conventions that no scanner profile names)
+    not_checked: list[str] = field(default_factory=list)
+    #: where each kind of rule came from (kind -> source; a kind absent: not checked)
+    sources: dict[str, str] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -87,7 +128,45 @@ class CheckResult:
             "violations": [v.to_dict() for v in self.violations],
             "warnings": list(self.warnings),
             "checks": list(self.checks),
+            "not_checked": list(self.not_checked),
+            "rule_sources": dict(self.sources),
         }
+
+    def failed_kinds(self) -> dict[str, list[Violation]]:
+        """Violations by kind (format, limits, convention), in that order, kinds without any left out."""
+        out: dict[str, list[Violation]] = {}
+        for k in (FORMAT, LIMITS, CONVENTION):
+            vs = [v for v in self.violations if v.kind == k]
+            if vs:
+                out[k] = vs
+        return out
+
+    def summary(self) -> str:
+        """One line per failed kind: its source and each rule with its worst value (no internal names alone)."""
+        parts = []
+        for kind, vs in self.failed_kinds().items():
+            worst: dict[str, Violation] = {}
+            for v in vs:
+                w = worst.setdefault(v.rule, v)
+                if v.value is not None and v.limit and w.value is not None and w.limit:
+                    if abs(v.value / v.limit) > abs(w.value / w.limit):
+                        worst[v.rule] = v
+            rules = "; ".join(_worst_text(r, w, sum(x.rule == r for x in vs)) for r, w in sorted(worst.items()))
+            parts.append(f"{kind} ({vs[0].source}): {rules}")
+        return " | ".join(parts)
+
+
+def _q(x: float, unit: str) -> str:
+    return f"{x:.5g} {unit}".strip()
+
+
+def _worst_text(rule: str, w: Violation, n: int) -> str:
+    many = f"{n} x " if n > 1 else ""
+    if w.value is not None and w.limit is not None:
+        return f"{many}{rule} (worst {_q(w.value, w.unit)} vs {_q(w.limit, w.unit)})"
+    if w.value is not None:
+        return f"{many}{rule} ({_q(w.value, w.unit)}: {w.message})"
+    return f"{many}{rule} ({w.message})"
 
 
 # ------------------------------------------------------------------------------------------ limits
@@ -195,13 +274,15 @@ def _on_raster(t: float, r: float) -> bool:
     return _all_on_raster((t,), r)
 
 
-def _text_rules(st, system: SystemSpec, out: list[Violation]) -> None:
+def _text_rules(st, out: list[Violation]) -> None:
+    """The format's rules on the text (line endings, signature when present, integer fields, required
+    definitions)."""
     raw = st.raw
     if b"\r" in raw:
         n = raw.count(b"\r\n") or raw.count(b"\r")
         out.append(Violation("line_endings", message=f"{n} CR characters: the file must use LF line endings"))
     if st.signature_hash is None:
-        out.append(Violation("signature", message="no [SIGNATURE] md5 hash"))
+        pass  # optional in the specification: a warning (check_file), not a violation
     elif st.signature_type not in (None, "md5"):
         out.append(
             Violation("signature", message=f"signature type {st.signature_type!r}: Pulseq interpreters verify md5")
@@ -231,35 +312,69 @@ def _text_rules(st, system: SystemSpec, out: list[Violation]) -> None:
                 )
             )
     defs = st.definitions()
-    for key in system.required_definitions:
-        if key not in defs:
-            out.append(Violation("definitions", message=f"required definition {key} is missing"))
-    for key, want in (
-        ("GradientRasterTime", system.grad_raster_s),
-        ("RadiofrequencyRasterTime", system.rf_raster_s),
-        ("AdcRasterTime", system.adc_raster_s),
-        ("BlockDurationRaster", system.block_raster_s),
-    ):
-        if key in defs:
-            try:
-                v = float(defs[key])
-            except ValueError:
-                out.append(Violation("definitions", message=f"definition {key} {defs[key]!r} is not a number"))
-                continue
-            if abs(v - want) > 1e-12:
+    if st.major_minor >= (1, 4):  # format 1.4.0 made the four rasters required definitions
+        for key in _RASTER_DEFINITIONS:
+            if key not in defs:
                 out.append(
                     Violation(
-                        "raster",
-                        value=v,
-                        limit=want,
-                        unit="s",
-                        message=f"{key} {v:g} s differs from the system's {want:g} s",
+                        "definitions",
+                        message=f"required definition {key} is missing (format {st.major_minor[0]}.{st.major_minor[1]})",
                     )
                 )
+    for key in _RASTER_DEFINITIONS:
+        if key in defs:
+            try:
+                float(defs[key].split()[0])
+            except (ValueError, IndexError):
+                out.append(Violation("definitions", message=f"definition {key} {defs[key]!r} is not a number"))
 
 
-def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) -> None:
-    r = float(seq.grad_raster_time)
+_RASTER_DEFINITIONS = ("GradientRasterTime", "RadiofrequencyRasterTime", "AdcRasterTime", "BlockDurationRaster")
+
+
+def file_rasters(seq) -> dict[str, float]:
+    """The rasters the file declares (pypulseq's defaults where it declares none), s."""
+    return {
+        "grad": float(seq.grad_raster_time),
+        "rf": float(seq.rf_raster_time),
+        "adc": float(seq.adc_raster_time),
+        "block": float(seq.block_duration_raster),
+    }
+
+
+def _raster_convention(rasters: dict[str, float], system: SystemSpec, out: list[Violation]) -> None:
+    """The file's rasters against the scanner's: the gradient raster must be the scanner's (the interpreter plays
+    gradient samples on it); the RF, ADC and block rasters a whole multiple of the scanner's (every time on the
+    file's raster is then on the scanner's: a declared 10 us RF raster is legal on a 1 us scanner)."""
+    for key, name, want in (
+        ("grad", "GradientRasterTime", system.grad_raster_s),
+        ("rf", "RadiofrequencyRasterTime", system.rf_raster_s),
+        ("adc", "AdcRasterTime", system.adc_raster_s),
+        ("block", "BlockDurationRaster", system.block_raster_s),
+    ):
+        v = rasters[key]
+        ok = abs(v - want) <= 1e-12 if key == "grad" else _on_raster(v, want)
+        if not ok:
+            how = "differs from" if key == "grad" else "is not a whole multiple of"
+            out.append(
+                Violation(
+                    "raster",
+                    value=v * 1e6,
+                    limit=want * 1e6,
+                    unit="us",
+                    message=f"{name} {v * 1e6:g} us {how} the scanner's {want * 1e6:g} us",
+                )
+            )
+
+
+def _event_rules(
+    seq, ir: SequenceIR, system: SystemSpec, out: list[Violation], conventions: bool, adc_segment: int | None
+) -> None:
+    """Events on the file's own rasters and inside their blocks, continuity (format); with ``conventions`` the
+    scanner's dead times, ring-down and ADC sample rules (``adc_segment``: the file's MaxAdcSegmentLength, the
+    interpreter splits a longer ADC into segments of that many samples)."""
+    rasters = file_rasters(seq)
+    r = rasters["grad"]
     keys = list(seq.block_events.keys())
     tol = system.continuity_tol_hz_per_m
     prev_last = np.zeros(3)  # value each axis has at the end of the previous block, Hz/m
@@ -267,14 +382,14 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
         with quiet():
             blk = seq.get_block(key)
         dur = float(seq.block_durations[key])
-        if not _on_raster(dur, system.block_raster_s):
+        if not _on_raster(dur, rasters["block"]):
             out.append(
                 Violation(
                     "block_raster",
                     key,
                     None,
                     dur * 1e6,
-                    system.block_raster_s * 1e6,
+                    rasters["block"] * 1e6,
                     "us",
                     f"duration {dur * 1e6:.3f} us is not a multiple of the block raster",
                 )
@@ -313,15 +428,17 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
                             )
                         )
             elif gr.time_id not in (0, -1) and not _all_on_raster(gr.tt, r):
+                q = np.asarray(gr.tt, dtype=np.float64) / r
+                off = float(np.asarray(gr.tt)[np.argmax(np.abs(q - np.round(q)) >= 1e-6)])
                 out.append(
                     Violation(
                         "grad_raster",
                         key,
                         AXES[a],
-                        None,
+                        off * 1e6,
                         r * 1e6,
                         "us",
-                        "extended-trapezoid vertex not on the gradient raster",
+                        f"extended-trapezoid vertex at {off * 1e6:.4g} us not on the gradient raster",
                     )
                 )
             if tv[-1] > dur + _TTOL:
@@ -375,7 +492,7 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
                 )
         prev_last = last
         rf = getattr(blk, "rf", None)
-        if rf is not None:
+        if rf is not None and conventions:
             if rf.delay < system.rf_dead_time_s - _TTOL:
                 out.append(
                     Violation(
@@ -401,22 +518,22 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
                         "time from RF end to block end shorter than the ring-down time",
                     )
                 )
-            if not _on_raster(rf.delay, system.rf_raster_s):
-                out.append(
-                    Violation(
-                        "rf_raster",
-                        key,
-                        None,
-                        rf.delay * 1e6,
-                        system.rf_raster_s * 1e6,
-                        "us",
-                        "RF delay not on the RF raster",
-                    )
+        if rf is not None and not _on_raster(rf.delay, rasters["rf"]):
+            out.append(
+                Violation(
+                    "rf_raster",
+                    key,
+                    None,
+                    rf.delay * 1e6,
+                    rasters["rf"] * 1e6,
+                    "us",
+                    "RF delay not on the file's RF raster",
                 )
+            )
         adc = getattr(blk, "adc", None)
         if adc is not None:
             end = adc.delay + adc.num_samples * adc.dwell
-            if adc.delay < system.adc_dead_time_s - _TTOL:
+            if conventions and adc.delay < system.adc_dead_time_s - _TTOL:
                 out.append(
                     Violation(
                         "adc_dead_time",
@@ -428,7 +545,7 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
                         "ADC delay shorter than the ADC dead time",
                     )
                 )
-            if dur - end < system.adc_dead_time_s - _TTOL:
+            if conventions and dur - end < system.adc_dead_time_s - _TTOL:
                 out.append(
                     Violation(
                         "adc_dead_time",
@@ -444,54 +561,32 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
                 out.append(
                     Violation("block_duration", key, None, end * 1e6, dur * 1e6, "us", "ADC ends after its block")
                 )
-            if not _on_raster(adc.dwell, system.adc_raster_s):
+            if not _on_raster(adc.dwell, rasters["adc"]):
                 out.append(
                     Violation(
                         "adc_raster",
                         key,
                         None,
                         adc.dwell * 1e9,
-                        system.adc_raster_s * 1e9,
+                        rasters["adc"] * 1e9,
                         "ns",
-                        "ADC dwell not on the ADC raster",
+                        "ADC dwell not on the file's ADC raster",
                     )
                 )
-            if not _on_raster(adc.delay, system.rf_raster_s):
+            if not _on_raster(adc.delay, rasters["rf"]):
                 out.append(
                     Violation(
                         "adc_raster",
                         key,
                         None,
                         adc.delay * 1e6,
-                        system.rf_raster_s * 1e6,
+                        rasters["rf"] * 1e6,
                         "us",
-                        "ADC delay not on the RF raster",
+                        "ADC delay not on the file's RF raster",
                     )
                 )
-            if adc.num_samples % system.adc_samples_divisor:
-                out.append(
-                    Violation(
-                        "adc_samples",
-                        key,
-                        None,
-                        adc.num_samples,
-                        system.adc_samples_divisor,
-                        "",
-                        f"{adc.num_samples} samples is not a multiple of {system.adc_samples_divisor}",
-                    )
-                )
-            if adc.num_samples > system.adc_max_samples:
-                out.append(
-                    Violation(
-                        "adc_samples",
-                        key,
-                        None,
-                        adc.num_samples,
-                        system.adc_max_samples,
-                        "",
-                        f"{adc.num_samples} samples exceeds {system.adc_max_samples} per ADC",
-                    )
-                )
+            if conventions:
+                _adc_sample_rules(key, int(adc.num_samples), float(adc.dwell), r, system, adc_segment, out)
     for a in range(3):
         if abs(prev_last[a]) > tol:
             out.append(
@@ -505,6 +600,36 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
                     "sequence ends with a non-zero gradient",
                 )
             )
+
+
+def _adc_sample_rules(
+    key, n: int, dwell: float, grad_raster: float, system: SystemSpec, segment: int | None, out: list[Violation]
+) -> None:
+    """The scanner's ADC sample rules: at most ``adc_max_samples`` per ADC and a multiple of ``adc_samples_divisor``;
+    where the file declares MaxAdcSegmentLength L and the ADC is longer, the interpreter plays it as n / L segments:
+    then L (not n) obeys them, n is a whole number of segments, and each segment ends on the gradient raster
+    (Pulseq's ``mr.calcAdcSeg``)."""
+
+    def bad(value, limit, msg):
+        out.append(Violation("adc_samples", key, None, value, limit, "", msg))
+
+    if segment is not None and n > segment:
+        if n % segment:
+            bad(n, segment, f"{n} samples is not a whole number of the declared {segment}-sample ADC segments")
+        if segment % system.adc_samples_divisor:
+            bad(segment, system.adc_samples_divisor, f"ADC segment of {segment} samples is not a multiple of "
+                f"{system.adc_samples_divisor}")  # fmt: skip
+        if segment > system.adc_max_samples:
+            bad(segment, system.adc_max_samples, f"ADC segment of {segment} samples exceeds {system.adc_max_samples}")
+        if not _on_raster(segment * dwell, grad_raster):
+            bad(segment, None, f"ADC segment of {segment} samples ({segment * dwell * 1e6:.6g} us) does not end on the "
+                "gradient raster")  # fmt: skip
+        return
+    if n % system.adc_samples_divisor:
+        bad(n, system.adc_samples_divisor, f"{n} samples is not a multiple of {system.adc_samples_divisor}")
+    if n > system.adc_max_samples:
+        bad(n, system.adc_max_samples, f"{n} samples exceeds {system.adc_max_samples} per ADC (and the file declares "
+            "no MaxAdcSegmentLength for the interpreter to split it)")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -524,17 +649,31 @@ class SafetyChecks:
     rotation: Any = None
 
 
-def check_file(path: str | Path, system: SystemSpec | None = None, safety: SafetyChecks | None = None) -> CheckResult:
+def check_file(
+    path: str | Path,
+    system: SystemSpec | None = None,
+    safety: SafetyChecks | None = None,
+    *,
+    limits_source: str | None = None,
+    conventions: str | None = _AUTO,
+) -> CheckResult:
     """Validate a ``.seq`` file.  ``system=None``: the limits the file records (dtoc-built files); a file that
     records none is refused (limits are never assumed: give a :class:`SystemSpec`).  ``safety``: PNS and
     acoustic checks (:class:`SafetyChecks`).
 
+    Args:
+        limits_source: where the limits came from, as the user gave them (e.g. "--gmax 32 --smax 130").
+        conventions: where the vendor conventions of ``system`` (dead times, ring-down, ADC samples, rasters) come
+            from, e.g. "--scanner terra"; None: not checked (listed in ``not_checked``).  Default: checked when
+            ``system`` is given (its name is the source), not when the limits come from the file.
     Raises:
         InputError: only when the file cannot be opened or parsed at all (missing, binary, truncated
             structure); every other problem is a :class:`Violation`.
     """
     st = parse_seq_text(path)
     source = "given"
+    if conventions == _AUTO:
+        conventions = f"system {system.name}" if system is not None else None
     if system is None:
         defs = {}
         for k, v in st.definitions().items():
@@ -549,25 +688,60 @@ def check_file(path: str | Path, system: SystemSpec | None = None, safety: Safet
                 "--gmax and --smax or --system (limits are never assumed)"
             )
         source = "file definitions"
-    res = CheckResult(path=str(path), system=system, limits_source=source, definitions=dict(st.definitions()))
+    res = CheckResult(
+        path=str(path), system=system, limits_source=limits_source or source, definitions=dict(st.definitions())
+    )
+    version = ".".join(str(x) for x in st.version)
+    res.sources = {FORMAT: f"Pulseq format {version}", LIMITS: res.limits_source}
+    if conventions:
+        res.sources[CONVENTION] = conventions
+    else:
+        res.not_checked.append(
+            "vendor conventions (RF dead time and ring-down, ADC dead time, ADC sample count and segmenting, the "
+            "file's rasters against the scanner's): not checked, no scanner profile or --system names them"
+        )
     if res.definitions.get("DtocInterrupted", "").split()[:1] == ["1"]:
         res.warnings.append(
             "written by an interrupted dtoc optimize (DtocInterrupted 1): a best-so-far, not a finished result"
         )
-    _text_rules(st, system, res.violations)
+    if st.signature_hash is None:
+        res.warnings.append(
+            "unsigned (no [SIGNATURE]): the format allows it, but the interpreter cannot detect a modified file"
+        )
+    seg = _adc_segment(res.definitions.get("MaxAdcSegmentLength"))
+    _text_rules(st, res.violations)
     del st  # the text parse (~20 bytes per file byte) is not kept while pypulseq reads the file again
     seq = read_pypulseq(path, require_signature=False)[0]  # its text parse is dropped at once
+    if conventions:
+        _raster_convention(file_rasters(seq), system, res.violations)
     try:
         ir = from_pypulseq(seq)
     except InputError as e:
         res.violations.append(Violation("block_raster", message=str(e)))
-        return res
-    _event_rules(seq, ir, system, res.violations)
+        return _tag(res)
+    _event_rules(seq, ir, system, res.violations, bool(conventions), seg)
     res.violations.extend(check_ir_limits(ir, system))
     if safety is not None and safety.pns is not None:
         _pns_rule(ir, safety.pns, safety.rotation, res)
     if safety is not None and safety.acoustic_bands_hz:
         _acoustic_rule(ir, safety.acoustic_bands_hz, safety.acoustic_max_power_fraction, safety.rotation, res)
+    return _tag(res)
+
+
+def _adc_segment(v: str | None) -> int | None:
+    """The file's MaxAdcSegmentLength (samples), None when absent or not a positive whole number."""
+    try:
+        x = float((v or "").split()[0])
+    except (ValueError, IndexError):
+        return None
+    return int(x) if x >= 1 and x == int(x) else None
+
+
+def _tag(res: CheckResult) -> CheckResult:
+    """Every violation gets its kind and the source of its rule."""
+    for v in res.violations:
+        v.kind = RULE_KINDS.get(v.rule, FORMAT)
+        v.source = res.sources.get(v.kind, "")
     return res
 
 
@@ -626,4 +800,13 @@ def _pns_rule(ir: SequenceIR, model, rotation, res: CheckResult) -> None:
         )
 
 
-__all__ = ["Violation", "CheckResult", "SafetyChecks", "check_ir_limits", "check_file", "system_from_definitions"]
+__all__ = [
+    "RULE_KINDS",
+    "file_rasters",
+    "Violation",
+    "CheckResult",
+    "SafetyChecks",
+    "check_ir_limits",
+    "check_file",
+    "system_from_definitions",
+]

@@ -113,14 +113,23 @@ class InferredGrid:
     fov_m: tuple[float, float, float]
     offset_dk: tuple[float, float, float]
 
-    def describe(self) -> str:
+    def describe(self, declared: str | None = None) -> str:
+        """One note line; ``declared``: the file's own FOV/matrix definitions, when it has some (then compared)."""
         ro, pe = "xyz"[self.readout_axis], "xyz"[self.phase_axis]
         n_ro, n_pe = self.matrix_readout_phase
         f = self.fov_m
-        s = (
-            f"no FOV/matrix definitions: Cartesian grid inferred from the ADC k positions: {n_ro} ({ro}, readout) x "
-            f"{n_pe} ({pe}, phase), FOV {1e3 * f[self.readout_axis]:.4g} x {1e3 * f[self.phase_axis]:.4g} mm"
-        )
+        head = "no FOV/matrix definitions" if declared is None else f"the file defines {declared}"
+        if n_pe == 1:  # no phase encoding: a projection; no FOV along the unencoded axis
+            s = (
+                f"{head}: Cartesian grid inferred from the ADC k positions: {n_ro} ({ro}, readout) x 1 ({pe} not "
+                f"encoded: every readout on one line, the image a 1D projection, no figure along {pe}), FOV "
+                f"{1e3 * f[self.readout_axis]:.4g} mm along {ro}"
+            )
+        else:
+            s = (
+                f"{head}: Cartesian grid inferred from the ADC k positions: {n_ro} ({ro}, readout) x "
+                f"{n_pe} ({pe}, phase), FOV {1e3 * f[self.readout_axis]:.4g} x {1e3 * f[self.phase_axis]:.4g} mm"
+            )
         off = [o for o in self.offset_dk if abs(o) > 1e-3]
         if off:
             s += f", samples offset by {', '.join(f'{o:+.3g}' for o in self.offset_dk)} dk"
@@ -162,11 +171,15 @@ def _grid_step(values, tol: float = 1e-3) -> tuple[float, float] | None:
 
 
 def _layout_points(u) -> int:
-    """Grid points of integer sample indices ``u``: ``2h + 1`` when symmetric (-h .. h), else the even
-    standard layout -N/2 .. N/2-1 (the larger side sets N, as for partial Fourier)."""
+    """Grid points of integer sample indices ``u``: ``2h + 1`` when symmetric (-h .. h), N for the mirrored
+    standard layout -N/2+1 .. N/2 (phase encoded from the top, as JEMRIS and others write it: on the periodic
+    N-point grid the +N/2 line is the -N/2 line, so a 64-line EPI is 64, not 66), else the even standard layout
+    -N/2 .. N/2-1 (the larger side sets N, as for partial Fourier)."""
     lo, hi = int(u.min()), int(u.max())
     if -lo == hi:
         return 2 * hi + 1
+    if hi - lo + 1 == 2 * hi and hi > 1:  # -N/2+1 .. N/2, complete
+        return 2 * hi
     return 2 * max(-lo, hi + 1)
 
 
@@ -190,7 +203,7 @@ def infer_cartesian_grid(k0_rad_per_m, adc_sizes) -> InferredGrid | None:
     if k.ndim != 2 or k.shape[0] != 3 or edges[-1] != k.shape[1] or k.shape[1] == 0:
         return None
     scale = max(float(np.abs(k).max()), 1e-12)
-    within, between = _spread_within_between(k, edges)
+    within, between = spread_within_between(k, edges)
     varies = within > 1e-4 * scale
     if varies.sum() != 1:
         return None  # no readout, or k moves on two axes within one ADC (radial, spiral): not Cartesian
@@ -216,7 +229,7 @@ def infer_cartesian_grid(k0_rad_per_m, adc_sizes) -> InferredGrid | None:
     return InferredGrid(ro, pe, (out_n[ro], out_n[pe]), (fov[0], fov[1], fov[2]), (off[0], off[1], off[2]))
 
 
-def _spread_within_between(k, edges) -> tuple:
+def spread_within_between(k, edges) -> tuple:
     """Per axis (3,): the largest k spread within one ADC event, and the spread of the events' mean k."""
     import numpy as np
 
@@ -302,7 +315,7 @@ def infer_cartesian_grid_3d(k0_rad_per_m, adc_sizes) -> InferredGrid3D | None:
     if k.ndim != 2 or k.shape[0] != 3 or edges[-1] != k.shape[1] or k.shape[1] == 0:
         return None
     scale = max(float(np.abs(k).max()), 1e-12)
-    within, between = _spread_within_between(k, edges)
+    within, between = spread_within_between(k, edges)
     varies = within > 1e-4 * scale
     if varies.sum() != 1:
         return None

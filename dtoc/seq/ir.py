@@ -225,7 +225,8 @@ class SequenceIR:
         geo = self.geometry
         if geo is None:
             raise InputError(
-                f"{what}: no image grid for this sequence (no FOV/matrix, and none inferred: see the notes); "
+                f"{what}: no image grid for this sequence (its ADC samples are on none dtoc can reconstruct: the "
+                "notes say why); "
                 "'dtoc predict' gives its k-space figures"
             )
         return geo

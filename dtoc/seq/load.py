@@ -20,6 +20,9 @@ def load_sequence(path_or_spec, **kwargs) -> SequenceIR:
     This is what every command that takes a base sequence (simulate, predict, optimize) calls.
     Keyword arguments go to :func:`read_seq` / :func:`from_pypulseq`.
     """
+    rf_use = kwargs.pop("rf_use", None)
+    if rf_use and (isinstance(path_or_spec, BaseSpec) or Path(path_or_spec).suffix.lower() != ".seq"):
+        raise InputError("--rf-use applies to .seq files (a spec states each pulse's use)")
     if isinstance(path_or_spec, BaseSpec):
         return build_ir(path_or_spec, **kwargs)
     p = Path(path_or_spec)
@@ -29,7 +32,7 @@ def load_sequence(path_or_spec, **kwargs) -> SequenceIR:
         return ir
     if p.suffix.lower() != ".seq" and p.exists():
         raise InputError(f"{p}: expected a .seq file or a spec .yaml")
-    ir = read_seq(p, **kwargs)
+    ir = read_seq(p, rf_use=rf_use, **kwargs)
     infer_missing_geometry(ir)
     return ir
 
@@ -54,18 +57,27 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
     k0 = ir.nominal_kspace_rad_per_m()  # (3, N_adc), computed once for every inference below
     g = infer_cartesian_grid(k0, sizes)
     notes = ir.meta.setdefault("notes", [])
+    declared = declared_geometry(ir)
     if g is None:
         _free_encoded_slice_axes(ir, k0, notes)
         _note_kind(ir, notes)
         g3 = infer_cartesian_grid_3d(k0, sizes)
         if g3 is not None:
             ir.meta["grid3d"] = g3.as_meta()
-            notes.append(g3.describe())
+            note = g3.describe()
+            if declared is not None and (declared[1] is None or len(declared[1]) < 3 or declared[1][2] <= 1):
+                note += (
+                    f"; the file defines {declared[2]} (2D): the readouts step along z between excitations, as "
+                    "blocks whose z gradient area is not rewound (e.g. field-camera sync blocks) make them"
+                )
+            notes.append(note)
             return
         if not _non_cartesian_image_grid(ir, k0, notes):
+            head = "no FOV/matrix definitions and" if declared is None else f"the file defines {declared[2]}, but"
             notes.append(
-                "no FOV/matrix definitions and the ADC samples are not on a 2D Cartesian grid, nor on straight radial "
-                "or Cartesian lines, nor with a FOV definition (3D, spiral without FOV): k-space figures only, no image"
+                f"{head} the ADC samples are not on a 2D Cartesian grid, nor on straight radial or Cartesian lines, "
+                f"nor a 2D trajectory with a FOV definition ({why_not_cartesian(k0, sizes)}): k-space figures only, "
+                "no image"
             )
         return
     ir.fov_m = g.fov_m
@@ -73,8 +85,87 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
     ir.readout_axis, ir.phase_axis = g.readout_axis, g.phase_axis
     ir.meta["grid_inferred"] = True
     ir.meta["grid_offset_dk"] = list(g.offset_dk)
-    notes.append(g.describe())
+    note = g.describe(None if declared is None else declared[2])
+    if declared is not None:
+        note += _disagreement(declared, g.fov_m, g.matrix_readout_phase, g.readout_axis, g.phase_axis)
+    notes.append(note)
     _note_kind(ir, notes)
+
+
+def declared_geometry(ir: SequenceIR):
+    """The file's own in-plane FOV (m, per axis x, y, z) and matrix definitions, as ``(fov or None, matrix or None,
+    text)``; None when it defines neither.  FOV: the ``FOV`` definition (pypulseq and Pulseq MATLAB write it in m);
+    matrix: ``MatrixSize`` (dtoc) or ``Matrix``."""
+    fov = ir.fov_m if ir.fov_m is not None and any(f > 0 for f in ir.fov_m[:2]) else None
+    mat = ir.matrix
+    if mat is None:
+        v = ir.definitions.get("Matrix")
+        vals = v if isinstance(v, list) else [v] if isinstance(v, float) else []
+        mat = tuple(int(round(x)) for x in vals if x) or None
+        if mat is not None and len(mat) == 1:
+            mat = (mat[0], mat[0])
+    if fov is None and mat is None:
+        return None
+    parts = []
+    if fov is not None:
+        parts.append("FOV " + " x ".join(f"{1e3 * f:.4g}" for f in fov if f) + " mm")
+    if mat is not None:
+        parts.append("matrix " + " x ".join(str(m) for m in mat))
+    return fov, mat, " and ".join(parts)
+
+
+def _disagreement(declared, fov_m, matrix_ro_pe, ro: int, pe: int) -> str:
+    """Where the file's definitions and the grid the ADC k positions sit on disagree, and what that means (the
+    images use the ADC grid: an iFFT reconstructs what was sampled)."""
+    fov_d, mat_d, _ = declared
+    out = []
+    if fov_d is not None:
+        for a, what in ((ro, "readout"), (pe, "phase")):
+            d, g = fov_d[a], fov_m[a]
+            if d > 0 and g > 0 and abs(g / d - 1) > 0.01:
+                r = g / d
+                why = f" (oversampled {r:.3g}x)" if what == "readout" and r > 1 else ""
+                out.append(
+                    f"the ADC positions step by 2 pi / {1e3 * g:.4g} mm along {'xyz'[a]} ({what}), not 2 pi / the "
+                    f"defined {1e3 * d:.4g} mm{why}"
+                )
+    if mat_d is not None and len(mat_d) >= 2:
+        n_ro, n_pe = matrix_ro_pe
+        want = {ro: mat_d[0] if ro == 0 else mat_d[1], pe: mat_d[1] if pe == 1 else mat_d[0]}
+        for a, n, what in ((ro, n_ro, "readout"), (pe, n_pe, "phase")):
+            if want[a] != n:
+                out.append(
+                    f"the ADC positions span {n} points along {'xyz'[a]} ({what}), the matrix definition {want[a]}"
+                )
+    if not out:
+        return "; they agree with the definitions"
+    return "; " + "; ".join(out) + ": images on the ADC grid"
+
+
+def why_not_cartesian(k, sizes) -> str:
+    """The reason, in the user's words, why the ADC samples are not on a 2D Cartesian grid."""
+    import numpy as np
+
+    from dtoc.seq.geometry import spread_within_between
+
+    k = np.asarray(k, dtype=np.float64)
+    edges = np.cumsum([0, *sizes])
+    scale = max(float(np.abs(k).max()), 1e-12)
+    within, between = spread_within_between(k, edges)
+    moving = [a for a in range(3) if within[a] > 1e-4 * scale]
+    if not moving:
+        return "k does not move within any readout: no readout gradient"
+    if len(moving) > 1:
+        return f"k moves along {' and '.join('xyz'[a] for a in moving)} within a readout (radial, spiral or oblique)"
+    stepped = [a for a in range(3) if a != moving[0] and between[a] > 1e-4 * scale]
+    if 2 in stepped and len(stepped) > 1:
+        return (
+            f"k steps along z too, by up to {between[2]:.4g} rad/m between readouts: blocks whose z gradient area is "
+            "not rewound (e.g. field-camera sync blocks, spoilers) accumulate kz"
+        )
+    if len(stepped) > 1:
+        return f"k steps along {' and '.join('xyz'[a] for a in stepped)} between readouts (3D or oblique encoding)"
+    return "the readout or phase positions are not on one uniform grid"
 
 
 def _non_cartesian_image_grid(ir: SequenceIR, k, notes: list) -> bool:
@@ -90,6 +181,8 @@ def _non_cartesian_image_grid(ir: SequenceIR, k, notes: list) -> bool:
     scale = max(float(np.abs(k).max()), 1e-12)
     if np.ptp(k[2]) > 1e-4 * scale or ir.fov_m is not None and ir.matrix is not None:
         return False  # 3D (or already defined)
+    if _line_cartesian_image_grid(ir, k, notes):  # ramp-sampled Cartesian lines, the file's FOV where it has one
+        return True
     if ir.fov_m is not None and ir.fov_m[0] > 0 and ir.fov_m[1] > 0:
         fov, src = float(min(ir.fov_m[0], ir.fov_m[1])), "the file's FOV definition"
     else:
@@ -97,8 +190,6 @@ def _non_cartesian_image_grid(ir: SequenceIR, k, notes: list) -> bool:
         step = radial_like_step(k, sizes)
         if step is not None:
             fov, src = 2 * math.pi / step, "2 pi / the radial sampling step"
-        elif _line_cartesian_image_grid(ir, k, notes):
-            return True
         else:
             step = radial_like_step(k, sizes, constant=False)  # radial/UTE with ramp sampling
             if step is None:
@@ -137,11 +228,26 @@ def _line_cartesian_image_grid(ir: SequenceIR, k, notes: list) -> bool:
     ro, pe, s_ro, s_pe, n_ro, n_pe = lc
     fov = [0.0, 0.0, 0.0]
     fov[ro], fov[pe] = 2 * math.pi / s_ro, 2 * math.pi / s_pe
+    src = "2 pi / the readout's mean step, 2 pi / the phase step"
+    declared = declared_geometry(ir)
+    if declared is not None and declared[0] is not None and declared[0][ro] > 0:
+        # the file's FOV: ramp sampling makes the readout's step non-uniform, so no step is "the" dk; a mean step
+        # inflates the FOV when the ADC also samples the ramps at the flat top's dwell
+        fd, mean_fov = declared[0], fov[ro]
+        fov[ro] = fd[ro]
+        kmax = float(max(abs(k[ro].min()), abs(k[ro].max())))
+        n_ro = 2 * max(int(math.ceil(kmax * fov[ro] / (2 * math.pi) - 1e-6)), 2)
+        src = (
+            f"the file's FOV definition along {'xyz'[ro]}; 2 pi / the readout's mean step would give "
+            f"{1e3 * mean_fov:.4g} mm"
+        )
+        if fd[pe] > 0 and abs(fov[pe] / fd[pe] - 1) > 0.01:
+            src += f"; the phase lines step by 2 pi / {1e3 * fov[pe]:.4g} mm, not the defined {1e3 * fd[pe]:.4g} mm"
     _set_ndft_grid(
         ir, (fov[0], fov[1], 0.0), (n_ro, n_pe), ro, pe, notes,
-        f"ramp-sampled Cartesian readouts along {'xy'[ro]}: images by a non-uniform DFT on the nominal trajectory "
+        f"ramp-sampled Cartesian readouts along {'xyz'[ro]}: images by a non-uniform DFT on the nominal trajectory "
         f"(ramp samples regridded), {n_ro} (readout) x {n_pe} (phase) over {1e3 * fov[ro]:.4g} x "
-        f"{1e3 * fov[pe]:.4g} mm (2 pi / the readout's mean step, 2 pi / the phase step)",
+        f"{1e3 * fov[pe]:.4g} mm ({src})",
     )  # fmt: skip
     return True
 

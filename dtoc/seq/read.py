@@ -94,6 +94,7 @@ def read_seq(
     free_unused_axes: bool = False,
     rf_guard: str = "block",
     require_signature: bool = True,
+    rf_use: dict[int, str] | None = None,
 ) -> SequenceIR:
     """Read a Pulseq ``.seq`` file (format 1.2.0-1.5.2, docs/contracts.md §6) into a :class:`SequenceIR` (see module doc).
 
@@ -104,6 +105,7 @@ def read_seq(
         rf_guard: 'block' (default) or 'pulse': what is fixed around RF pulses.
         require_signature: reject files whose md5 signature does not match (default; the signature itself is
             optional; pass False for hand-edited files).
+        rf_use: RF use by the file's [RF] event id, over the file's or the detected one (:mod:`dtoc.seq.rfuse`).
     """
     seq, st = read_pypulseq(path, require_signature=require_signature)
     if b"\r" in st.raw:
@@ -128,6 +130,12 @@ def read_seq(
         ir.meta["rf_shims"] = {int(b): list(q) for b, q in lay.shims.items()}
     if lay.notes:
         ir.meta.setdefault("notes", []).extend(lay.notes)
+    from dtoc.seq.rfuse import block_rf_ids_of_text, resolve_rf_use
+
+    if resolve_rf_use(ir, st.version, block_rf_ids_of_text(st), rf_use):  # pre-1.5 files: detected (no use field)
+        ir.free_mask = default_free_mask(
+            ir, free_slice_axis=free_slice_axis, free_unused_axes=free_unused_axes, rf_guard=rf_guard
+        )
     return ir
 
 
@@ -300,11 +308,10 @@ def from_pypulseq(
     ir.meta["block_ids"] = [int(k) for k in keys]
     n_undef = sum(r.use == "undefined" for r in rf_events)
     if n_undef:
+        from dtoc.seq.rfuse import undefined_note
+
         ir.meta["rf_use_undefined"] = n_undef
-        ir.meta.setdefault("notes", []).append(
-            f"{n_undef} RF pulse(s) have use 'undefined': taken as excitations (k = 0 after them, slice axis held), "
-            "as pypulseq's calculate_kspace and Pulseq's calcKspace do"
-        )
+        ir.meta.setdefault("notes", []).append(undefined_note(n_undef))
     if off_grid:
         ir.meta["off_grid_vertices"] = off_grid
     return ir

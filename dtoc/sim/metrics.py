@@ -83,10 +83,34 @@ def ghost_ratio(image, ideal, *, phase_dim: int = -2, threshold: float = 0.1) ->
     return (p * g).sum() / (p * o).sum()
 
 
-def image_metrics(image, ideal, *, epi: bool, phase_dim: int = -2) -> dict:
+#: below this largest flip angle, rad (5.7e-5 deg), a sequence excites nothing an image figure could measure
+NO_EXCITATION_FLIP_RAD = 1e-6
+
+
+def no_signal_reason(ideal, rf_flips_rad=None) -> str | None:
+    """Why the image figures of ``ideal`` would mean nothing, or None: no RF pulse flips more than
+    :data:`NO_EXCITATION_FLIP_RAD` (field-camera protocols carry RF of ~1e-100 deg: both images are empty and an
+    NRMSE of 0 % would look perfect), or the ideal image is empty (no signal reaches the ADC samples)."""
+    flips = [abs(float(f)) for f in (rf_flips_rad or [])]
+    if rf_flips_rad is not None and (not flips or max(flips) < NO_EXCITATION_FLIP_RAD):
+        top = f"{np.degrees(max(flips)):.3g} deg" if flips else "none"
+        return f"no signal: the largest RF flip angle is {top}, nothing is excited (images empty, no image figures)"
+    a = _t(ideal).abs()
+    n = float(torch.linalg.vector_norm(a))
+    if not np.isfinite(n) or n <= 1e-30:
+        return "no signal: the ideal image is empty (no image figures)"
+    return None
+
+
+def image_metrics(image, ideal, *, epi: bool, phase_dim: int = -2, rf_flips_rad=None) -> dict:
     """The image figures every report prints: ``nrmse``, and for an EPI ``ghost_ratio`` of the image and
     ``ghost_ratio_ideal`` of the ideal image itself (its Gibbs ringing and T2* blurring along the echo
-    train: the floor no gradient correction can go below); None for the ghost keys otherwise.  Floats."""
+    train: the floor no gradient correction can go below); None for the ghost keys otherwise.  Floats.
+    Where the images carry no signal (:func:`no_signal_reason`, ``rf_flips_rad``: the sequence's flip angles),
+    every figure is None and ``image_reason`` says why."""
+    reason = no_signal_reason(ideal, rf_flips_rad)
+    if reason is not None:
+        return {"nrmse": None, "ghost_ratio": None, "ghost_ratio_ideal": None, "image_reason": reason}
     out: dict = {"nrmse": float(nrmse(image, ideal)), "ghost_ratio": None, "ghost_ratio_ideal": None}
     if epi:
         out["ghost_ratio"] = float(ghost_ratio(image, ideal, phase_dim=phase_dim))

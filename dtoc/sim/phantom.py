@@ -678,7 +678,10 @@ def phantom_for(
     if name == "brain3d":
         return _brain3d_for(ir, n3 or (str(size) if size else ""), field_T, b0, b1)
     if is_builtin_spec("brain" if spec is None else spec) and geo is None:
-        raise InputError("sequence has no matrix/FOV definitions: cannot build the phantom")
+        raise InputError(
+            "no image grid for this sequence (its ADC samples are on none dtoc can reconstruct: the notes say why): "
+            "cannot build the phantom"
+        )
     matrix = fov = None
     if geo is not None:
         nx, ny = geo.matrix_xy

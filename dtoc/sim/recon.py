@@ -115,6 +115,11 @@ def cartesian_grid(
         )
     jx = r[0].astype(np.int64) + nx // 2
     jy = r[1].astype(np.int64) + ny // 2
+    # an even grid is periodic: k = +N/2 dk is the -N/2 point (a mirrored layout -N/2+1 .. N/2, e.g. JEMRIS)
+    if nx % 2 == 0:
+        jx[jx == nx] = 0
+    if ny % 2 == 0:
+        jy[jy == ny] = 0
     outside = keep & ((jx < 0) | (jx >= nx) | (jy < 0) | (jy >= ny))
     if outside.any():
         i = int(np.argmax(outside))
@@ -147,6 +152,9 @@ def cartesian_grid_3d(ir, keep_mask=None, *, on_grid_tol: float = 0.05) -> Carte
         i = int(np.argmax(np.where(keep, off.max(0), -1)))
         raise InputError(f"nominal k-space sample {i} is {max_off:.3f} dk off the 3D grid (tolerance {on_grid_tol})")
     j = r.astype(np.int64) + (n // 2)[:, None]  # (3, N_adc): (jx, jy, jz)
+    for a in range(3):  # an even grid is periodic: +N/2 is the -N/2 point (as in cartesian_grid)
+        if n[a] % 2 == 0:
+            j[a][j[a] == n[a]] = 0
     outside = keep & np.any((j < 0) | (j >= n[:, None]), axis=0)
     if outside.any():
         i = int(np.argmax(outside))
