@@ -176,13 +176,14 @@ def set_block_in_place(seq, keys: list, b: int, *events) -> None:
 
 def seq_bytes_of(ir: SequenceIR, definitions: dict | None = None, adc_offsets=None) -> bytes:
     """The signed Pulseq 1.5 text of :func:`to_pypulseq` (ir), with ``definitions`` added to [DEFINITIONS]
-    (names: letters and digits; values: numbers)."""
+    (names: letters and digits; values: numbers, or one word of letters and digits such as a hash)."""
     seq = to_pypulseq(ir, adc_offsets)
     for k, v in (definitions or {}).items():
         vals = [float(x) for x in np.ravel(v)] if isinstance(v, (list, tuple, np.ndarray)) else v
         ok_val = isinstance(vals, (int, float)) or (isinstance(vals, list) and vals and all(np.isfinite(vals)))
+        ok_val = ok_val or (isinstance(vals, str) and vals.isalnum())  # a hash (DtocBaseSha256)
         if not str(k).isalnum() or not ok_val:
-            raise DtocError(f"definition {k!r}: names are letters/digits and values numbers")
+            raise DtocError(f"definition {k!r}: names are letters/digits and values numbers (or one word)")
         seq.set_definition(str(k), vals)
     return seq_bytes(seq)
 
