@@ -127,6 +127,11 @@ def _last_line(text: str, seq: Path | None = None) -> str:
     return s.removeprefix("dtoc: error: ")
 
 
+def _failure(rc: int) -> str:
+    """The row's word for a command's exit code (docs/cli.md, "Exit codes")."""
+    return {2: "refused: ", 3: "internal error: "}.get(rc, f"exit {rc}: ")
+
+
 def _json_of(text: str) -> dict | None:
     try:
         return json.loads(text)
@@ -234,7 +239,7 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
         rules = sorted({v.get("rule", "?") for v in res["violations"]})
         row["check"] = "ok" if not res["violations"] else f"{len(res['violations'])} violations: " + ", ".join(rules)
     else:
-        row["check"] = ("refused: " if r["rc"] == 2 else f"exit {r['rc']}: ") + _last_line(r["err"], seq)
+        row["check"] = _failure(r["rc"]) + _last_line(r["err"], seq)
     if row["read"] != "ok":
         row["result"] = ("refused: " if "timed out" not in row["read"] else "") + row["read"]
         row["time_s"], row["peak_mb"] = total, peak
@@ -249,7 +254,7 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
         row["predict"] = "ok"
         row["predict_k_dk"] = max(kd) if kd else None
     else:
-        row["predict"] = ("refused: " if r["rc"] == 2 else f"exit {r['rc']}: ") + _last_line(r["err"], seq)
+        row["predict"] = _failure(r["rc"]) + _last_line(r["err"], seq)
     # simulate
     r = step("simulate", _dtoc("simulate", seq, "--girf", girf, "--json", "-", "-q"), budgets["other"])
     res = _json_of(r["out"])
@@ -260,7 +265,7 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
         row["simulate_nrmse_pct"] = res.get("nrmse_percent")
         row["simulate_k_dk"] = res.get("kspace_max_error_dk")
     else:
-        row["simulate"] = ("refused: " if r["rc"] == 2 else f"exit {r['rc']}: ") + _last_line(r["err"], seq)
+        row["simulate"] = _failure(r["rc"]) + _last_line(r["err"], seq)
     # optimize
     out, man = work / (seq.stem + "_opt.seq"), work / (seq.stem + "_opt.json")
     argv = _dtoc("optimize", seq, "--girf", girf, "--gmax", g, "--smax", s, "-o", out, "--json", man, "-q", "--force")
@@ -279,8 +284,7 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
         row["dk_source"] = m["sequence"].get("dk_source")
         row["output_check_ok"] = (m.get("output") or {}).get("check_ok")
     else:
-        kind = "refused" if r["rc"] == 2 else ("internal error" if r["rc"] == 3 else f"exit {r['rc']}")
-        row["result"] = f"{kind}: " + _last_line(r["err"], seq)
+        row["result"] = _failure(r["rc"]) + _last_line(r["err"], seq)
     for p in (out, man, out.with_suffix(".traj.npz")):
         p.unlink(missing_ok=True)
     row["time_s"], row["peak_mb"] = total, peak
@@ -301,7 +305,7 @@ def _rf_use(row: dict) -> str:
         return "-"
     det = [n for n in p["notes"] if re.search(r"\bRF\b|refocus|excitation|use", n, re.I)]
     uses = "/".join(p["rf_uses"]) or "no RF"
-    return uses + (" (" + _cell(det[0])[:160] + ")" if det else "")
+    return uses + (" (" + _cell(det[0])[:110] + ("..." if len(det[0]) > 110 else "") + ")" if det else "")
 
 
 def render(rows: list[dict], girf_name: str, budgets: dict, commit: str) -> str:
@@ -312,7 +316,13 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str) -> str:
     except OSError:
         pass
     n_opt = sum(r["result"] == "optimized" for r in rows)
-    n_int = sum("internal error" in r["result"] or "internal error" in r.get("read", "") for r in rows)
+    for r in rows:  # rows of an earlier version of this script said "exit 3"
+        for k in ("check", "predict", "simulate", "result"):
+            if isinstance(r.get(k), str) and r[k].startswith("exit 3: "):
+                r[k] = "internal error: " + r[k][len("exit 3: ") :]
+    steps = ("read", "check", "predict", "simulate", "result")
+    n_int = sum(any("internal error" in str(r.get(k, "")) for k in steps) for r in rows)
+    n_int_opt = sum("internal error" in r["result"] for r in rows)
     n_to = sum(r["result"].startswith("timed out") for r in rows)
     writers = sorted({_writer_short(r["writer_line"]) for r in rows})
     head = [
@@ -326,17 +336,20 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str) -> str:
         "(a step over its budget is killed: 'timed out').",
         "",
         f"{len(rows)} files from {len(writers)} writers ({', '.join(writers)}): **{n_opt} optimized**, "
-        f"{len(rows) - n_opt - n_to} refused with one line, {n_to} timed out, {n_int} internal errors. "
+        f"{len(rows) - n_opt - n_to - n_int_opt} refused with one line, {n_to} timed out, {n_int_opt} internal errors "
+        f"of optimize ({n_int} files with an internal error in any step). "
         "The files are not committed (public repositories' example and test outputs; the source column names "
         "the folder, the notes below the repositories).",
         "",
         "Columns: *version*: the file's `[VERSION]`; *kind*: dtoc's inference (gre, epi, or '-' when neither); "
         "*limits*: the file's own definitions, or assumed (40 mT/m, 170 T/m/s, raised to the file's own peak + 2 % "
-        "where higher); *check*: `dtoc check` at those limits; *predict k*: the realized k error of `dtoc predict` "
+        "where higher); *check*: `dtoc check` at those limits (its other rules as `dtoc check` applies them to a file "
+        "without a scanner profile); *predict k*: the realized k error of `dtoc predict` "
         "(max over axes, dk = 2 pi / FOV; '-' where the FOV is unknown); *result*: `dtoc optimize`, with k (max, dk) "
         "and NRMSE (built-in phantom, where the file has an image grid) before -> after from its manifest; *time*: "
         "all steps together; *peak*: the largest resident set of any step; *RF use*: the uses dtoc took, with the "
-        "reader's note on how.",
+        "reader's note on how. A file dtoc's reader refuses is refused by every command with the same line: "
+        "predict, simulate and optimize are then not run.",
         "",
         "| source | file | writer | version | kind | size (kB) | limits (mT/m, T/m/s) | check | predict k (dk) "
         "| simulate NRMSE (%) | result | k before -> after (dk) | NRMSE before -> after (%) | time (s) | peak (MB) | RF use |",
@@ -344,6 +357,12 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str) -> str:
     ]
     lines = []
     for r in rows:
+        name = Path(r["file"]).name
+        for k in ("check", "predict", "simulate", "result"):  # the file column names the file
+            if isinstance(r.get(k), str):
+                r[k] = r[k].replace(f": {name}: ", ": ", 1).replace(f"{name}: ", "", 1)
+        if r.get("check") == r["result"]:
+            r["check"] = "(as result)"
         src = Path(r["file"]).parent.name
         p = r.get("probe") or {}
         lim = r["limits"]
@@ -383,7 +402,7 @@ def main() -> None:
         _probe(sys.argv[2])
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("dirs", nargs="+", type=Path, help="folders of .seq files (searched recursively)")
+    ap.add_argument("dirs", nargs="*", type=Path, help="folders of .seq files (searched recursively)")
     ap.add_argument("--girf", type=Path, required=True, help="GIRF .npz (dtoc girf import ...)")
     ap.add_argument("--budget-optimize", type=float, default=120.0, help="optimize wall-clock budget per file, s")
     ap.add_argument("--budget", type=float, default=60.0, help="check / predict / simulate budget per file, s")
