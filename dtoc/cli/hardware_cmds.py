@@ -253,7 +253,6 @@ def predict_cmd(
     R = parse_orientation(orientation)
     if R is not None:
         m = RotatedChain(m, R)
-    rep.step("reading")
     ir = load_sequence(seq)
     sequence_notes(ir)
     base, ref_rec = None, None
@@ -261,7 +260,7 @@ def predict_cmd(
         from dtoc.sim.reference import load_reference
 
         base, ref_rec = load_reference(ir, seq, reference)
-    rep.step("realizing")
+    rep.step("realizing (hardware model, k at the ADC samples)")
     res = predict(ir, m, device=device, reference=base)
     if ref_rec is not None:
         note(ref_rec.pop("note"))
