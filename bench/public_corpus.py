@@ -346,7 +346,8 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str) -> str:
         "where higher); *check*: `dtoc check` at those limits (its other rules as `dtoc check` applies them to a file "
         "without a scanner profile); *predict k*: the realized k error of `dtoc predict` "
         "(max over axes, dk = 2 pi / FOV; '-' where the FOV is unknown); *result*: `dtoc optimize`, with k (max, dk) "
-        "and NRMSE (built-in phantom, where the file has an image grid) before -> after from its manifest; *time*: "
+        "and NRMSE (built-in phantom; 'k-space only' where optimize ran without an image term: no image grid, or a "
+        "long file solved window by window) before -> after from its manifest; *time*: "
         "all steps together; *peak*: the largest resident set of any step; *RF use*: the uses dtoc took, with the "
         "reader's note on how. A file dtoc's reader refuses is refused by every command with the same line: "
         "predict, simulate and optimize are then not run.",
@@ -374,7 +375,7 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str) -> str:
             nba = (
                 f"{_f(r.get('nrmse_before_pct'))} -> {_f(r.get('nrmse_after_pct'))}"
                 if r.get("nrmse_before_pct") is not None
-                else "no image grid"
+                else "k-space only (no image term)"
             )
         else:
             kba = nba = ""
