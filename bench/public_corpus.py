@@ -308,7 +308,7 @@ def _rf_use(row: dict) -> str:
     return uses + (" (" + _cell(det[0])[:110] + ("..." if len(det[0]) > 110 else "") + ")" if det else "")
 
 
-def render(rows: list[dict], girf_name: str, budgets: dict, commit: str) -> str:
+def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: str | None = None) -> str:
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as f:
@@ -329,7 +329,7 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str) -> str:
         BEGIN,
         "## Public corpus: files other people's software wrote",
         "",
-        f"Written by `python -m bench.public_corpus DIR --girf ...`; run {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M} UTC "
+        f"Written by `python -m bench.public_corpus DIR --girf ...`; run {when or f'{dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M} UTC'} "
         f"on commit {commit}, {cpu}, {os.cpu_count()} cores (shared with other jobs: times are noisy), "
         f"Python {platform.python_version()}. GIRF: {girf_name}. Budgets per file: read {budgets['read']:.0f} s, "
         f"check / predict / simulate {budgets['other']:.0f} s each, optimize {budgets['optimize']:.0f} s "
@@ -368,8 +368,12 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str) -> str:
         p = r.get("probe") or {}
         lim = r["limits"]
         lim_s = f"{lim['gmax']:g} / {lim['smax']:g} ({lim['source']})"
-        pred = _f(r.get("predict_k_dk")) if r.get("predict") == "ok" else _cell(r.get("predict", "-"))[:120]
-        sim = _f(r.get("simulate_nrmse_pct")) if r.get("simulate") == "ok" else _cell(r.get("simulate", "-"))[:120]
+        pred = _f(r.get("predict_k_dk")) if r.get("predict") == "ok" else _cell(r.get("predict", "-")).split("; ")[0]
+        sim = (
+            _f(r.get("simulate_nrmse_pct"))
+            if r.get("simulate") == "ok"
+            else _cell(r.get("simulate", "-")).split("; ")[0]
+        )
         if r["result"] == "optimized":
             kba = f"{_f(r.get('k_before_dk'))} -> {_f(r.get('k_after_dk'))}"
             nba = (
@@ -412,6 +416,8 @@ def main() -> None:
     ap.add_argument("--no-write", action="store_true", help="print the table, leave docs/foreign.md alone")
     ap.add_argument("--render", type=Path, default=None, help="only render the table of a --rows file (no runs)")
     ap.add_argument("--commit", default=None, help="with --render: the commit the rows ran on")
+    ap.add_argument("--when", default=None, help="with --render: when the rows ran (default: now)")
+    ap.add_argument("--girf-label", default=None, help="how the table names the GIRF (default: its file name)")
     a = ap.parse_args()
     budgets = {"read": a.budget, "other": a.budget, "optimize": a.budget_optimize}
     if a.render is not None:
@@ -438,7 +444,7 @@ def main() -> None:
 
 
 def _finish(rows: list[dict], a, budgets: dict, commit: str) -> None:
-    text = render(rows, a.girf.name, budgets, commit)
+    text = render(rows, a.girf_label or a.girf.name, budgets, commit, a.when)
     repos = sorted({r["source_repo"] for r in rows if r.get("source_repo")})
     if repos:
         text = text.replace(END, "Sources (GitHub): " + ", ".join(f"`{x}`" for x in repos) + ".\n" + END)
