@@ -309,7 +309,10 @@ def main() -> None:
             rows.append(r)
         text = render(rows, "KCL 7 T Terra 2024 3x3 (../shared/data, imported)" if a.girf is None else a.girf.name)
     if not a.no_write:
-        (REPO / "docs" / "foreign.md").write_text(text + _NOTES)
+        doc = REPO / "docs" / "foreign.md"
+        old = doc.read_text() if doc.exists() else ""
+        keep = "<!-- public-corpus:begin -->"  # bench.public_corpus's section and what follows it are kept
+        doc.write_text(text + _NOTES + ("\n" + old[old.index(keep) :] if keep in old else ""))
     print(text)
     bad = [
         r["name"]

@@ -71,6 +71,7 @@ def simulate(
     field_T: float = DEFAULT_B0_T,
     n_dummies: int | None = None,
     device: str = "cpu",
+    reference: PathLike | SequenceIR | None = None,
 ) -> ComparisonResult:
     """Ideal versus realized images of a Cartesian sequence on a phantom (``dtoc simulate``).
 
@@ -81,6 +82,8 @@ def simulate(
         field_T: field strength of the built-in phantom's tissue values, T.
         n_dummies: dummy repetitions before the sequence (steady state); None: as ``dtoc optimize`` for the kind
             (:func:`dtoc.constants.default_dummies`).
+        reference: the base ``sequence`` was compiled from (``--reference``): ideal image and nominal k are the
+            base's (same structure required; a base hash the file records is verified when both are paths).
     Returns:
         :class:`~dtoc.sim.comparison.ComparisonResult` (images, k-space, ``metrics`` dict).
     """
@@ -88,20 +91,40 @@ def simulate(
     from dtoc.sim.phantom import Phantom, phantom_for
 
     ir = sequence if isinstance(sequence, SequenceIR) else load_sequence(sequence)
-    ph = phantom if isinstance(phantom, Phantom) else phantom_for(ir, phantom, field_T=field_T)
+    base = _reference(sequence, ir, reference)
+    ph = phantom if isinstance(phantom, Phantom) else phantom_for(base or ir, phantom, field_T=field_T)
     if n_dummies is None:
         from dtoc.constants import default_dummies
 
         n_dummies = default_dummies(ir.kind)
-    return compare_ideal_realized(ir, ph, model, n_dummies=n_dummies, device=device)
+    return compare_ideal_realized(ir, ph, model, n_dummies=n_dummies, device=device, reference=base)
 
 
-def predict(sequence: PathLike | SequenceIR, model: HardwareModel) -> dict[str, Any]:
-    """Realized versus demanded gradients, k-space error and B0 phase of a sequence (``dtoc predict``)."""
+def _reference(sequence, ir: SequenceIR, reference) -> SequenceIR | None:
+    """The base of ``reference=`` (None: none), structure matched; hash verified when both are paths."""
+    from dtoc.sim.reference import check_same_structure, load_reference
+
+    if reference is None:
+        return None
+    if isinstance(reference, SequenceIR):
+        check_same_structure(ir, reference, "the sequence", "the reference")
+        return reference
+    if isinstance(sequence, SequenceIR):
+        base = load_sequence(reference)
+        check_same_structure(ir, base, "the sequence", Path(reference).name)
+        return base
+    return load_reference(ir, sequence, reference)[0]
+
+
+def predict(
+    sequence: PathLike | SequenceIR, model: HardwareModel, reference: PathLike | SequenceIR | None = None
+) -> dict[str, Any]:
+    """Realized versus demanded gradients, k-space error and B0 phase of a sequence (``dtoc predict``);
+    ``reference``: against the base it was compiled from instead of its own demand (``--reference``)."""
     from dtoc.sim.predict import predict as _predict
 
     ir = sequence if isinstance(sequence, SequenceIR) else load_sequence(sequence)
-    out = _predict(ir, model)
+    out = _predict(ir, model, reference=_reference(sequence, ir, reference))
     out.pop("_arrays", None)
     return out
 

@@ -26,6 +26,10 @@ DEFAULT_B0_T: float = 3.0
 #: Axis names in the order used by every (3, ...) array.
 AXES = ("x", "y", "z")
 
+#: The [DEFINITIONS] entry of a ``dtoc optimize`` output naming its base: the base file's sha256 (hex).
+#: Provenance, not a property of what plays: ``dtoc diff`` does not compare it; ``--reference`` verifies it.
+BASE_HASH_DEFINITION = "DtocBaseSha256"
+
 
 def hz_per_m_from_mT_per_m(g_mT_per_m):
     """Convert a gradient from mT/m to Pulseq's Hz/m."""

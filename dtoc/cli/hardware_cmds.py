@@ -11,7 +11,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, note, sequence_notes
-from dtoc.cli.scanner import ORIENTATION_HELP, rf_use_option, scanner_option
+from dtoc.cli.scanner import ORIENTATION_HELP, reference_option, rf_use_option, scanner_option
 from dtoc.util.jsonout import strict_json
 
 girf_app = typer.Typer(
@@ -221,13 +221,16 @@ def predict_cmd(
     orientation: str | None = typer.Option(None, "--orientation", help=ORIENTATION_HELP),
     scanner: Path | None = scanner_option(),
     rf_use: str | None = rf_use_option(),
+    reference: Path | None = reference_option(),
+    quiet: bool = typer.Option(False, "-q", "--quiet", help="No progress on stderr."),
 ):
     """Realized vs demanded: gradient error, k error at ADC samples, B0 phase, EPI odd/even offsets.
 
     Per axis: max and RMS of realized - demanded gradient (mT/m); k-space error at the ADC samples
     (rad/m and in dk = 2 pi / FOV); peak B0 (uT) and accrued B0 phase at the ADC samples (rad); for EPI
     the mean k offset of odd and even readout lines and their difference (rad/m, dk).
-    Without --girf/--model the hardware is ideal (all errors 0).
+    Without --girf/--model the hardware is ideal (all errors 0). With --reference BASE every error is
+    against the base's demanded gradient and nominal k (a pre-compensated output at any orientation/scanner).
     """
     from dtoc.seq.load import load_sequence
     from dtoc.sim.predict import plot_prediction, predict
@@ -238,9 +241,12 @@ def predict_cmd(
 
     check_outputs(
         {"--png": png, "--json": json_out},
-        {"SEQ": seq, "--girf": girf, "--model": model, **sc.input_paths(scanner)},
+        {"SEQ": seq, "--girf": girf, "--model": model, "--reference": reference, **sc.input_paths(scanner)},
         force,
     )
+    from dtoc.cli.progress import ProgressReporter
+
+    rep = ProgressReporter("dtoc predict", quiet=quiet)
     prof = sc.load(scanner)
     m = sc.resolve(prof, girf, model)
     from dtoc.hardware.orientation import RotatedChain, parse_orientation
@@ -250,7 +256,16 @@ def predict_cmd(
         m = RotatedChain(m, R)
     ir = load_sequence(seq, rf_use=sc.rf_use(rf_use))
     sequence_notes(ir)
-    res = predict(ir, m, device=device)
+    base, ref_rec = None, None
+    if reference is not None:
+        from dtoc.sim.reference import load_reference
+
+        base, ref_rec = load_reference(ir, seq, reference)
+    rep.step("realizing (hardware model, k at the ADC samples)")
+    res = predict(ir, m, device=device, reference=base)
+    if ref_rec is not None:
+        note(ref_rec.pop("note"))
+        res["reference"] = ref_rec
     outp = Output(json_out)
     with outputs_together():
         if png is not None:
@@ -267,7 +282,8 @@ def predict_cmd(
 def _print_prediction(res, con):
     from rich.table import Table
 
-    t = Table(title=f"{res['sequence']} with {res['model']}")
+    ref = res.get("reference")
+    t = Table(title=f"{res['sequence']} with {res['model']}" + (f", against the base {ref['path']}" if ref else ""))
     for c in ("axis", "max |G-g| (mT/m)", "RMS (mT/m)", "max |k-k0| (rad/m)", "RMS (rad/m)", "max (dk)", "RMS (dk)"):
         t.add_column(c, justify="right")
     for a in ("x", "y", "z"):

@@ -61,3 +61,14 @@ def resolve(prof, girf, model):
     from dtoc.hardware.model import resolve_model
 
     return resolve_model(girf=girf, model=model)
+
+
+REFERENCE_HELP = (
+    "the base this file was compiled from (.seq or spec): errors against the base's intended trajectory "
+    "(k, image) instead of this file's own pre-compensated demand; same structure required, a recorded "
+    "base hash verified (docs/foreign.md)"
+)
+
+
+def reference_option():
+    return typer.Option(None, "--reference", help=REFERENCE_HELP)

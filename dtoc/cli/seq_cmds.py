@@ -9,7 +9,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, note
-from dtoc.cli.scanner import scanner_option
+from dtoc.cli.scanner import reference_option, scanner_option
 from dtoc.util.jsonout import strict_json
 
 
@@ -63,8 +63,13 @@ def check_cmd(
         None, "--orientation", help="the orientation it will be played at: warn if the file was compiled for another"
     ),
     scanner: Path | None = scanner_option(),
+    reference: Path | None = reference_option(),
 ):
     """Validate a .seq before upload; exit 1 on any violation, 0 when clean.
+
+    --reference BASE: the file must have the base's structure (else exit 2) and, where it records one, the
+    base's hash; its k error against the base's nominal k is reported, realized through the --scanner
+    profile's hardware model at --orientation when the profile has one, else of its demanded waveform.
 
     Limits: --gmax/--smax override --system, which overrides the limits a dtoc-built file records; a file
     without recorded limits needs --gmax and --smax (or --system): limits are never assumed.
@@ -85,7 +90,11 @@ def check_cmd(
     from dtoc.cli import scanner as sc
     from dtoc.util.atomic import check_outputs
 
-    check_outputs({"--json": json_out}, {"SEQ": seq, "--system": system, **sc.input_paths(scanner)}, force)
+    check_outputs(
+        {"--json": json_out},
+        {"SEQ": seq, "--system": system, "--reference": reference, **sc.input_paths(scanner)},
+        force,
+    )
 
     prof = sc.load(scanner)
     rotation = None
@@ -138,9 +147,15 @@ def check_cmd(
     res = check_file(seq, sysspec, safety, limits_source=limits_source, conventions=conventions)
     if rotation is not None:
         res.warnings.extend(_orientation_warnings(res.definitions, rotation))
+    report = res.to_dict()
+    ref_line = None
+    if reference is not None:
+        report["reference"], ref_line = _reference_check(seq, reference, prof, rotation)
     outp = Output(json_out)
-    outp.write_json(strict_json(res.to_dict()), force)
+    outp.write_json(strict_json(report), force)
     _print_check(res, max_rows, outp.console())
+    if ref_line is not None:
+        outp.console().print(ref_line)
     for w in res.warnings:
         note(f"dtoc: warning: {w}")
     for c in res.checks:
@@ -149,6 +164,33 @@ def check_cmd(
         note(c)
     if not res.ok:
         raise typer.Exit(1)
+
+
+def _reference_check(seq: Path, reference: Path, prof, rotation) -> tuple[dict, str]:
+    """``check --reference``: structure and hash (refused in one line otherwise), then the k error against the
+    base (realized through the profile's model at the orientation where there is one)."""
+    from dtoc.hardware.profile import profile_hardware
+    from dtoc.seq.load import load_sequence
+    from dtoc.sim.reference import load_reference, reference_figures
+
+    ir = load_sequence(seq)
+    base, rec = load_reference(ir, seq, reference)
+    note(rec.pop("note"))
+    hw = profile_hardware(prof, None, None)
+    if hw is not None and rotation is not None:
+        from dtoc.hardware.orientation import RotatedChain
+
+        hw = RotatedChain(hw, rotation)
+    fig = reference_figures(ir, base, hw)
+    rec.update(fig)
+    what = "realized k (the profile's hardware model)" if fig["realized"] else "demanded k (no hardware model)"
+    k = fig["k_error_max_dk"]
+    ks = f"{k:.4g} dk" if k is not None else f"{fig['k_error_max_rad_per_m']:.4g} rad/m (the base has no FOV)"
+    oe = fig["epi_odd_minus_even_dk"]
+    line = f"against the base {reference}: {what} off the base's nominal k by at most {ks}" + (
+        f", EPI odd-even {oe:.4g} dk" if oe is not None else ""
+    )
+    return rec, line
 
 
 def _orientation_warnings(definitions: dict, want) -> list[str]:

@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from dtoc.cli.output import Output, json_option, note, sequence_notes
-from dtoc.cli.scanner import ORIENTATION_HELP, rf_use_option, scanner_option
+from dtoc.cli.scanner import ORIENTATION_HELP, reference_option, rf_use_option, scanner_option
 from dtoc.constants import DEFAULT_B0_T
 
 
@@ -56,8 +56,13 @@ def simulate_cmd(
     orientation: str | None = typer.Option(None, "--orientation", help=ORIENTATION_HELP),
     scanner: Path | None = scanner_option(),
     rf_use: str | None = rf_use_option(),
+    reference: Path | None = reference_option(),
 ):
-    """Simulate ideal versus realized images of SEQ on a phantom; NRMSE, EPI ghost ratio, k-space error."""
+    """Simulate ideal versus realized images of SEQ on a phantom; NRMSE, EPI ghost ratio, k-space error.
+
+    With --reference BASE the ideal image, nominal k and grid are the base's: a pre-compensated output
+    played through the hardware model, measured against what its base intended.
+    """
     from rich.table import Table
 
     from dtoc.sim.comparison import check_device, compare_ideal_realized, plot_comparison, torch_dtype
@@ -74,7 +79,14 @@ def simulate_cmd(
 
     check_outputs(
         {"--png": png_out, "--json": json_out},
-        {"SEQ": seq, "--girf": girf, "--model": model, "--phantom": phantom_file, **sc.input_paths(scanner)},
+        {
+            "SEQ": seq,
+            "--girf": girf,
+            "--model": model,
+            "--phantom": phantom_file,
+            "--reference": reference,
+            **sc.input_paths(scanner),
+        },
         force,
     )
     from dtoc.cli.progress import ProgressReporter
@@ -83,6 +95,12 @@ def simulate_cmd(
     rep = ProgressReporter("dtoc simulate", quiet=quiet)
     ir = load_sequence(seq, rf_use=sc.rf_use(rf_use))
     sequence_notes(ir)
+    base, ref_rec = None, None
+    if reference is not None:
+        from dtoc.sim.reference import load_reference
+
+        base, ref_rec = load_reference(ir, seq, reference)
+        note(ref_rec.pop("note"))
     prof = sc.load(scanner)
     hw = sc.resolve(prof, girf, model)
     if field_T is None:
@@ -92,11 +110,12 @@ def simulate_cmd(
     R = parse_orientation(orientation)
     if R is not None:
         hw = RotatedChain(hw, R)
-    if phantom is None and ir.meta.get("grid3d") is not None:
+    if phantom is None and (ir if base is None else base).meta.get("grid3d") is not None:
         phantom = "brain3d"  # a 3D-encoded sequence images the built-in 3D head
-    if not check_phantom_matches(ir, phantom):  # one line for a 2D phantom on a 3D file and the reverse
-        ir.require_geometry(f"{seq}: simulate")
-    ph = phantom_for(ir, phantom, field_T=field_T, b0=b0_map, b1=b1_map)
+    intent = ir if base is None else base  # the grid and phantom follow what the acquisition intends
+    if not check_phantom_matches(intent, phantom):  # one line for a 2D phantom on a 3D file and the reverse
+        intent.require_geometry(f"{reference or seq}: simulate")
+    ph = phantom_for(intent, phantom, field_T=field_T, b0=b0_map, b1=b1_map)
     if dummies is None:  # the same "before" as dtoc optimize (dtoc.constants.default_dummies)
         from dtoc.constants import default_dummies
 
@@ -104,7 +123,14 @@ def simulate_cmd(
         if dummies:
             note(f"note: {dummies} dummy repetitions before the sequence (steady state of a {ir.kind}, as optimize)")
     res = compare_ideal_realized(
-        ir, ph, hw, n_dummies=dummies, dtype=tdtype, device=dev, step=lambda s: rep.step(f"simulating: {s}")
+        ir,
+        ph,
+        hw,
+        n_dummies=dummies,
+        dtype=tdtype,
+        device=dev,
+        step=lambda s: rep.step(f"simulating: {s}"),
+        reference=base,
     )
     m = res.metrics
     report = {
@@ -128,6 +154,7 @@ def simulate_cmd(
             "field_T": field_T if not (phantom and phantom.endswith(".npz")) else None,
         },
         "simulation": {"dtype": dtype, "dummies": dummies},
+        **({"reference": ref_rec} if ref_rec is not None else {}),
         **report_figures(
             {
                 k: m[k]
@@ -161,6 +188,8 @@ def simulate_cmd(
     if m["kspace_max_err_dk"] is not None:
         t.add_row("k-space max error", f"{m['kspace_max_err_dk']:.4g} dk")
     t.add_row("hardware", "ideal (identity)" if res.identity_hardware else str(girf or model))
+    if ref_rec is not None:
+        t.add_row("against", f"the base {reference}")
     outp.console().print(t)
     if png_out is not None:
         note(f"wrote {png_out}")

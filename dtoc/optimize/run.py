@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from dtoc.constants import BASE_HASH_DEFINITION
 from dtoc.errors import InputError, LimitError, ValidationFailed
 from dtoc.optimize import loss as L
 from dtoc.optimize import optimizer as O
@@ -702,6 +703,9 @@ def _write_outputs(
         definitions: dict = {"DtocInterrupted": 1} if manifest["interrupted"] else {}
         if manifest.get("orientation"):  # the orientation the file was compiled for (dtoc check --orientation)
             definitions["DtocOrientation"] = manifest["orientation"]["R_logical_to_physical"]
+        base_sha = (manifest["inputs"].get("base") or {}).get("sha256")
+        if base_sha:  # the base it was compiled from (--reference BASE verifies it; dtoc.sim.reference)
+            definitions[BASE_HASH_DEFINITION] = base_sha
         manifest["output"] = _write_checked(ir_out, out, force, limits, definitions, safety, adc_offsets)
     manifest["run_time_s"] = time.time() - t_start
     if manifest_path is not None:

@@ -1,6 +1,7 @@
 """Semantic comparison of two ``.seq`` files (``dtoc diff``), for CI regression of outputs.
 
-Compared: definitions (numbers within tolerance, strings exactly), the block count and each block's
+Compared: definitions (numbers within tolerance, strings exactly; not the provenance entry
+``DtocBaseSha256`` an optimize output records), the block count and each block's
 duration, RF events (flip angle, phase, frequency offset, delay, centre, duration, use) and ADC events
 (samples, dwell, delay, phase, frequency offset), and the played gradient waveforms on the fine grid.
 A number ``a`` matches ``b`` when ``|a - b| <= atol + rtol * |b|`` (gradients: ``rtol`` times the
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dtoc.constants import AXES
+from dtoc.constants import AXES, BASE_HASH_DEFINITION
 
 
 @dataclass
@@ -61,7 +62,7 @@ def diff_ir(
 
     # definitions
     da, db = ia.definitions, ib.definitions
-    for k in sorted(set(da) | set(db)):
+    for k in sorted((set(da) | set(db)) - {BASE_HASH_DEFINITION}):  # provenance, not what plays
         if k not in da or k not in db:
             add("definition", k, da.get(k), db.get(k))
             continue

@@ -205,7 +205,7 @@ def seq_bytes_of(
     verify: bool = True,
 ) -> bytes:
     """The signed Pulseq text of :func:`to_pypulseq` (ir) in format ``version`` (default :func:`output_version`),
-    with ``definitions`` added to [DEFINITIONS] (names: letters and digits; values: numbers).
+    with ``definitions`` added to [DEFINITIONS] (names: letters and digits; values: numbers, or one word of letters and digits such as a hash).
 
     What the version cannot express is refused by name first (:func:`unwritable`); with ``verify`` the text is
     read back by dtoc's reader and by pypulseq and must play what ``ir`` plays (:func:`verify_written`).
@@ -223,8 +223,9 @@ def seq_bytes_of(
     for k, val in (definitions or {}).items():
         vals = [float(x) for x in np.ravel(val)] if isinstance(val, (list, tuple, np.ndarray)) else val
         ok_val = isinstance(vals, (int, float)) or (isinstance(vals, list) and vals and all(np.isfinite(vals)))
+        ok_val = ok_val or (isinstance(vals, str) and vals.isalnum())  # a hash (DtocBaseSha256)
         if not str(k).isalnum() or not ok_val:
-            raise DtocError(f"definition {k!r}: names are letters/digits and values numbers")
+            raise DtocError(f"definition {k!r}: names are letters/digits and values numbers (or one word)")
         seq.set_definition(str(k), vals)
     rotations, shims = ir.meta.get("rotations") or {}, ir.meta.get("rf_shims") or {}
     if v >= (1, 5, 0):

@@ -73,6 +73,7 @@ def compare_ideal_realized(
     dtype=torch.float64,
     device: str = "cpu",
     step: Callable[[str], None] | None = None,
+    reference=None,
 ) -> ComparisonResult:
     """Simulate and reconstruct ``ir`` on ``phantom`` with ideal hardware and with ``model``.
 
@@ -85,10 +86,14 @@ def compare_ideal_realized(
         config: :class:`dtoc.sim.pdg.PDGConfig`.
         dtype, device: simulation precision and device.
         step: optional progress callback, called with a short description before each stage.
+        reference: the base ``ir`` was compiled from (:class:`~dtoc.seq.ir.SequenceIR` of the same structure,
+            :func:`dtoc.sim.reference.check_same_structure`): the ideal image, nominal k, grid and dk are the
+            base's, the realized acquisition is ``ir`` played through ``model`` (``--reference BASE``).
     """
     from dtoc.sim.pdg import PDGConfig
 
     note = step or (lambda _s: None)
+    played, ir = ir, (ir if reference is None else reference)  # below, ``ir`` is what the acquisition intends
     ndft = ir.meta.get("recon") == "ndft"  # non-Cartesian: non-uniform DFT on the nominal trajectory
     three_d = check_phantom_matches(ir, phantom)
     grid = None if ndft else (cartesian_grid_3d(ir, keep_mask) if three_d else cartesian_grid(ir, keep_mask))
@@ -104,10 +109,10 @@ def compare_ideal_realized(
         steady_state_options={"config": config, "dtype": dtype, "device": device},
     )
     img0 = imager.image(imager.target_signals[0], keep_mask=keep_mask if ndft else None, grid=grid).abs()
-    twin = Twin(ir, model, dtype=dtype, device=device)
+    twin = Twin(played, model, dtype=dtype, device=device)
     k0 = ir.nominal_kspace_rad_per_m()
     identity = twin.is_ideal
-    if identity:
+    if identity and reference is None:
         k = k0.copy()
         img = img0
     else:
@@ -117,7 +122,7 @@ def compare_ideal_realized(
             s = imager.signal(r.realized_grad_mT_per_m, r.b0_uT, 0)
         img = imager.image(s, keep_mask=keep_mask if ndft else None, grid=grid).abs()
         # k figures in float64 whatever the simulation precision
-        k = ir.kspace_rad_per_m(r.realized_grad_mT_per_m.detach().to("cpu", torch.float64)).numpy()
+        k = played.kspace_rad_per_m(r.realized_grad_mT_per_m.detach().to("cpu", torch.float64)).numpy()
     note("metrics")
     fov = ir.require_geometry("simulate").fov_xy_m if grid is None else grid.fov_m
     dk = np.array([2 * np.pi / f for f in fov] + ([] if three_d else [np.inf]))

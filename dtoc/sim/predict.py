@@ -5,6 +5,8 @@ Figures (all realized minus demanded/nominal, per physical axis x, y, z):
 - gradient error on the IR's fine grid (dt = raster/2): max |G - g| and RMS over the whole sequence, mT/m;
 - k-space error at every ADC sample (k counted from the last excitation, refocusing negates it,
   :mod:`dtoc.seq.kspace`): max and RMS in rad/m and in units of dk = 2 pi / FOV;
+- with a reference (``--reference BASE``, :mod:`dtoc.sim.reference`) every "demanded/nominal" above is the
+  base's: the realized trajectory of a pre-compensated output against what its base intended;
 - accrued B0 phase at ADC samples: ``phi = -gamma * integral b0 dt`` from the last excitation (rad), max |phi|;
 - EPI (``kind`` 'epi', or readout polarity alternating between consecutive ADC events): per ADC line the mean readout-axis k error
   ``dk_line`` (rad/m); odd and even lines' means, their difference (the Nyquist-ghost-driving offset,
@@ -44,13 +46,20 @@ def _stats(err: np.ndarray) -> tuple[float, float]:
     return float(np.max(np.abs(err))), float(np.sqrt(np.mean(err**2)))
 
 
-def predict(ir: SequenceIR, model: HardwareModel, device: str = "cpu") -> dict[str, Any]:
+def predict(
+    ir: SequenceIR, model: HardwareModel, device: str = "cpu", reference: SequenceIR | None = None
+) -> dict[str, Any]:
     """Compute the figures of the module docstring; returns a JSON-serialisable dict.
 
+    ``reference``: the base ``ir`` was compiled from (same structure, :func:`dtoc.sim.reference.check_same_structure`):
+    errors are then realized (of ``ir``) minus the *base's* demanded gradient and nominal k, in the base's dk,
+    instead of minus ``ir``'s own (pre-compensated) demand.  ``k_error_max_dk``: the largest per-axis max in dk
+    (the optimize manifest's ``kspace_max_error_dk`` when dk is the grid's).
     Also holds (under ``"_arrays"``, not for JSON) the realized waveforms and k for plotting.
     """
     G, b0 = realize(ir, model, device)
-    g = ir.grad_mT_per_m
+    ref = ir if reference is None else reference
+    g = ref.grad_mT_per_m
     out: dict[str, Any] = {
         "dt_s": ir.dt_fine_s,
         "duration_s": ir.duration_s,
@@ -64,23 +73,26 @@ def predict(ir: SequenceIR, model: HardwareModel, device: str = "cpu") -> dict[s
         out["grad_error"][name] = {"max_mT_per_m": mx, "rms_mT_per_m": rms}
     k0 = k = None
     if ir.n_adc_samples:
-        k0 = ir.kspace_rad_per_m().numpy()
+        k0 = ref.kspace_rad_per_m().numpy()
         k = ir.kspace_rad_per_m(G).numpy()
-        dk = ir.dk_rad_per_m
+        dk = ref.dk_rad_per_m
         for a, name in enumerate(AXES):
             mx, rms = _stats(k[a] - k0[a])
             row = {"max_rad_per_m": mx, "rms_rad_per_m": rms, "max_dk": None, "rms_dk": None}
             if dk is not None and np.isfinite(dk[a]):
                 row.update(max_dk=mx / dk[a], rms_dk=rms / dk[a])
             out["k_error"][name] = row
+        kd = [r["max_dk"] for r in out["k_error"].values() if r["max_dk"] is not None]
+        out["k_error_max_dk"] = max(kd) if kd else None
         phi = b0_phase_at_adc_rad(ir, b0)
         out["b0_phase_max_rad"] = float(np.max(np.abs(phi)))
-        out["epi"] = _epi_offsets(ir, k, k0)
+        out["epi"] = _epi_offsets(ref, k, k0)
     else:
+        out["k_error_max_dk"] = None
         out["b0_phase_max_rad"] = None
         out["epi"] = None
     out["b0_max_uT"] = float(np.max(np.abs(b0))) if b0.size else 0.0
-    out["_arrays"] = {"G": G, "b0": b0, "k": k, "k0": k0}
+    out["_arrays"] = {"G": G, "g": g, "b0": b0, "k": k, "k0": k0}
     return out
 
 
@@ -167,7 +179,7 @@ def plot_prediction(ir: SequenceIR, res: dict[str, Any], path, title: str = "", 
     check_output_path(path, force)
     arr = res["_arrays"]
     t_ms = ir.t_fine_s * 1e3
-    g, G = ir.grad_mT_per_m, arr["G"]
+    g, G = arr["g"], arr["G"]
     cols = ("C0", "C1", "C2")
     used = [a for a in range(3) if np.any(g[a]) or np.any(G[a])] or [0, 1, 2]
     fig, axs = plt.subplots(2, 2, figsize=(13, 8))

@@ -1,0 +1,457 @@
+"""Public `.seq` files written by other people's software, through every command: the public-corpus table.
+
+Run: ``python -m bench.public_corpus DIR [DIR ...] --girf H.npz [--budget-optimize 120] [--budget 60]``
+-> the section "Public corpus" of docs/foreign.md (between its markers; the rest of the page is
+``bench.foreign``'s).  DIR holds ``.seq`` files as downloaded from public repositories (KomaMRI examples,
+pypulseq and Pulseq test/demo outputs, MRzero, JEMRIS, a CEST library, field-camera groups); nothing of it is
+committed.  An optional ``INDEX.tsv`` in DIR (columns path, source_repo, commit, ...) names each file's origin.
+
+Each file, each step in its own subprocess with a wall-clock budget (a step over budget is killed and its row
+says "timed out after N s"; peak memory is the step's own maximum resident set, from ``wait4``):
+
+1. read: dtoc's reader (``dtoc.seq.load``) -> kind, ADC samples, duration, peak gradient and slew, the reader's
+   notes (RF use taken or detected); its one-line refusal is the row's result when it cannot read the file;
+2. ``dtoc check`` at the limits below;
+3. ``dtoc predict --girf`` -> the realized k error (max over axes, dk);
+4. ``dtoc simulate --girf`` -> NRMSE and k error (where the file has an image grid);
+5. ``dtoc optimize --girf --gmax --smax`` -> before -> after (k in dk, NRMSE), or its one-line refusal.
+
+Limits: the file's own (``MaxGrad_mT_per_m`` / ``MaxSlew_T_per_m_per_s`` definitions) where it records them,
+else **assumed** 40 mT/m and 170 T/m/s (a common whole-body gradient) raised to the file's own peak + 2 % where
+that is higher (the file was written for such a system); the table says which.  A figure that cannot mean
+anything (no image grid, no ADC) is shown as its reason, never as a number.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime as dt
+import json
+import os
+import platform
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+DOC = REPO / "docs" / "foreign.md"
+BEGIN, END = "<!-- public-corpus:begin -->", "<!-- public-corpus:end -->"
+ASSUMED_GMAX, ASSUMED_SMAX = 40.0, 170.0
+
+
+def _probe(path: str) -> None:
+    """Step 1 (run in a subprocess): read the file as every command does; one JSON line on stdout."""
+    import numpy as np
+
+    from dtoc.errors import DtocError
+    from dtoc.optimize.limits import waveform_extremes
+    from dtoc.seq.check import system_from_definitions
+    from dtoc.seq.load import load_sequence
+
+    try:
+        ir = load_sequence(Path(path))
+    except DtocError as e:
+        print(json.dumps({"ok": False, "error": str(e).splitlines()[0] if str(e) else type(e).__name__}))
+        return
+    ext = waveform_extremes(ir.grad_mT_per_m, ir.dt_fine_s)
+    defs = {k: (str(v).split()[0] if str(v).split() else str(v)) for k, v in (ir.definitions or {}).items()}
+    try:
+        own = system_from_definitions(defs)
+    except DtocError:
+        own = None
+    print(
+        json.dumps(
+            {
+                "ok": True,
+                "kind": ir.kind,
+                "n_blocks": int(len(ir.block_edges_s) - 1),
+                "n_adc_samples": ir.n_adc_samples,
+                "n_rf": len(ir.rf),
+                "rf_uses": sorted({r.use for r in ir.rf}),
+                "duration_s": ir.duration_s,
+                "gmax_mT_per_m": float(max(ext["gmax_mT_per_m"])),
+                "smax_T_per_m_per_s": float(max(ext["smax_T_per_m_per_s"])),
+                "fov_m": None if ir.fov_m is None else [float(x) for x in ir.fov_m],
+                "matrix": None if ir.matrix is None else [int(x) for x in ir.matrix],
+                "has_gradient": bool(np.any(ir.grad_mT_per_m)),
+                "own_limits": None
+                if own is None
+                else [float(own.max_grad_mT_per_m), float(own.max_slew_T_per_m_per_s)],
+                "notes": list(ir.meta.get("notes", [])),
+            }
+        )
+    )
+
+
+def run_step(argv: list[str], budget_s: float, env: dict) -> dict:
+    """Run one subprocess within ``budget_s``: {rc, out, err, wall_s, peak_mb, timed_out}."""
+    t0 = time.perf_counter()
+    with tempfile.TemporaryFile() as fo, tempfile.TemporaryFile() as fe:
+        p = subprocess.Popen(argv, stdout=fo, stderr=fe, env=env, cwd=REPO, start_new_session=True)
+        timed_out, ru, status = False, None, 0
+        while True:
+            pid, status, ru = os.wait4(p.pid, os.WNOHANG)
+            if pid:
+                break
+            if time.perf_counter() - t0 > budget_s:
+                os.killpg(p.pid, signal.SIGKILL)
+                _, status, ru = os.wait4(p.pid, 0)
+                timed_out = True
+                break
+            time.sleep(0.1)
+        p.returncode = os.waitstatus_to_exitcode(status)
+        fo.seek(0)
+        fe.seek(0)
+        out, err = fo.read().decode(errors="replace"), fe.read().decode(errors="replace")
+    return {
+        "rc": p.returncode,
+        "out": out,
+        "err": err,
+        "wall_s": time.perf_counter() - t0,
+        "peak_mb": ru.ru_maxrss / 1024.0 if ru is not None else None,
+        "timed_out": timed_out,
+    }
+
+
+def _last_line(text: str, seq: Path | None = None) -> str:
+    if seq is not None:  # messages name the file by its name only (no machine paths in the table)
+        text = text.replace(str(seq), seq.name).replace(str(seq.parent) + os.sep, "")
+    lines = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
+    errs = [ln for ln in lines if ln.startswith("dtoc: error") or "Error" in ln[:40]]
+    s = (errs or lines or ["(no message)"])[-1]
+    return s.removeprefix("dtoc: error: ")
+
+
+def _failure(rc: int) -> str:
+    """The row's word for a command's exit code (docs/cli.md, "Exit codes")."""
+    return {2: "refused: ", 3: "internal error: "}.get(rc, f"exit {rc}: ")
+
+
+def _json_of(text: str) -> dict | None:
+    try:
+        return json.loads(text)
+    except (json.JSONDecodeError, ValueError):
+        return None
+
+
+def _dtoc(*args) -> list[str]:
+    return [sys.executable, "-m", "dtoc", *[str(a) for a in args]]
+
+
+def header_of(path: Path) -> tuple[str, str]:
+    """(writer comment line, 'major.minor.revision' or '?') from the file's text (no parsing of the rest)."""
+    writer, ver = "?", {}
+    in_ver = False
+    with open(path, "rb") as f:
+        for i, raw in enumerate(f):
+            if i > 200:
+                break
+            line = raw.decode("latin-1").strip()
+            if writer == "?" and line.startswith("#") and re.search(r"creat|generat|written", line, re.I):
+                writer = line.lstrip("# ").strip()
+            if line.startswith("["):
+                in_ver = line.upper() == "[VERSION]"
+                continue
+            if in_ver and line.split()[:1] and line.split()[0] in ("major", "minor", "revision"):
+                ver[line.split()[0]] = line.split()[1] if len(line.split()) > 1 else "?"
+    v = ".".join(ver.get(k, "?") for k in ("major", "minor", "revision")) if ver else "?"
+    return writer, v
+
+
+def _writer_short(w: str) -> str:
+    for pat, name in (
+        (r"pypulseq", "pypulseq"),
+        (r"matlab", "Pulseq MATLAB"),
+        (r"jemris", "JEMRIS"),
+        (r"gammastar", "gammaSTAR"),
+        (r"koma", "KomaMRI"),
+        (r"dtoc", "dtoc"),
+    ):
+        if re.search(pat, w, re.I):
+            return name
+    return w[:30] or "?"
+
+
+def _index(dirs: list[Path]) -> dict[str, dict]:
+    out = {}
+    for d in dirs:
+        p = d / "INDEX.tsv"
+        if p.exists():
+            with open(p, newline="") as f:
+                for r in csv.DictReader(f, delimiter="\t"):
+                    out[str((d / r["path"]).resolve())] = r
+    return out
+
+
+def _limits(probe: dict | None) -> tuple[float, float, str]:
+    if probe and probe.get("own_limits"):
+        g, s = probe["own_limits"]
+        return g, s, "file"
+    g, s = ASSUMED_GMAX, ASSUMED_SMAX
+    how = "assumed"
+    if probe and probe.get("ok"):
+        if probe["gmax_mT_per_m"] > g:
+            g, how = round(probe["gmax_mT_per_m"] * 1.02, 2), "assumed, raised to the file's peak"
+        if probe["smax_T_per_m_per_s"] > s:
+            s, how = round(probe["smax_T_per_m_per_s"] * 1.02, 1), "assumed, raised to the file's peak"
+    return g, s, how
+
+
+def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dict:
+    row: dict = {"file": str(seq)}
+    row["writer_line"], row["version"] = header_of(seq)
+    row["size_kb"] = seq.stat().st_size / 1024.0
+    peak = 0.0
+    total = 0.0
+
+    def step(name, argv, budget):
+        nonlocal peak, total
+        r = run_step(argv, budget, env)
+        peak = max(peak, r["peak_mb"] or 0.0)
+        total += r["wall_s"]
+        row[f"{name}_s"] = r["wall_s"]
+        return r
+
+    r = step("read", [sys.executable, "-m", "bench.public_corpus", "--probe", str(seq)], budgets["read"])
+    probe = _json_of(r["out"].strip().splitlines()[-1]) if r["out"].strip() else None
+    if r["timed_out"]:
+        row["read"] = f"timed out after {budgets['read']:.0f} s"
+    elif probe is None:
+        row["read"] = "internal error: " + _last_line(r["err"], seq)
+    elif not probe["ok"]:
+        row["read"] = probe["error"].replace(str(seq), seq.name)
+    else:
+        row["read"] = "ok"
+        row["probe"] = probe
+    g, s, how = _limits(probe)
+    row["limits"] = {"gmax": g, "smax": s, "source": how}
+    # check (reads the text itself: runs whatever the reader said)
+    r = step("check", _dtoc("check", seq, "--gmax", g, "--smax", s, "--json", "-"), budgets["other"])
+    res = _json_of(r["out"])
+    if r["timed_out"]:
+        row["check"] = f"timed out after {budgets['other']:.0f} s"
+    elif res is not None and "violations" in res:
+        rules = sorted({v.get("rule", "?") for v in res["violations"]})
+        row["check"] = "ok" if not res["violations"] else f"{len(res['violations'])} violations: " + ", ".join(rules)
+    else:
+        row["check"] = _failure(r["rc"]) + _last_line(r["err"], seq)
+    if row["read"] != "ok":
+        row["result"] = ("refused: " if "timed out" not in row["read"] else "") + row["read"]
+        row["time_s"], row["peak_mb"] = total, peak
+        return row
+    # predict
+    r = step("predict", _dtoc("predict", seq, "--girf", girf, "--json", "-"), budgets["other"])
+    res = _json_of(r["out"])
+    if r["timed_out"]:
+        row["predict"] = f"timed out after {budgets['other']:.0f} s"
+    elif res is not None:
+        kd = [v.get("max_dk") for v in (res.get("k_error") or {}).values() if v.get("max_dk") is not None]
+        row["predict"] = "ok"
+        row["predict_k_dk"] = max(kd) if kd else None
+    else:
+        row["predict"] = _failure(r["rc"]) + _last_line(r["err"], seq)
+    # simulate
+    r = step("simulate", _dtoc("simulate", seq, "--girf", girf, "--json", "-", "-q"), budgets["other"])
+    res = _json_of(r["out"])
+    if r["timed_out"]:
+        row["simulate"] = f"timed out after {budgets['other']:.0f} s"
+    elif res is not None:
+        row["simulate"] = "ok"
+        row["simulate_nrmse_pct"] = res.get("nrmse_percent")
+        row["simulate_k_dk"] = res.get("kspace_max_error_dk")
+    else:
+        row["simulate"] = _failure(r["rc"]) + _last_line(r["err"], seq)
+    # optimize
+    out, man = work / (seq.stem + "_opt.seq"), work / (seq.stem + "_opt.json")
+    argv = _dtoc("optimize", seq, "--girf", girf, "--gmax", g, "--smax", s, "-o", out, "--json", man, "-q", "--force")
+    r = step("optimize", argv, budgets["optimize"])
+    if r["timed_out"]:
+        est = [ln for ln in r["err"].splitlines() if "estimat" in ln.lower()]
+        row["result"] = f"timed out after {budgets['optimize']:.0f} s" + (f" ({est[-1].strip()})" if est else "")
+    elif r["rc"] == 0 and man.exists():
+        m = json.loads(man.read_text())
+        row["result"] = "optimized"
+        row["k_before_dk"] = m["before"].get("kspace_max_error_dk")
+        row["k_after_dk"] = m["after"].get("kspace_max_error_dk")
+        row["nrmse_before_pct"] = m["before"].get("nrmse_percent")
+        row["nrmse_after_pct"] = m["after"].get("nrmse_percent")
+        row["image_term"] = m["sequence"].get("image_term")
+        row["dk_source"] = m["sequence"].get("dk_source")
+        row["output_check_ok"] = (m.get("output") or {}).get("check_ok")
+    else:
+        row["result"] = _failure(r["rc"]) + _last_line(r["err"], seq)
+    for p in (out, man, out.with_suffix(".traj.npz")):
+        p.unlink(missing_ok=True)
+    row["time_s"], row["peak_mb"] = total, peak
+    return row
+
+
+def _f(v, nd=3) -> str:
+    return "-" if v is None else f"{v:.{nd}g}"
+
+
+def _cell(s: str) -> str:
+    return s.replace("|", "/").replace("\n", " ")
+
+
+def _rf_use(row: dict) -> str:
+    p = row.get("probe")
+    if not p:
+        return "-"
+    det = [n for n in p["notes"] if re.search(r"\bRF\b|refocus|excitation|use", n, re.I)]
+    uses = "/".join(p["rf_uses"]) or "no RF"
+    return uses + (" (" + _cell(det[0])[:110] + ("..." if len(det[0]) > 110 else "") + ")" if det else "")
+
+
+def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: str | None = None) -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu)
+    except OSError:
+        pass
+    n_opt = sum(r["result"] == "optimized" for r in rows)
+    for r in rows:  # rows of an earlier version of this script said "exit 3"
+        for k in ("check", "predict", "simulate", "result"):
+            if isinstance(r.get(k), str) and r[k].startswith("exit 3: "):
+                r[k] = "internal error: " + r[k][len("exit 3: ") :]
+    steps = ("read", "check", "predict", "simulate", "result")
+    n_int = sum(any("internal error" in str(r.get(k, "")) for k in steps) for r in rows)
+    n_int_opt = sum("internal error" in r["result"] for r in rows)
+    n_to = sum(r["result"].startswith("timed out") for r in rows)
+    writers = sorted({_writer_short(r["writer_line"]) for r in rows})
+    head = [
+        BEGIN,
+        "## Public corpus: files other people's software wrote",
+        "",
+        f"Written by `python -m bench.public_corpus DIR --girf ...`; run {when or f'{dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M} UTC'} "
+        f"on commit {commit}, {cpu}, {os.cpu_count()} cores (shared with other jobs: times are noisy), "
+        f"Python {platform.python_version()}. GIRF: {girf_name}. Budgets per file: read {budgets['read']:.0f} s, "
+        f"check / predict / simulate {budgets['other']:.0f} s each, optimize {budgets['optimize']:.0f} s "
+        "(a step over its budget is killed: 'timed out').",
+        "",
+        f"{len(rows)} files from {len(writers)} writers ({', '.join(writers)}): **{n_opt} optimized**, "
+        f"{len(rows) - n_opt - n_to - n_int_opt} refused with one line, {n_to} timed out, {n_int_opt} internal errors "
+        f"of optimize ({n_int} files with an internal error in any step). "
+        "The files are not committed (public repositories' example and test outputs; the source column names "
+        "the folder, the notes below the repositories).",
+        "",
+        "Columns: *version*: the file's `[VERSION]`; *kind*: dtoc's inference (gre, epi, or '-' when neither); "
+        "*limits*: the file's own definitions, or assumed (40 mT/m, 170 T/m/s, raised to the file's own peak + 2 % "
+        "where higher); *check*: `dtoc check` at those limits (its other rules as `dtoc check` applies them to a file "
+        "without a scanner profile); *predict k*: the realized k error of `dtoc predict` "
+        "(max over axes, dk = 2 pi / FOV; '-' where the FOV is unknown); *result*: `dtoc optimize`, with k (max, dk) "
+        "and NRMSE (built-in phantom; 'k-space only' where optimize ran without an image term: no image grid, or a "
+        "long file solved window by window) before -> after from its manifest; *time*: "
+        "all steps together; *peak*: the largest resident set of any step; *RF use*: the uses dtoc took, with the "
+        "reader's note on how. A file dtoc's reader refuses is refused by every command with the same line: "
+        "predict, simulate and optimize are then not run.",
+        "",
+        "| source | file | writer | version | kind | size (kB) | limits (mT/m, T/m/s) | check | predict k (dk) "
+        "| simulate NRMSE (%) | result | k before -> after (dk) | NRMSE before -> after (%) | time (s) | peak (MB) | RF use |",
+        "|" + "---|" * 16,
+    ]
+    lines = []
+    for r in rows:
+        name = Path(r["file"]).name
+        for k in ("check", "predict", "simulate", "result"):  # the file column names the file
+            if isinstance(r.get(k), str):
+                r[k] = r[k].replace(f": {name}: ", ": ", 1).replace(f"{name}: ", "", 1)
+        if r.get("check") == r["result"]:
+            r["check"] = "(as result)"
+        src = Path(r["file"]).parent.name
+        p = r.get("probe") or {}
+        lim = r["limits"]
+        lim_s = f"{lim['gmax']:g} / {lim['smax']:g} ({lim['source']})"
+        pred = _f(r.get("predict_k_dk")) if r.get("predict") == "ok" else _cell(r.get("predict", "-")).split("; ")[0]
+        sim = (
+            _f(r.get("simulate_nrmse_pct"))
+            if r.get("simulate") == "ok"
+            else _cell(r.get("simulate", "-")).split("; ")[0]
+        )
+        if r["result"] == "optimized":
+            kba = f"{_f(r.get('k_before_dk'))} -> {_f(r.get('k_after_dk'))}"
+            nba = (
+                f"{_f(r.get('nrmse_before_pct'))} -> {_f(r.get('nrmse_after_pct'))}"
+                if r.get("nrmse_before_pct") is not None
+                else "k-space only (no image term)"
+            )
+        else:
+            kba = nba = ""
+        lines.append(
+            f"| {src} | {Path(r['file']).name} | {_cell(_writer_short(r['writer_line']))} | {r['version']} | "
+            f"{p.get('kind') or '-'} | {r['size_kb']:.0f} | {lim_s} | {_cell(r.get('check', '-'))[:140]} | {pred} | {sim} | "
+            f"{_cell(r['result'])[:220]} | {kba} | {nba} | {r['time_s']:.0f} | {r['peak_mb']:.0f} | {_rf_use(r)} |"
+        )
+    return "\n".join(head + lines) + "\n" + END + "\n"
+
+
+def write_section(text: str) -> None:
+    """Replace the marked section of docs/foreign.md (append it when absent); the rest of the page is untouched."""
+    doc = DOC.read_text() if DOC.exists() else ""
+    if BEGIN in doc and END in doc:
+        a, b = doc.index(BEGIN), doc.index(END) + len(END)
+        doc = doc[:a] + text.rstrip("\n") + doc[b:]
+    else:
+        doc = doc.rstrip("\n") + "\n\n" + text
+    DOC.write_text(doc if doc.endswith("\n") else doc + "\n")
+
+
+def main() -> None:
+    if len(sys.argv) == 3 and sys.argv[1] == "--probe":
+        _probe(sys.argv[2])
+        return
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("dirs", nargs="*", type=Path, help="folders of .seq files (searched recursively)")
+    ap.add_argument("--girf", type=Path, required=True, help="GIRF .npz (dtoc girf import ...)")
+    ap.add_argument("--budget-optimize", type=float, default=120.0, help="optimize wall-clock budget per file, s")
+    ap.add_argument("--budget", type=float, default=60.0, help="check / predict / simulate budget per file, s")
+    ap.add_argument("--only", nargs="*", default=None, help="substrings of the paths to run")
+    ap.add_argument("--rows", type=Path, default=None, help="also write the rows as JSON lines here")
+    ap.add_argument("--no-write", action="store_true", help="print the table, leave docs/foreign.md alone")
+    ap.add_argument("--render", type=Path, default=None, help="only render the table of a --rows file (no runs)")
+    ap.add_argument("--commit", default=None, help="with --render: the commit the rows ran on")
+    ap.add_argument("--when", default=None, help="with --render: when the rows ran (default: now)")
+    ap.add_argument("--girf-label", default=None, help="how the table names the GIRF (default: its file name)")
+    a = ap.parse_args()
+    budgets = {"read": a.budget, "other": a.budget, "optimize": a.budget_optimize}
+    if a.render is not None:
+        rows = [json.loads(ln) for ln in a.render.read_text().splitlines() if ln.strip()]
+        _finish(rows, a, budgets, a.commit or "?")
+        return
+    files = sorted({p.resolve() for d in a.dirs for p in (d.rglob("*.seq") if d.is_dir() else [d])})
+    if a.only:
+        files = [f for f in files if any(s in str(f) for s in a.only)]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout
+    idx = _index([d for d in a.dirs if d.is_dir()])
+    rows = []
+    with tempfile.TemporaryDirectory() as td:
+        for f in files:
+            row = run_file(f, a.girf.resolve(), budgets, Path(td), env)
+            row["source_repo"] = (idx.get(str(f)) or {}).get("source_repo")
+            rows.append(row)
+            print(json.dumps({k: v for k, v in row.items() if k != "probe"}), flush=True)
+            if a.rows is not None:
+                with open(a.rows, "a") as fo:
+                    fo.write(json.dumps(row) + "\n")
+    _finish(rows, a, budgets, commit.strip() or "?")
+
+
+def _finish(rows: list[dict], a, budgets: dict, commit: str) -> None:
+    text = render(rows, a.girf_label or a.girf.name, budgets, commit, a.when)
+    repos = sorted({r["source_repo"] for r in rows if r.get("source_repo")})
+    if repos:
+        text = text.replace(END, "Sources (GitHub): " + ", ".join(f"`{x}`" for x in repos) + ".\n" + END)
+    if not a.no_write:
+        write_section(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
