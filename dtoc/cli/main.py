@@ -81,6 +81,26 @@ def _interrupted(e: KeyboardInterrupt) -> None:
     raise SystemExit(interrupt.exit_code(signum)) from None
 
 
+def _call(argv: list[str] | None) -> int:
+    """Run the typer app; a usage error (unknown option, missing argument, a value the parser refuses) is one
+    ``dtoc: error:`` line and exit 2 instead of click's usage box (a bare ``dtoc`` or group still shows its help)."""
+    from typer import _click as click
+
+    try:
+        rv = app(args=argv, standalone_mode=False)
+    except click.exceptions.NoArgsIsHelpError as e:
+        sys.stdout.write(e.ctx.get_help() + "\n")
+        return 2
+    except click.exceptions.UsageError as e:
+        cmd = e.ctx.command_path if e.ctx is not None else "dtoc"
+        error_exit(f"{cmd}: {e.format_message()} (see '{cmd} --help')", 2)
+    except click.exceptions.ClickException as e:
+        error_exit(e.format_message(), e.exit_code)
+    except typer.Abort:
+        raise KeyboardInterrupt from None
+    return rv if isinstance(rv, int) else 0
+
+
 def run(argv: list[str] | None = None) -> None:
     """Console-script entry point."""
     from dtoc.errors import DtocError, describe
@@ -90,7 +110,9 @@ def run(argv: list[str] | None = None) -> None:
     interrupt.install()
     keep_freed_memory()
     try:
-        app(args=argv, standalone_mode=True)
+        code = _call(argv)
+        if code:
+            raise SystemExit(code)
     except SystemExit as e:
         ki = _interrupt_cause(e)  # typer turns an interrupt into exit 130 without a word
         if ki is None:

@@ -66,17 +66,16 @@ def check_cmd(
     Limits: --gmax/--smax override --system, which overrides the limits a dtoc-built file records; a file
     without recorded limits needs --gmax and --smax (or --system): limits are never assumed.
     """
-    import math
 
     from dtoc.errors import InputError
     from dtoc.seq.check import check_file, system_from_definitions
     from dtoc.seq.seqtext import parse_seq_text
     from dtoc.seq.spec import load_system
     from dtoc.seq.system import SystemSpec
+    from dtoc.util.validate import check_range
 
-    for name, v in (("--gmax", gmax), ("--smax", smax)):
-        if v is not None and not (math.isfinite(v) and v > 0):
-            raise InputError(f"{name} must be a finite number > 0, got {v}")
+    check_range("gmax", gmax, "--gmax")
+    check_range("smax", smax, "--smax")
     if max_rows < 0:
         raise InputError(f"--max-rows must be >= 0, got {max_rows}")
     from dtoc.cli import scanner as sc
@@ -135,7 +134,10 @@ def check_cmd(
         res.limits_source += " + " + " ".join(
             f"{n} {v:g}" for n, v in (("--gmax", gmax), ("--smax", smax)) if v is not None
         )
-    if rotation is not None:
+    bad_orientation = _recorded_orientation_problem(res.definitions)
+    if bad_orientation is not None:
+        res.warnings.append(bad_orientation)
+    elif rotation is not None:
         res.warnings.extend(_orientation_warnings(res.definitions, rotation))
     outp = Output(json_out)
     outp.write_json(strict_json(res.to_dict()), force)
@@ -146,6 +148,29 @@ def check_cmd(
         note(c)
     if not res.ok:
         raise typer.Exit(1)
+
+
+def _recorded_orientation_problem(definitions: dict) -> str | None:
+    """A ``DtocOrientation`` definition that is not 9 numbers of a rotation: one warning naming it (None: absent
+    or valid)."""
+    from dtoc.errors import InputError
+    from dtoc.hardware.orientation import parse_orientation
+    from dtoc.util.validate import escape
+
+    v = (definitions or {}).get("DtocOrientation")
+    if v is None:
+        return None
+    text = " ".join(str(x) for x in v) if isinstance(v, (list, tuple)) else str(v)
+    try:
+        if len(text.split()) != 9:
+            raise InputError("not 9 numbers")
+        parse_orientation(text)
+    except InputError:
+        return (
+            f"the file's DtocOrientation {escape(text, 60)} is not 9 numbers of a rotation matrix: the orientation it "
+            "was compiled for is unknown (its pre-compensation holds only at that orientation)"
+        )
+    return None
 
 
 def _orientation_warnings(definitions: dict, want) -> list[str]:

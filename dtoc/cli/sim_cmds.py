@@ -61,8 +61,15 @@ def simulate_cmd(
     from dtoc.sim.phantom import check_phantom_matches, phantom_for
     from dtoc.util.atomic import atomic_write_bytes, check_outputs, outputs_together, sha256_file
     from dtoc.util.jsonout import strict_json
+    from dtoc.util.validate import check_range
     from dtoc.version import __version__
 
+    check_range("dummies", dummies, "--dummies")
+    check_range("b0", field_T, "--b0")
+    if phantom is not None:
+        from dtoc.sim.phantom import check_phantom_size
+
+        check_phantom_size(phantom)
     tdtype = torch_dtype(dtype)
     dev = check_device(device)
     phantom_file = phantom if phantom and phantom.endswith(".npz") else None
@@ -81,6 +88,7 @@ def simulate_cmd(
     sequence_notes(ir)
     prof = sc.load(scanner)
     hw = sc.resolve(prof, girf, model)
+    label = sc.model_label(prof, girf, model)
     if field_T is None:
         field_T = prof.profile.b0_T if prof is not None else DEFAULT_B0_T
     from dtoc.hardware.orientation import RotatedChain, parse_orientation
@@ -92,6 +100,13 @@ def simulate_cmd(
         phantom = "brain3d"  # a 3D-encoded sequence images the built-in 3D head
     if not check_phantom_matches(ir, phantom):  # one line for a 2D phantom on a 3D file and the reverse
         ir.require_geometry(f"{seq}: simulate")
+    from dtoc.util.validate import check_simulation_cost
+
+    n_vox = _planned_voxels(ir, phantom)
+    if n_vox is not None:
+        est, sec = check_simulation_cost(f"{seq}: simulate", n_vox, ir.n_adc_samples, n_runs=2)
+        if not quiet and sec > 30:
+            note(f"note: {est}")
     ph = phantom_for(ir, phantom, field_T=field_T, b0=b0_map, b1=b1_map)
     res = compare_ideal_realized(
         ir, ph, hw, n_dummies=dummies, dtype=tdtype, device=dev, step=lambda s: rep.step(f"simulating: {s}")
@@ -109,6 +124,7 @@ def simulate_cmd(
         "hardware": {
             "girf": str(girf) if girf else None,
             "model": str(model) if model else None,
+            "applied": "ideal" if res.identity_hardware else label,
             "identity": res.identity_hardware,
         },
         "phantom": {
@@ -148,10 +164,26 @@ def simulate_cmd(
     t.add_row("k-space RMSE", f"{m['kspace_rmse_rad_per_m']:.4g} rad/m")
     if m["kspace_max_err_dk"] is not None:
         t.add_row("k-space max error", f"{m['kspace_max_err_dk']:.4g} dk")
-    t.add_row("hardware", "ideal (identity)" if res.identity_hardware else str(girf or model))
+    t.add_row("hardware", "ideal (identity)" if res.identity_hardware else label)
     outp.console().print(t)
     if png_out is not None:
         note(f"wrote {png_out}")
+
+
+def _planned_voxels(ir, phantom) -> int | None:
+    """Voxels of the phantom a simulation of ``ir`` will build (the image matrix for the built-in head, N x N
+    for brain:N), before it is built; None when unknown (a .npz: checked by its loader)."""
+    spec = "brain" if phantom is None else str(phantom)
+    name, _, size = spec.partition(":")
+    if name not in ("brain", "brain-noscalp"):
+        return None
+    if size.isdigit():
+        return int(size) ** 2
+    geo = getattr(ir, "geometry", None)
+    if geo is None:
+        return None
+    nx, ny = geo.matrix_xy
+    return int(nx) * int(ny)
 
 
 def register(app: typer.Typer) -> None:
