@@ -74,6 +74,13 @@ def identify_cmd(
         {"MEASURED": measured, "--girf": girf, "--model": model, **sc.input_paths(scanner)},
         force,
     )
+    from dtoc.util.validate import check_npz_archive
+
+    for key, shape in check_npz_archive(measured, "MEASURED").items():
+        if key in ("g", "G", "k") and len(shape) >= 1 and shape[-1] < 32:
+            raise InputError(
+                f"{measured}: '{key}' has {shape[-1]} samples per waveform; identify needs at least 32 (as girf fit)"
+            )
     from dtoc.hardware.profile import profile_hardware
 
     declared = profile_hardware(sc.load(scanner), girf, model)

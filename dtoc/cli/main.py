@@ -81,24 +81,28 @@ def _interrupted(e: KeyboardInterrupt) -> None:
     raise SystemExit(interrupt.exit_code(signum)) from None
 
 
-def _call(argv: list[str] | None) -> int:
-    """Run the typer app; a usage error (unknown option, missing argument, a value the parser refuses) is one
-    ``dtoc: error:`` line and exit 2 instead of click's usage box (a bare ``dtoc`` or group still shows its help)."""
+def _one_line_usage_errors() -> None:
+    """A usage error (unknown option, missing argument, a value the parser refuses) is one ``dtoc: error:`` line
+    (exit 2, as click's) instead of typer's boxed panel; a bare ``dtoc`` or group still shows its help."""
     from typer import _click as click
+    from typer import rich_utils
 
-    try:
-        rv = app(args=argv, standalone_mode=False)
-    except click.exceptions.NoArgsIsHelpError as e:
-        sys.stdout.write(e.ctx.get_help() + "\n")
-        return 2
-    except click.exceptions.UsageError as e:
-        cmd = e.ctx.command_path if e.ctx is not None else "dtoc"
-        error_exit(f"{cmd}: {e.format_message()} (see '{cmd} --help')", 2)
-    except click.exceptions.ClickException as e:
-        error_exit(e.format_message(), e.exit_code)
-    except typer.Abort:
-        raise KeyboardInterrupt from None
-    return rv if isinstance(rv, int) else 0
+    boxed = rich_utils.rich_format_error
+    if getattr(boxed, "_dtoc_one_line", False):
+        return
+
+    def one_line(e) -> None:
+        if isinstance(e, click.exceptions.NoArgsIsHelpError):
+            boxed(e)
+            return
+        ctx = getattr(e, "ctx", None)
+        cmd = ctx.command_path if ctx is not None else "dtoc"
+        msg = " ".join(e.format_message().split())
+        sys.stderr.write(f"dtoc: error: {cmd}: {msg} (see '{cmd} --help')\n")
+        sys.stderr.flush()
+
+    one_line._dtoc_one_line = True  # type: ignore[attr-defined]
+    rich_utils.rich_format_error = one_line
 
 
 def run(argv: list[str] | None = None) -> None:
@@ -109,10 +113,9 @@ def run(argv: list[str] | None = None) -> None:
 
     interrupt.install()
     keep_freed_memory()
+    _one_line_usage_errors()
     try:
-        code = _call(argv)
-        if code:
-            raise SystemExit(code)
+        app(args=argv, standalone_mode=True)
     except SystemExit as e:
         ki = _interrupt_cause(e)  # typer turns an interrupt into exit 130 without a word
         if ki is None:

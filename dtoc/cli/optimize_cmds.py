@@ -64,7 +64,7 @@ def optimize_cmd(
     allow_worse: bool = typer.Option(
         False,
         "--allow-worse",
-        help="optimize even when the base needs more than twice --gmax/--smax (refused otherwise: no waveform "
+        help="optimize even when the base needs more than 10x --gmax or --smax (refused otherwise: no waveform "
         "within such limits follows the base)",
     ),
 ):

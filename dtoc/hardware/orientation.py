@@ -32,7 +32,6 @@ NAMED = {
 ALIASES = {
     "transversal": "tra",
     "transverse": "tra",
-    "axial": "tra",
     "coronal": "cor",
     "sagittal": "sag",
 }

@@ -88,14 +88,6 @@ class OptimizeRequest(BaseModel):
             from dtoc.sim.phantom import check_phantom_size
 
             check_phantom_size(self.phantom)
-        if self.checkpoint is not None and not self.force and os.path.lexists(self.checkpoint):
-            same = self.resume is not None and os.path.realpath(self.resume) == os.path.realpath(self.checkpoint)
-            if not same:
-                from dtoc.errors import InputError
-
-                raise InputError(
-                    f"{self.checkpoint}: --checkpoint exists; pass --force to overwrite it (or --resume it)"
-                )
 
     def trajectory_path(self) -> Path | None:
         """Where the side-car goes (None: not written)."""
@@ -159,6 +151,7 @@ def run_request(
         trajectory,
         {k: v for k, v in req.input_files().items() if k not in ("BASE", "--girf", "--model", "--config", "--resume")},
     )
+    _check_checkpoint(req)
     _check_resume(req.resume)
     prof = None if req.scanner is None else load_profile(req.scanner)
     hw = profile_hardware(prof, req.girf, req.model)
@@ -230,6 +223,19 @@ def run_request(
     return res.manifest
 
 
+def _check_checkpoint(req: OptimizeRequest) -> None:
+    """``--checkpoint`` is an output like the others: an existing file is replaced only with ``--force`` (or
+    when it is the checkpoint resumed from)."""
+    from dtoc.errors import InputError
+
+    ck = req.checkpoint
+    if ck is None or req.force or not os.path.lexists(ck):
+        return
+    if req.resume is not None and os.path.realpath(req.resume) == os.path.realpath(ck):
+        return
+    raise InputError(f"{ck}: --checkpoint exists; pass --force to overwrite it (or --resume it)")
+
+
 def _check_resume(resume: Path | None) -> None:
     """A checkpoint to resume from: a dtoc checkpoint archive (no pickles, sizes within memory) whose edges are
     all finite (a NaN would resume silently into a NaN waveform)."""
@@ -256,7 +262,7 @@ def _check_resume(resume: Path | None) -> None:
 
 
 #: the base may need up to this factor above a limit before ``optimize`` refuses without ``--allow-worse``
-WORSE_FACTOR = 2.0
+WORSE_FACTOR = 10.0
 
 
 def _check_config(cfg, req: OptimizeRequest, ir, prof, notes) -> None:
