@@ -527,3 +527,44 @@ def test_the_new_corpus_is_large_enough():
         + 3 * len(PROFILE_BAD) + 3 + 1 + len(BIG) + 1 + 1 + len(BATCH) + 2 + 1
     )  # fmt: skip
     assert n >= 60, n
+
+
+def _dtoc(*args, env=None):
+    e = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", **(env or {})}
+    return subprocess.run([sys.executable, "-m", "dtoc", *map(str, args)], capture_output=True, text=True, env=e)
+
+
+@pytest.mark.slow
+def test_an_interrupt_never_replaces_an_unrelated_file_at_the_default_checkpoint(tmp_path):
+    """The default checkpoint ``OUT.ckpt.npz`` takes a free name beside an unrelated file; a finished run from an
+    interrupted best-so-far does not copy its ``DtocInterrupted`` flag."""
+    fast = ["--warm-iters", "20", "--iters", "2", "--threads", "1", "-q"]
+    out = tmp_path / "o.seq"
+    mine = tmp_path / "o.seq.ckpt.npz"
+    mine.write_bytes(b"an unrelated file")
+    r = _dtoc("optimize", EPI, "--girf", GIRF, "-o", out, *fast, env={"DTOC_FAULT_SIGNAL": "warm_start:SIGINT"})
+    assert r.returncode == 130, r.stderr
+    assert mine.read_bytes() == b"an unrelated file"
+    assert (tmp_path / "o-2.seq.ckpt.npz").is_file() and "o-2.seq.ckpt.npz" in r.stderr
+    assert b"DtocInterrupted 1" in out.read_bytes()
+    stale = _write(tmp_path / "s.seq", _epi_with(b"[DEFINITIONS]\n", b"[DEFINITIONS]\nDtocInterrupted 1\n"))
+    r2 = _dtoc("optimize", stale, "--girf", GIRF, "-o", tmp_path / "f.seq", "--no-trajectory", *fast)
+    assert r2.returncode == 0, r2.stderr
+    assert b"DtocInterrupted" not in (tmp_path / "f.seq").read_bytes()
+
+
+def test_an_adc_dwell_of_zero_fails_check(capsys, tmp_path):
+    p = _write(tmp_path / "b.seq", _epi_with(b"[ADC]\n1 16 10000 0", b"[ADC]\n1 16 0 0"))
+    code, out, err = run_cli(capsys, "check", p, "--json", "-")
+    assert code == 1, err
+    assert {v["rule"] for v in json.loads(out)["violations"]} == {"adc_dwell"}
+
+
+def test_a_nan_in_a_time_shape_is_refused(capsys, tmp_path):
+    raw = GRE.read_bytes()
+    body = raw[: raw.find(b"\n[SIGNATURE]")]
+    old = b"shape_id 7\nnum_samples 4\n0\n5\n"
+    assert old in body
+    p = _write(tmp_path / "b.seq", sign_text(body.replace(old, b"shape_id 7\nnum_samples 4\n0\nnan\n", 1)))
+    refused(capsys, tmp_path, ["predict", p], "not finite")
+    refused(capsys, tmp_path, ["check", p], "not finite")

@@ -113,6 +113,10 @@ def run(argv: list[str] | None = None) -> None:
 
     interrupt.install()
     keep_freed_memory()
+    import warnings
+
+    # numpy's floating-point RuntimeWarnings are not for the user: a bad value is refused with one line
+    warnings.filterwarnings("ignore", category=RuntimeWarning, module=r"numpy(\.|$)")
     _one_line_usage_errors()
     try:
         app(args=argv, standalone_mode=True)

@@ -175,7 +175,9 @@ def run_request(
     if notes is not None:
         for n in ir.meta.get("notes", []):
             notes(n)
-    if isinstance(ir.definitions, dict) and ir.definitions.pop("DtocInterrupted", None) is not None and notes:
+    stale = [d.pop("DtocInterrupted", None) for d in (ir.definitions, getattr(ir.source, "definitions", None))
+             if isinstance(d, dict)]  # fmt: skip
+    if any(v is not None for v in stale) and notes is not None:  # the writer copies the source's definitions
         notes(f"{req.base} is an interrupted run's best-so-far (DtocInterrupted): the flag is not copied to the output")
     weights = {k: v for k, v in (("image", req.w_image), ("kspace", req.w_k), ("rf", req.w_rf)) if v is not None}
     overrides = {
@@ -288,6 +290,14 @@ def _check_config(cfg, req: OptimizeRequest, ir, prof, notes) -> None:
         *(("weight", f"weights.{k}", w) for k, w in cfg.weights.model_dump().items()),
     ):
         check_range(key, v, f"{src}config {field}")
+    geo = getattr(ir, "geometry", None)
+    name, _, size = str(req.phantom or "brain").partition(":")
+    if cfg.weights.image > 0 and geo is not None and name in ("brain", "brain-noscalp"):
+        from dtoc.util.validate import check_simulation_cost
+
+        n = cfg.phantom_size or (int(size) if size.isdigit() else None)
+        vox = n * n if n else int(geo.matrix_xy[0]) * int(geo.matrix_xy[1])
+        check_simulation_cost(f"{req.base}: optimize", vox, ir.n_adc_samples, n_phantoms=1 + cfg.augment_rotations)
     limits, sources = limits_and_sources(ir, cfg)
     for key, v, name in (
         ("gmax", limits.gmax_mT_per_m, "gmax_mT_per_m"),

@@ -444,7 +444,13 @@ def _event_rules(seq, ir: SequenceIR, system: SystemSpec, out: list[Violation]) 
                 out.append(
                     Violation("block_duration", key, None, end * 1e6, dur * 1e6, "us", "ADC ends after its block")
                 )
-            if not _on_raster(adc.dwell, system.adc_raster_s):
+            if not adc.dwell > 0:  # every sample at one instant: no readout (on the raster, but not playable)
+                out.append(
+                    Violation(
+                        "adc_dwell", key, None, adc.dwell * 1e9, system.adc_raster_s * 1e9, "ns", "ADC dwell is 0"
+                    )
+                )
+            elif not _on_raster(adc.dwell, system.adc_raster_s):
                 out.append(
                     Violation(
                         "adc_raster",

@@ -60,6 +60,20 @@ def check_output_path(path: str | os.PathLike, force: bool) -> Path:
     return p
 
 
+def unused_path(path: str | os.PathLike, keep: str | os.PathLike | None = None) -> Path:
+    """``path`` if nothing exists there (or it is ``keep``, a file this command may replace), else the first of
+    ``<stem>-2<suffix>``, ``-3``, ... that is free: a default output name never replaces an unrelated file."""
+    p = Path(path)
+    if not os.path.lexists(p) or (keep is not None and os.path.realpath(p) == os.path.realpath(keep)):
+        return p
+    name, dot, ext = p.name.partition(".")
+    for i in range(2, 10_000):
+        q = p.with_name(f"{name}-{i}{dot}{ext}")
+        if not os.path.lexists(q):
+            return q
+    raise InputError(f"{p}: no free name beside it for the default output")
+
+
 def _identity(path: str | os.PathLike) -> tuple[int, int] | None:
     """(device, inode) of an existing file (hard links to one file share it), else None."""
     try:
