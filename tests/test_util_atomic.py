@@ -28,16 +28,20 @@ def test_a_failure_inside_the_block_writes_nothing(tmp_path):
 
 def test_a_failed_move_restores_what_was_replaced(tmp_path, monkeypatch):
     (tmp_path / "a").write_bytes(b"old")
-    real = os.replace
     calls = {"n": 0}
 
-    def flaky(src, dst):
-        if str(dst).endswith("b"):
-            calls["n"] += 1
-            raise OSError(28, "No space left on device", str(dst))
-        return real(src, dst)
+    def flaky(real):
+        def move(src, dst):
+            if str(dst).endswith("b"):
+                calls["n"] += 1
+                raise OSError(28, "No space left on device", str(dst))
+            return real(src, dst)
 
-    monkeypatch.setattr("dtoc.util.atomic.os.replace", flaky)
+        return move
+
+    # a new file is published with a hard link, a replaced one with a rename: both fail for "b"
+    monkeypatch.setattr("dtoc.util.atomic.os.replace", flaky(os.replace))
+    monkeypatch.setattr("dtoc.util.atomic.os.link", flaky(os.link))
     with pytest.raises(OSError), outputs_together():
         atomic_write_bytes(tmp_path / "a", b"new", force=True)
         atomic_write_bytes(tmp_path / "b", b"B")

@@ -37,6 +37,7 @@ OPTION_KEYS = (
     "config",
     "offset",
     "device",
+    "allow_worse",
 )
 #: the file names of a job's outputs inside its folder (as ``dtoc optimize -o optimized.seq --json
 #: manifest.json --png report.png`` run in that folder writes them)
@@ -163,7 +164,15 @@ def _orient_label(o: str | None) -> str:
 def expand(plan: BatchPlan, root: Path) -> list[Job]:
     """The jobs of ``plan`` (paths resolved against ``root``), in plan order; each checked as ``dtoc optimize``
     would check its options before any job runs."""
+    from dtoc.util.validate import check_range
+
     rows = plan.rows
+    n = (
+        len(rows)
+        if rows is not None
+        else (len(plan.sequences) * len(plan.hardware) * len(plan.orientations) * len(plan.options))
+    )
+    check_range("jobs", n, "the plan's job count")
     if rows is None:
         rows = [
             Row(sequence=s, hardware=h, orientation=o, options=op)
@@ -224,6 +233,10 @@ def _job(plan: BatchPlan, root: Path, name: str, r: Row) -> Job:
     except ValidationError as e:
         err = e.errors()[0]
         raise InputError(f"job {name}: option {'.'.join(map(str, err['loc']))}: {err['msg']}") from None
+    try:
+        req.validate_options()
+    except InputError as e:
+        raise InputError(f"job {name}: {e}") from None
     for f in ("base", "girf", "model", "scanner", "config"):
         p = getattr(req, f)
         if p is not None and not p.is_file():
@@ -240,6 +253,8 @@ def job_key(req: OptimizeRequest) -> str:
     files = {label: sha256_file(p) for label, p in req.input_files().items()}
     R = parse_orientation(req.orientation)
     opts = req.model_dump(mode="json", exclude={*INPUT_FIELDS, "checkpoint", "force", "orientation"})
+    if not opts.get("allow_worse"):
+        opts.pop("allow_worse", None)  # keys of jobs that do not ask for it stay as before the option existed
     if "--phantom" in files:
         opts["phantom"] = "<file>"  # its bytes are in files
     record = {

@@ -54,15 +54,24 @@ def run_batch(
     write the report; refused before any work if it exists (without ``force``) or is one of the plan's inputs.
     When interrupted, re-raises the KeyboardInterrupt with the report so far as its ``report`` attribute.
     """
-    from dtoc.batch.engines import default_workers, make_engine
+    from dtoc.batch.engines import ENGINES, default_workers, make_engine
+    from dtoc.errors import InputError
     from dtoc.util.atomic import check_outputs
+    from dtoc.util.validate import check_range
 
     t0 = time.perf_counter()
+    # everything is validated before the output folder is created or touched: a refused batch leaves no trace
+    check_range("workers", workers, "--workers")
+    if engine not in ENGINES:
+        raise InputError(f"--engine {engine!r}: expected one of {', '.join(ENGINES)}")
+    if engine == "local" and address:
+        raise InputError("--address is for --engine dask")
     plan_path = Path(plan_path)
     plan = load_plan(plan_path)
     jobs = expand(plan, plan_path.resolve().parent)
     inputs = {f"{j.name} {label}": f for j in jobs for label, f in j.request.input_files().items()}
     check_outputs({"--json": report_path}, {"PLAN": plan_path, **inputs}, force)
+    Store.check(out_dir, [j.name for j in jobs], {"PLAN": plan_path, **inputs})
     store = Store.open(out_dir)
     by_key: dict[str, list[Job]] = {}
     for j in jobs:

@@ -25,6 +25,7 @@ from pathlib import Path
 from dtoc.errors import InputError
 
 MARKER = ".dtoc-batch"
+LOCK = ".dtoc-batch.lock"
 RECORD = "job.json"
 KEY_CHARS = 20
 
@@ -36,21 +37,68 @@ class Store:
         self.root = Path(root)
         self.jobs = self.root / "jobs"
         self.staging = self.root / ".staging"
+        self._lock_fd: int | None = None
+
+    @classmethod
+    def check(cls, root: str | Path, names: list[str], inputs: dict | None = None) -> None:
+        """Refuse, before the folder is created or touched: a file, a foreign non-empty folder, a folder that is
+        (or holds) an input, and a job name whose link would clash with something that is not a job link."""
+        r = Path(root)
+        if os.path.lexists(r) and not r.is_dir():
+            raise InputError(f"{r}: --out must be a folder (it is a file)")
+        if r.is_dir() and any(x.name != LOCK for x in r.iterdir()) and not (r / MARKER).is_file():
+            raise InputError(f"{r}: not empty and not a dtoc batch folder (no {MARKER}): give a new or empty folder")
+        if not r.parent.is_dir():
+            raise InputError(f"{r}: --out's parent folder {r.parent} does not exist")
+        real = os.path.realpath(r)
+        for label, p in (inputs or {}).items():
+            rp = os.path.realpath(p)
+            if rp == real or rp.startswith(real + os.sep):
+                raise InputError(f"{r}: --out holds the {label} input {p}; choose another --out")
+        for n in names:
+            d = r / n
+            if n in ("jobs", MARKER, LOCK, ".staging") or (os.path.lexists(d) and not d.is_symlink()):
+                raise InputError(
+                    f"{d}: job {n} would replace something that is not a job link of dtoc batch; rename the job "
+                    "or choose another --out"
+                )
 
     @classmethod
     def open(cls, root: str | Path) -> Store:
-        """Create or reopen ``root``; refuse a non-empty folder that is not a batch folder, or a file."""
+        """Create or reopen ``root`` and lock it for this batch (a second batch on it is refused in one line);
+        refuse a non-empty folder that is not a batch folder, or a file."""
         r = Path(root)
-        if r.exists() and not r.is_dir():
-            raise InputError(f"{r}: --out must be a folder (it is a file)")
-        if r.is_dir() and any(r.iterdir()) and not (r / MARKER).is_file():
-            raise InputError(f"{r}: not empty and not a dtoc batch folder (no {MARKER}): give a new or empty folder")
+        cls.check(r, [])
+        created = not r.exists()
+        r.mkdir(exist_ok=True)
         s = cls(r)
+        try:
+            s._lock()
+        except BaseException:
+            if created:
+                shutil.rmtree(r, ignore_errors=True)
+            raise
         s.jobs.mkdir(parents=True, exist_ok=True)
         (r / MARKER).write_text("dtoc batch output folder (docs/batch.md)\n")
         shutil.rmtree(s.staging, ignore_errors=True)  # commits a killed run left half-done
         s.staging.mkdir()
         return s
+
+    def _lock(self) -> None:
+        """An exclusive lock on ``OUT/.dtoc-batch.lock`` held until :meth:`close` (released by the OS if the
+        process dies): two batches never write one folder."""
+        import fcntl
+
+        fd = os.open(self.root / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise InputError(
+                f"{self.root}: another dtoc batch is running on this --out (it holds {LOCK}); wait for it or choose "
+                "another --out"
+            ) from None
+        self._lock_fd = fd
 
     def job_dir(self, key: str) -> Path:
         return self.jobs / key[:KEY_CHARS]
@@ -109,6 +157,9 @@ class Store:
 
     def close(self) -> None:
         shutil.rmtree(self.staging, ignore_errors=True)
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)  # releases the lock
+            self._lock_fd = None
 
 
 def _write(p: Path, b: bytes) -> None:

@@ -249,6 +249,7 @@ def predict_cmd(
     rep = ProgressReporter("dtoc predict", quiet=quiet)
     prof = sc.load(scanner)
     m = sc.resolve(prof, girf, model)
+    label = sc.model_label(prof, girf, model)
     from dtoc.hardware.orientation import RotatedChain, parse_orientation
 
     R = parse_orientation(orientation)
@@ -269,10 +270,11 @@ def predict_cmd(
     outp = Output(json_out)
     with outputs_together():
         if png is not None:
-            plot_prediction(ir, res, png, title=f"{seq.name} with {girf or model or 'ideal hardware'}", force=force)
+            shown = "ideal hardware" if label == "ideal" else label
+            plot_prediction(ir, res, png, title=f"{seq.name} with {shown}", force=force)
         res.pop("_arrays")
         res["sequence"] = str(seq)
-        res["model"] = str(girf or model or "ideal")
+        res["model"] = label
         outp.write_json(strict_json(res), force)
     _print_prediction(res, outp.console())
     if png is not None:

@@ -49,13 +49,17 @@ def identify_cmd(
     from dtoc.errors import InputError
     from dtoc.identify.api import run_identify
     from dtoc.identify.report import print_table
+    from dtoc.util.validate import check_range, escape
 
+    check_range("max_effects", max_effects, "--max-effects")
     kind_list = None
-    if kinds:
+    if kinds is not None:
         kind_list = [k.strip() for k in kinds.split(",") if k.strip()]
-        bad = [k for k in kind_list if k not in KINDS]
+        if not kind_list:
+            raise InputError(f"--kinds {escape(kinds)}: names no kind (leave --kinds out for all: {', '.join(KINDS)})")
+        bad = [escape(k, 40) for k in kind_list if k not in KINDS]
         if bad:
-            raise InputError(f"--kinds: unknown kind(s) {bad}; known: {', '.join(KINDS)}")
+            raise InputError(f"--kinds: unknown kind(s) {', '.join(bad)}; known: {', '.join(KINDS)}")
 
     def progress(msg: str) -> None:
         if not quiet:
@@ -65,7 +69,18 @@ def identify_cmd(
     from dtoc.cli import scanner as sc
     from dtoc.util.atomic import check_outputs
 
-    check_outputs({"-o": out, "--json": json_out, "--png": png}, sc.input_paths(scanner), force)
+    check_outputs(
+        {"-o": out, "--json": json_out, "--png": png},
+        {"MEASURED": measured, "--girf": girf, "--model": model, **sc.input_paths(scanner)},
+        force,
+    )
+    from dtoc.util.validate import check_npz_archive
+
+    for key, shape in check_npz_archive(measured, "MEASURED").items():
+        if key in ("g", "G", "k") and len(shape) >= 1 and shape[-1] < 32:
+            raise InputError(
+                f"{measured}: '{key}' has {shape[-1]} samples per waveform; identify needs at least 32 (as girf fit)"
+            )
     from dtoc.hardware.profile import profile_hardware
 
     declared = profile_hardware(sc.load(scanner), girf, model)

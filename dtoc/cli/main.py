@@ -81,6 +81,30 @@ def _interrupted(e: KeyboardInterrupt) -> None:
     raise SystemExit(interrupt.exit_code(signum)) from None
 
 
+def _one_line_usage_errors() -> None:
+    """A usage error (unknown option, missing argument, a value the parser refuses) is one ``dtoc: error:`` line
+    (exit 2, as click's) instead of typer's boxed panel; a bare ``dtoc`` or group still shows its help."""
+    from typer import _click as click
+    from typer import rich_utils
+
+    boxed = rich_utils.rich_format_error
+    if getattr(boxed, "_dtoc_one_line", False):
+        return
+
+    def one_line(e) -> None:
+        if isinstance(e, click.exceptions.NoArgsIsHelpError):
+            boxed(e)
+            return
+        ctx = getattr(e, "ctx", None)
+        cmd = ctx.command_path if ctx is not None else "dtoc"
+        msg = " ".join(e.format_message().split())
+        sys.stderr.write(f"dtoc: error: {cmd}: {msg} (see '{cmd} --help')\n")
+        sys.stderr.flush()
+
+    one_line._dtoc_one_line = True  # type: ignore[attr-defined]
+    rich_utils.rich_format_error = one_line
+
+
 def run(argv: list[str] | None = None) -> None:
     """Console-script entry point."""
     from dtoc.errors import DtocError, describe
@@ -89,6 +113,11 @@ def run(argv: list[str] | None = None) -> None:
 
     interrupt.install()
     keep_freed_memory()
+    import warnings
+
+    # numpy's floating-point RuntimeWarnings are not for the user: a bad value is refused with one line
+    warnings.filterwarnings("ignore", category=RuntimeWarning, module=r"numpy(\.|$)")
+    _one_line_usage_errors()
     try:
         app(args=argv, standalone_mode=True)
     except SystemExit as e:

@@ -68,6 +68,12 @@ def optimize_cmd(
     ),
     quiet: bool = typer.Option(False, "-q", "--quiet", help="no progress on stderr"),
     rf_use: str | None = rf_use_option(),
+    allow_worse: bool = typer.Option(
+        False,
+        "--allow-worse",
+        help="optimize even when the base needs more than 10x --gmax or --smax (refused otherwise: no waveform "
+        "within such limits follows the base)",
+    ),
 ):
     """Digital-twin optimization: write a pre-compensated .seq that stays within the hardware limits."""
     from dtoc.errors import InputError
@@ -81,7 +87,7 @@ def optimize_cmd(
         orientation=orientation, scanner=scanner, offset=offset, method=method, gmax=gmax, smax=smax, iters=iters,
         warm_iters=warm_iters, lr=lr, w_image=w_image, w_k=w_k, w_rf=w_rf, augment=augment, no_discard=no_discard,
         phantom=phantom, b0=b0, seed=seed, threads=threads, device=device, format_version=format_version,
-        rf_use=rf_use,
+        rf_use=rf_use, allow_worse=allow_worse,
     )  # fmt: skip
     outp = Output(json_out)
     m = _run_with_progress(quiet, lambda progress: run_request(req, progress, notes=lambda n: note(f"note: {n}")))

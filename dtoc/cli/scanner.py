@@ -36,12 +36,26 @@ def scanner_option():
 
 
 def load(scanner: Path | None):
-    """The :class:`dtoc.hardware.profile.LoadedProfile`, or None."""
+    """The :class:`dtoc.hardware.profile.LoadedProfile`, or None: loaded and validated whole, its hardware
+    section included (every command that takes ``--scanner`` refuses a profile whose GIRF or model is missing,
+    NaN, pickled or not a GIRF, whether or not it plays the model)."""
     if scanner is None:
         return None
     from dtoc.hardware.profile import load_profile
 
-    return load_profile(scanner)
+    prof = load_profile(scanner)
+    prof.hardware_model()
+    return prof
+
+
+def model_label(prof, girf, model) -> str:
+    """The hardware model a report names: the one actually applied (--girf / --model, else the profile's,
+    else ideal hardware)."""
+    if girf is not None or model is not None:
+        return str(girf or model)
+    if prof is not None and prof.hardware_label() is not None:
+        return str(prof.hardware_label())
+    return "ideal"
 
 
 def input_paths(scanner: Path | None) -> dict:

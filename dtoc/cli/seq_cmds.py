@@ -74,17 +74,16 @@ def check_cmd(
     Limits: --gmax/--smax override --system, which overrides the limits a dtoc-built file records; a file
     without recorded limits needs --gmax and --smax (or --system): limits are never assumed.
     """
-    import math
 
     from dtoc.errors import InputError
     from dtoc.seq.check import check_file, system_from_definitions
     from dtoc.seq.seqtext import parse_seq_text
     from dtoc.seq.spec import load_system
     from dtoc.seq.system import SystemSpec
+    from dtoc.util.validate import check_range
 
-    for name, v in (("--gmax", gmax), ("--smax", smax)):
-        if v is not None and not (math.isfinite(v) and v > 0):
-            raise InputError(f"{name} must be a finite number > 0, got {v}")
+    check_range("gmax", gmax, "--gmax")
+    check_range("smax", smax, "--smax")
     if max_rows < 0:
         raise InputError(f"--max-rows must be >= 0, got {max_rows}")
     from dtoc.cli import scanner as sc
@@ -145,7 +144,10 @@ def check_cmd(
     # vendor conventions (dead times, ring-down, ADC samples, rasters): only those a profile or system file names
     conventions = f"--system {system}" if system else (f"--scanner {prof.profile.name}" if prof is not None else None)
     res = check_file(seq, sysspec, safety, limits_source=limits_source, conventions=conventions)
-    if rotation is not None:
+    bad_orientation = _recorded_orientation_problem(res.definitions)
+    if bad_orientation is not None:
+        res.warnings.append(bad_orientation)
+    elif rotation is not None:
         res.warnings.extend(_orientation_warnings(res.definitions, rotation))
     report = res.to_dict()
     ref_line = None
@@ -191,6 +193,29 @@ def _reference_check(seq: Path, reference: Path, prof, rotation) -> tuple[dict, 
         f", EPI odd-even {oe:.4g} dk" if oe is not None else ""
     )
     return rec, line
+
+
+def _recorded_orientation_problem(definitions: dict) -> str | None:
+    """A ``DtocOrientation`` definition that is not 9 numbers of a rotation: one warning naming it (None: absent
+    or valid)."""
+    from dtoc.errors import InputError
+    from dtoc.hardware.orientation import parse_orientation
+    from dtoc.util.validate import escape
+
+    v = (definitions or {}).get("DtocOrientation")
+    if v is None:
+        return None
+    text = " ".join(str(x) for x in v) if isinstance(v, (list, tuple)) else str(v)
+    try:
+        if len(text.split()) != 9:
+            raise InputError("not 9 numbers")
+        parse_orientation(text)
+    except InputError:
+        return (
+            f"the file's DtocOrientation {escape(text, 60)} is not 9 numbers of a rotation matrix: the orientation it "
+            "was compiled for is unknown (its pre-compensation holds only at that orientation)"
+        )
+    return None
 
 
 def _orientation_warnings(definitions: dict, want) -> list[str]:

@@ -70,8 +70,15 @@ def simulate_cmd(
     from dtoc.sim.phantom import check_phantom_matches, phantom_for
     from dtoc.util.atomic import atomic_write_bytes, check_outputs, outputs_together, sha256_file
     from dtoc.util.jsonout import strict_json
+    from dtoc.util.validate import check_range
     from dtoc.version import __version__
 
+    check_range("dummies", dummies, "--dummies")
+    check_range("b0", field_T, "--b0")
+    if phantom is not None:
+        from dtoc.sim.phantom import check_phantom_size
+
+        check_phantom_size(phantom)
     tdtype = torch_dtype(dtype)
     dev = check_device(device)
     phantom_file = phantom if phantom and phantom.endswith(".npz") else None
@@ -103,6 +110,7 @@ def simulate_cmd(
         note(ref_rec.pop("note"))
     prof = sc.load(scanner)
     hw = sc.resolve(prof, girf, model)
+    label = sc.model_label(prof, girf, model)
     if field_T is None:
         field_T = prof.profile.b0_T if prof is not None else DEFAULT_B0_T
     from dtoc.hardware.orientation import RotatedChain, parse_orientation
@@ -115,6 +123,13 @@ def simulate_cmd(
     intent = ir if base is None else base  # the grid and phantom follow what the acquisition intends
     if not check_phantom_matches(intent, phantom):  # one line for a 2D phantom on a 3D file and the reverse
         intent.require_geometry(f"{reference or seq}: simulate")
+    from dtoc.util.validate import check_simulation_cost
+
+    n_vox = _planned_voxels(intent, phantom)
+    if n_vox is not None:
+        est, sec = check_simulation_cost(f"{seq}: simulate", n_vox, ir.n_adc_samples, n_runs=2)
+        if not quiet and sec > 30:
+            note(f"note: {est}")
     ph = phantom_for(intent, phantom, field_T=field_T, b0=b0_map, b1=b1_map)
     if dummies is None:  # the same "before" as dtoc optimize (dtoc.constants.default_dummies)
         from dtoc.constants import default_dummies
@@ -145,6 +160,7 @@ def simulate_cmd(
         "hardware": {
             "girf": str(girf) if girf else None,
             "model": str(model) if model else None,
+            "applied": "ideal" if res.identity_hardware else label,
             "identity": res.identity_hardware,
         },
         "phantom": {
@@ -187,12 +203,28 @@ def simulate_cmd(
     t.add_row("k-space RMSE", f"{m['kspace_rmse_rad_per_m']:.4g} rad/m")
     if m["kspace_max_err_dk"] is not None:
         t.add_row("k-space max error", f"{m['kspace_max_err_dk']:.4g} dk")
-    t.add_row("hardware", "ideal (identity)" if res.identity_hardware else str(girf or model))
+    t.add_row("hardware", "ideal (identity)" if res.identity_hardware else label)
     if ref_rec is not None:
         t.add_row("against", f"the base {reference}")
     outp.console().print(t)
     if png_out is not None:
         note(f"wrote {png_out}")
+
+
+def _planned_voxels(ir, phantom) -> int | None:
+    """Voxels of the phantom a simulation of ``ir`` will build (the image matrix for the built-in head, N x N
+    for brain:N), before it is built; None when unknown (a .npz: checked by its loader)."""
+    spec = "brain" if phantom is None else str(phantom)
+    name, _, size = spec.partition(":")
+    if name not in ("brain", "brain-noscalp"):
+        return None
+    if size.isdigit():
+        return int(size) ** 2
+    geo = getattr(ir, "geometry", None)
+    if geo is None:
+        return None
+    nx, ny = geo.matrix_xy
+    return int(nx) * int(ny)
 
 
 def register(app: typer.Typer) -> None:

@@ -264,6 +264,8 @@ def load_model(path: str | os.PathLike) -> HardwareModel:
         raise InputError(f"{p}: not valid JSON ({e.msg if hasattr(e, 'msg') else e})") from None
     if not isinstance(spec, dict):
         raise InputError(f"{p}: model file must be a JSON object with key 'effects'")
+    if "effects" not in spec:  # `{}` is not "ideal hardware": an ideal model says so with "effects": []
+        raise InputError(f"{p}: model file has no key 'effects' (ideal hardware is an explicit \"effects\": [])")
     try:
         ms = ModelSpec.model_validate(spec)
     except ValidationError as e:

@@ -28,6 +28,14 @@ NAMED = {
     "sag": np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
 }
 
+#: other names of the three (docs/conventions.md): one rotation, one batch key
+ALIASES = {
+    "transversal": "tra",
+    "transverse": "tra",
+    "coronal": "cor",
+    "sagittal": "sag",
+}
+
 
 def parse_orientation(text: str | None) -> np.ndarray | None:
     """``tra|sag|cor`` or 9 comma/space separated numbers (row-major, logical -> physical) -> (3, 3) R.
@@ -38,6 +46,7 @@ def parse_orientation(text: str | None) -> np.ndarray | None:
     if text is None:
         return None
     t = text.strip().lower()
+    t = ALIASES.get(t, t)
     if t in NAMED:
         return NAMED[t].copy()
     try:

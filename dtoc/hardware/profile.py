@@ -10,11 +10,12 @@ never as passed.
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from dtoc.errors import InputError
 from dtoc.seq.pns import SafeModel
@@ -45,6 +46,12 @@ class HardwareRef(BaseModel):
     girf: str | list[str] | None = None  # one file, or the per-axis files of one GIRF (GIRF_X/Y/Z.mat)
     girf_partial: bool = False  # the GIRF lacks an axis and may be imported with it ideal (girf import --partial)
     model: str | None = None
+
+    @model_validator(mode="after")
+    def _one(self) -> HardwareRef:
+        if self.girf and self.model:
+            raise ValueError("give girf or model, not both (a model JSON may hold a GIRF effect)")
+        return self
 
 
 class ScannerProfile(BaseModel):
@@ -79,12 +86,33 @@ class ScannerProfile(BaseModel):
                 raise ValueError("each forbidden band is [f_lo, f_hi] in Hz with 0 <= f_lo < f_hi")
         return v
 
+    @field_validator("name")
+    @classmethod
+    def _printable(cls, v):
+        from dtoc.util.validate import check_name
+
+        try:
+            check_name(v, "")
+        except InputError as e:
+            raise ValueError(str(e).strip()) from None
+        return v
+
+    @field_validator("source")
+    @classmethod
+    def _one_line(cls, v):
+        if v is not None and (len(v) > 2000 or any(ord(c) < 32 or ord(c) == 127 for c in v)):
+            raise ValueError("one line of at most 2000 characters, no control characters")
+        return v
+
     @field_validator("gmax_mT_per_m", "smax_T_per_m_per_s")
     @classmethod
-    def _positive(cls, v):
+    def _positive(cls, v, info):
+        from dtoc.util.validate import RANGES
+
+        r = RANGES["gmax" if info.field_name == "gmax_mT_per_m" else "smax"]
         vals = v if isinstance(v, list) else [v]
-        if not all(0 < x < 1e5 for x in vals):
-            raise ValueError("limits must be positive (mT/m, T/m/s)")
+        if not all(math.isfinite(x) and r.lo < x <= r.hi for x in vals):
+            raise ValueError(f"limits must be within the accepted range {r.text()} (docs/cli.md)")
         return v
 
     # -------------------------------------------------------------------------------------------
@@ -151,6 +179,8 @@ class LoadedProfile:
     def __init__(self, profile: ScannerProfile, path: Path) -> None:
         self.profile = profile
         self.path = path
+        self._hw: object = None
+        self._hw_loaded = False
 
     def _resolve(self, p: str) -> Path:
         q = Path(os.path.expanduser(p))
@@ -165,7 +195,14 @@ class LoadedProfile:
         return g, (self._resolve(h.model) if h.model else None)
 
     def hardware_model(self):
-        """The profile's :class:`dtoc.hardware.model.HardwareModel` (None when it declares none)."""
+        """The profile's :class:`dtoc.hardware.model.HardwareModel` (None when it declares none); loaded and
+        validated once (a missing, NaN, pickled or non-GIRF file is one InputError line)."""
+        if not self._hw_loaded:
+            self._hw = self._load_hardware()
+            self._hw_loaded = True
+        return self._hw
+
+    def _load_hardware(self):
         girf, model = self.hardware_files()
         if girf is None and model is None:
             return None
@@ -176,10 +213,17 @@ class LoadedProfile:
         if model is not None and not model.exists():
             raise InputError(f"{where}: model file {model} not found (paths are relative to the profile)")
         from dtoc.hardware.model import HardwareModel, girf_effect, load_model, model_from_girf
+        from dtoc.util.validate import check_npz_archive
 
+        for f in [*(girf or []), *([model] if model is not None else [])]:
+            if not f.is_file():
+                raise InputError(f"{where}: {f} is not a regular file")
+            if f.suffix.lower() == ".npz":
+                check_npz_archive(f, "--scanner GIRF")
         if model is not None:
             return load_model(model)
-        assert girf
+        if not girf:
+            raise InputError(f"{where}: names no GIRF or model file")
         if len(girf) == 1 and girf[0].suffix.lower() == ".npz":
             return model_from_girf(girf[0])
         from dtoc.hardware.girf_import import import_girf
@@ -187,6 +231,14 @@ class LoadedProfile:
         h = self.profile.hardware
         gd = import_girf(girf, allow_partial=bool(h and h.girf_partial))
         return HardwareModel([girf_effect(gd)], description=f"{self.profile.name}: {', '.join(f.name for f in girf)}")
+
+    def hardware_label(self) -> str | None:
+        """What the reports name as the model the profile applied: ``--scanner NAME: FILE(S)`` (None: none)."""
+        girf, model = self.hardware_files()
+        files = [*(girf or []), *([model] if model is not None else [])]
+        if not files:
+            return None
+        return f"--scanner {self.profile.name}: {', '.join(str(f) for f in files)}"
 
 
 def load_profile(path: str | os.PathLike) -> LoadedProfile:
@@ -196,7 +248,8 @@ def load_profile(path: str | os.PathLike) -> LoadedProfile:
     prof = load_yaml_model(
         path, ScannerProfile, "scanner profile", "a scanner profile is a mapping (name, b0_T, gmax_mT_per_m, ...)"
     )
-    assert isinstance(prof, ScannerProfile)
+    if not isinstance(prof, ScannerProfile):
+        raise InputError(f"{path}: not a scanner profile")
     return LoadedProfile(prof, Path(path))
 
 

@@ -44,6 +44,7 @@ from dtoc.util.atomic import (
     outputs_together,
     sha256_bytes,
     sha256_file,
+    unused_path,
 )
 from dtoc.util.interrupt import deferred, fault_point
 from dtoc.util.jsonout import strict_json
@@ -475,7 +476,8 @@ def optimize_sequence(
         start_it = ck["it"] if ck["stage"] == "full" else 0
         state.history = list(ck["history"])
         resumed_from = {"path": str(resume), "sha256": sha256_file(resume), "stage": ck["stage"], "iteration": ck["it"]}
-    ckpt_target = checkpoint_path or (None if out is None else str(out) + ".ckpt.npz")
+    default_ckpt = None if out is None else unused_path(str(out) + ".ckpt.npz", keep=resume)  # never an unrelated file
+    ckpt_target = checkpoint_path or default_ckpt
 
     def ckpt(edges, it):
         if checkpoint_path is not None:

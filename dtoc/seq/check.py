@@ -60,6 +60,7 @@ RULE_KINDS = {
             "grad_raster",
             "rf_raster",
             "adc_raster",
+            "adc_dwell",
             "block_duration",
             "continuity",
             "grad_start_nonzero",
@@ -561,7 +562,11 @@ def _event_rules(
                 out.append(
                     Violation("block_duration", key, None, end * 1e6, dur * 1e6, "us", "ADC ends after its block")
                 )
-            if not _on_raster(adc.dwell, rasters["adc"]):
+            if not adc.dwell > 0:  # every sample at one instant: no readout (on the raster, but not playable)
+                out.append(
+                    Violation("adc_dwell", key, None, adc.dwell * 1e9, rasters["adc"] * 1e9, "ns", "ADC dwell is 0")
+                )
+            elif not _on_raster(adc.dwell, rasters["adc"]):
                 out.append(
                     Violation(
                         "adc_raster",

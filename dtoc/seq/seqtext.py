@@ -294,6 +294,10 @@ def _check_structure(st: SeqText, p: Path) -> None:
             if not _NUM.match(shp[j].text):
                 raise _err(p, f"line {shp[j].lineno} in [SHAPES]: not a number: {shp[j].text[:20]!r}")
             data.append(float(shp[j].text))
+            if not math.isfinite(data[-1]):  # a NaN time or amplitude sample would reach every figure
+                raise _err(
+                    p, f"line {shp[j].lineno} in [SHAPES]: shape {sid} sample {shp[j].text[:20]!r} is not finite"
+                )
             j += 1
         if not data:
             raise _err(p, f"shape {sid} (line {shp[i].lineno}) has no samples{hint}")

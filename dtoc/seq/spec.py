@@ -36,8 +36,8 @@ class BaseSpec(BaseModel):
     )
     fov_mm: float = Field(..., gt=0, le=1000, description="in-plane field of view (readout = phase), mm")
     matrix: int = Field(..., ge=2, le=1024, description="image matrix (readout = phase lines)")
-    slice_thickness_mm: float = Field(5.0, gt=0, description="slice thickness, mm (FOV z in the definitions)")
-    dwell_us: float = Field(..., gt=0, description="ADC dwell time, us")
+    slice_thickness_mm: float = Field(5.0, gt=0, le=500, description="slice thickness, mm (FOV z in the definitions)")
+    dwell_us: float = Field(..., gt=0, le=1e5, description="ADC dwell time, us")
     flip_angle_deg: float = Field(..., gt=0, le=180)
     system: SystemSpec = SystemSpec()
 
@@ -69,16 +69,18 @@ class GreSpec(BaseSpec):
     kind: Literal["gre"] = "gre"
     fov_mm: float = Field(32.0, gt=0, le=1000)
     matrix: int = Field(32, ge=2, le=1024)
-    dwell_us: float = Field(100.0, gt=0)
+    dwell_us: float = Field(100.0, gt=0, le=1e5)
     flip_angle_deg: float = Field(15.0, gt=0, le=180)
-    tr_ms: float = Field(10.0, gt=0)
-    te_ms: float = Field(3.15, gt=0, description="RF centre to the k = 0 ADC sample, ms")
-    rf_period_ms: float = Field(2.0, gt=0, description="RF block at the start of each TR (no gradients), ms")
-    rf_duration_ms: float | None = Field(None, gt=0, description="block pulse length; default centred in the RF period")
+    tr_ms: float = Field(10.0, gt=0, le=10_000)
+    te_ms: float = Field(3.15, gt=0, le=10_000, description="RF centre to the k = 0 ADC sample, ms")
+    rf_period_ms: float = Field(2.0, gt=0, le=1000, description="RF block at the start of each TR (no gradients), ms")
+    rf_duration_ms: float | None = Field(
+        None, gt=0, le=1000, description="block pulse length; default centred in the RF period"
+    )
     rf_spoiling_inc_deg: float = Field(117.0, ge=0, lt=360)
     repetitions: int = Field(32, ge=1, le=4096, description="number of TRs (phase-encode lines, sequential order)")
-    spoiler_mT_per_m: float = Field(17.6, ge=0, description="readout spoiler amplitude, mT/m")
-    spoiler_duration_ms: float = Field(2.0, ge=0, description="spoiler lobe duration from the ADC end, ms")
+    spoiler_mT_per_m: float = Field(17.6, ge=0, le=5000, description="readout spoiler amplitude, mT/m")
+    spoiler_duration_ms: float = Field(2.0, ge=0, le=1000, description="spoiler lobe duration from the ADC end, ms")
     rewind_phase: bool = Field(True, description="phase-encode rewinder in the spoiler block")
     system: SystemSpec = SystemSpec(
         max_grad_mT_per_m=50.0, max_slew_T_per_m_per_s=500.0, name="paper-gre-unconstrained"
@@ -94,13 +96,17 @@ class EpiSpec(BaseSpec):
     kind: Literal["epi"] = "epi"
     fov_mm: float = Field(250.0, gt=0, le=1000)
     matrix: int = Field(64, ge=2, le=1024)
-    dwell_us: float = Field(10.0, gt=0)
+    dwell_us: float = Field(10.0, gt=0, le=1e5)
     flip_angle_deg: float = Field(90.0, gt=0, le=180)
-    echo_spacing_ms: float = Field(..., gt=0, description="time between the starts of consecutive readout lines, ms")
-    te_ms: float | None = Field(None, gt=0, description="RF centre to the k = 0 sample; None: shortest possible")
-    slice_thickness_mm: float = Field(3.0, gt=0)
-    rf_duration_ms: float = Field(2.0, gt=0, description="sinc excitation length, ms")
-    rf_time_bw_product: float = Field(4.0, gt=0)
+    echo_spacing_ms: float = Field(
+        ..., gt=0, le=1000, description="time between the starts of consecutive readout lines, ms"
+    )
+    te_ms: float | None = Field(
+        None, gt=0, le=10_000, description="RF centre to the k = 0 sample; None: shortest possible"
+    )
+    slice_thickness_mm: float = Field(3.0, gt=0, le=500)
+    rf_duration_ms: float = Field(2.0, gt=0, le=1000, description="sinc excitation length, ms")
+    rf_time_bw_product: float = Field(4.0, gt=0, le=100)
     system: SystemSpec = SystemSpec()
 
 

@@ -110,6 +110,8 @@ def format_validation_error(e: ValidationError) -> str:
     err = e.errors()[0]
     loc = ".".join(str(x) for x in err.get("loc", ())) or "<root>"
     msg = err.get("msg", "invalid")
+    if msg.startswith("Value error, "):  # pydantic's prefix for a validator's own message
+        msg = msg[len("Value error, ") :]
     if err.get("type") == "extra_forbidden":
         msg = "unknown key"
     more = f" (and {len(e.errors()) - 1} more)" if len(e.errors()) > 1 else ""

@@ -556,6 +556,7 @@ def load_phantom(path: str | os.PathLike) -> Phantom:
         raise InputError(f"{p}: phantom file not found")
     if p.suffix.lower() != ".npz":
         raise InputError(f"{p}: unsupported phantom format (expected .npz with keys {', '.join(REQUIRED_KEYS)})")
+    check_phantom_size(p)
     try:
         with np.load(p, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
@@ -664,6 +665,38 @@ def resolve_phantom(
     return load_phantom(spec)
 
 
+#: at most this many voxels in a phantom (1024 x 1024, or e.g. 128 x 128 x 64): docs/cli.md, "Accepted ranges"
+MAX_PHANTOM_VOXELS = 1024 * 1024
+
+
+def check_phantom_size(spec) -> None:
+    """Refuse, before anything is built or inflated, a phantom spec whose size is outside the accepted range:
+    ``brain:N`` / ``brain3d:N`` with N outside [4, 1024], or a ``.npz`` whose 'pd' declares more than
+    :data:`MAX_PHANTOM_VOXELS` voxels (read from the archive's header, not inflated)."""
+    from dtoc.util.validate import check_npz_archive, check_range
+
+    if spec is None or isinstance(spec, Phantom):
+        return
+    s = str(spec)
+    name, _, size = s.partition(":")
+    if name in BUILTIN_PHANTOMS:
+        if size:
+            try:
+                n = int(size)
+            except ValueError:
+                raise InputError(f"--phantom {spec!r}: expected {name}:N with an integer N") from None
+            check_range("phantom_n", n, f"--phantom {name}:N, N")
+        return
+    if s.lower().endswith(".npz") and Path(s).is_file():
+        shapes = check_npz_archive(s, "--phantom")
+        pd = shapes.get("pd")
+        if pd is not None and math.prod(pd) > MAX_PHANTOM_VOXELS:
+            raise InputError(
+                f"{s}: phantom 'pd' {tuple(pd)} has {math.prod(pd)} voxels, more than the {MAX_PHANTOM_VOXELS} accepted "
+                "(1024 x 1024; docs/cli.md): refused before loading"
+            )
+
+
 def phantom_for(
     ir, spec=None, *, size: int | None = None, field_T: float = DEFAULT_B0_T, b0: bool = False, b1: bool = False
 ) -> Phantom:
@@ -673,6 +706,11 @@ def phantom_for(
     (:attr:`dtoc.seq.ir.SequenceIR.geometry`); ``brain3d`` (``brain3d:N``) on a 3D-encoded sequence's grid
     (``ir.meta['grid3d']``); a ``.npz`` phantom is read as it is.
     """
+    check_phantom_size(spec)
+    if size is not None:
+        from dtoc.util.validate import check_range
+
+        check_range("phantom_n", size, "phantom size")
     geo = ir.geometry
     name, _, n3 = str(spec).partition(":")
     if name == "brain3d":

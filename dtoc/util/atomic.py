@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import errno
 import hashlib
 import os
 import shutil
 import signal
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -27,21 +29,65 @@ from dtoc.errors import InputError
 
 
 def check_output_path(path: str | os.PathLike, force: bool) -> Path:
-    """Raise unless ``path`` may be written (parent exists; not existing, or ``force``)."""
+    """Raise unless ``path`` may be written: its folder exists, and it does not exist or (with ``force``) is a
+    regular file.  A symbolic link (``/dev/stdout`` and the like), a device node, a FIFO, a socket or a
+    folder is never written through nor replaced, ``--force`` or not (standard output is ``-``)."""
     p = Path(path)
-    if p.exists() and not force:
-        raise InputError(f"{p}: output exists; pass --force to overwrite")
-    if p.is_dir():
-        raise InputError(f"{p}: output is a directory")
+    try:
+        st = os.lstat(p)
+    except FileNotFoundError:
+        st = None
+    except OSError as e:
+        raise InputError(f"{p}: output path unusable ({e.strerror})") from None
+    if st is not None:
+        if stat.S_ISLNK(st.st_mode):
+            raise InputError(
+                f"{p}: output is a symbolic link: dtoc never writes through or replaces a link; give the real "
+                "path (or '-' for standard output where the option takes it)"
+            )
+        if stat.S_ISDIR(st.st_mode):
+            raise InputError(f"{p}: output is a directory")
+        if not stat.S_ISREG(st.st_mode):
+            raise InputError(
+                f"{p}: output is not a regular file (a device, FIFO or socket): never written or replaced, "
+                "--force or not"
+            )
+        if not force:
+            raise InputError(f"{p}: output exists; pass --force to overwrite")
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise InputError(f"{p}: output folder {parent} does not exist")
     return p
 
 
+def unused_path(path: str | os.PathLike, keep: str | os.PathLike | None = None) -> Path:
+    """``path`` if nothing exists there (or it is ``keep``, a file this command may replace), else the first of
+    ``<stem>-2<suffix>``, ``-3``, ... that is free: a default output name never replaces an unrelated file."""
+    p = Path(path)
+    if not os.path.lexists(p) or (keep is not None and os.path.realpath(p) == os.path.realpath(keep)):
+        return p
+    name, dot, ext = p.name.partition(".")
+    for i in range(2, 10_000):
+        q = p.with_name(f"{name}-{i}{dot}{ext}")
+        if not os.path.lexists(q):
+            return q
+    raise InputError(f"{p}: no free name beside it for the default output")
+
+
+def _identity(path: str | os.PathLike) -> tuple[int, int] | None:
+    """(device, inode) of an existing file (hard links to one file share it), else None."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return (st.st_dev, st.st_ino)
+
+
 def check_outputs(outputs: dict, inputs: dict, force: bool) -> None:
-    """Refuse, before any work, outputs that exist (without ``force``), that lack a folder, that name the
-    same file twice, or that resolve to an input (even with ``force``: an input is never destroyed).
+    """Refuse, before any work, outputs that exist (without ``force``), that lack a folder, that are links or
+    not regular files, that name the same file twice, or that resolve to an input (even with ``force``: an
+    input is never destroyed; the same file under another name or a hard link counts as the input).  The input
+    files are checked too (:func:`check_input_files`: regular files, ``.npz`` archives within their bounds).
 
     ``outputs`` / ``inputs``: {option name: path or None}; an output ``"-"`` is standard output (skipped).
 
@@ -49,27 +95,73 @@ def check_outputs(outputs: dict, inputs: dict, force: bool) -> None:
         InputError naming the option(s).
     """
     seen: dict[str, str] = {}
-    ins = {os.path.realpath(v): k for k, v in inputs.items() if v is not None and str(v) != "-"}
+    live = {k: v for k, v in inputs.items() if v is not None and str(v) != "-"}
+    ins = {os.path.realpath(v): k for k, v in live.items()}
+    ids = {i: k for k, v in live.items() if (i := _identity(v)) is not None}
     for opt, p in outputs.items():
         if p is None or str(p) == "-":
             continue
         real = os.path.realpath(p)
-        if real in ins:
-            raise InputError(f"{p}: {opt} would overwrite the {ins[real]} input; choose another output path")
+        ident = _identity(p)
+        hit = ins.get(real) or (ids.get(ident) if ident is not None else None)
+        if hit is not None:
+            raise InputError(f"{p}: {opt} would overwrite the {hit} input; choose another output path")
         if real in seen:
             raise InputError(f"{p}: given for both {seen[real]} and {opt}; each output needs its own path")
         seen[real] = opt
         check_output_path(p, force)
+    check_input_files(live)
+
+
+def check_input_files(inputs: dict) -> None:
+    """Every existing input that is a ``.npz`` archive is checked before it is opened
+    (:func:`dtoc.util.validate.check_npz_archive`: no pickles, members' declared sizes within memory)."""
+    from dtoc.util.validate import check_npz_archive
+
+    for opt, p in inputs.items():
+        if str(p).lower().endswith(".npz") and os.path.isfile(p):
+            check_npz_archive(p, opt)
+
+
+def _publish(tmp: str, dest: Path, force: bool) -> None:
+    """Move the complete temporary ``tmp`` to ``dest``.  Without ``force`` the destination must not exist: the
+    file is published with a hard link, which fails if another writer got there first (exactly one of two
+    concurrent writers wins; the other gets one line, and nothing is replaced).  With ``force`` an existing
+    regular file is replaced in one rename; a link or non-regular file that appeared meanwhile is refused."""
+    if not force:
+        try:
+            os.link(tmp, dest)
+        except FileExistsError:
+            raise InputError(
+                f"{dest}: output appeared while this command ran (another writer?); nothing replaced"
+            ) from None
+        except OSError as e:
+            if e.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK):
+                raise
+            # no hard links on this file system: reserve the name exclusively, then replace the reservation
+            try:
+                fd = os.open(dest, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            except FileExistsError:
+                raise InputError(
+                    f"{dest}: output appeared while this command ran (another writer?); nothing replaced"
+                ) from None
+            os.close(fd)
+            os.replace(tmp, dest)
+            return
+        _unlink(tmp)
+        return
+    check_output_path(dest, True)  # still a regular file (or absent) right before the rename
+    os.replace(tmp, dest)
 
 
 class _Staged:
     """Files written to temporaries, waiting to be moved into place together."""
 
     def __init__(self) -> None:
-        self.items: list[tuple[str, Path]] = []  # (temporary, destination)
+        self.items: list[tuple[str, Path, bool]] = []  # (temporary, destination, force)
 
     def discard(self) -> None:
-        for tmp, _ in self.items:
+        for tmp, _, _ in self.items:
             _unlink(tmp)
         self.items.clear()
 
@@ -78,15 +170,16 @@ class _Staged:
         done: list[tuple[Path, str | None]] = []  # (destination, backup of what it replaced)
         with signals_held():
             try:
-                for tmp, dest in self.items:
+                for tmp, dest, force in self.items:
                     backup = None
-                    if dest.exists():
+                    if force and os.path.lexists(dest):
+                        check_output_path(dest, True)
                         backup = _temp_name(dest, ".bak")
                         try:
                             os.link(dest, backup)
                         except OSError:  # no hard links on this file system
                             shutil.copyfile(dest, backup)
-                    os.replace(tmp, dest)
+                    _publish(tmp, dest, force)
                     done.append((dest, backup))
             except BaseException:
                 for dest, backup in reversed(done):
@@ -156,7 +249,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, force: bool = False
     :func:`outputs_together` the file appears at the end of that block, together with the others."""
     p = check_output_path(path, force)
     staged = _STAGE.get()
-    if staged is not None and any(os.path.realpath(d) == os.path.realpath(p) for _, d in staged.items):
+    if staged is not None and any(os.path.realpath(d) == os.path.realpath(p) for _, d, _ in staged.items):
         raise InputError(f"{p}: written twice by one command")
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent if str(p.parent) else ".")
     try:
@@ -168,9 +261,10 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, force: bool = False
             f.flush()
             os.fsync(f.fileno())
         if staged is not None:
-            staged.items.append((tmp, p))
+            staged.items.append((tmp, p, force))
         else:
-            os.replace(tmp, p)
+            with signals_held():
+                _publish(tmp, p, force)
     except BaseException:
         _unlink(tmp)
         raise
