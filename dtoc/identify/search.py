@@ -256,7 +256,7 @@ def _identify(
                 break
             ws = ws_new
         ltis_to_physical(twin, data, sigma, folds, kinds, say, exclude=gate_excluded)
-        lti_delays_to_delay(twin, data, sigma, folds, kinds, threshold, say)
+        lti_delays_to_delay(twin, data, sigma, folds, kinds, threshold, say, exclude=gate_excluded)
         # Final full-data refit, standard errors, noise floors and held-out errors; then the adoption gate
         # (dtoc.identify.adopt): effects the data do not support are removed one at a time and the rest
         # refitted; the search then resumes without them (another effect may explain what they could not).
@@ -557,18 +557,21 @@ def ltis_to_physical(twin: Twin, data: IdentData, sigma: dict, folds: Folds, kin
                 x.effect.load_state_dict(st)
 
 
-def lti_delays_to_delay(twin: Twin, data: IdentData, sigma: dict, folds: Folds, kinds, threshold: float, say) -> None:
+def lti_delays_to_delay(
+    twin: Twin, data: IdentData, sigma: dict, folds: Folds, kinds, threshold: float, say, exclude=frozenset()
+) -> None:
     """Move the delay a found ``lti`` carries (its group delay at low frequency, :func:`lti_features`) into a
     ``delay`` effect on its axis (added, or the axis's found delay adjusted), re-solve the filter and refit;
     kept when the chi-square is within ``threshold`` of before (the two descriptions are equivalent), so that
-    a shift is reported as a delay and not hidden in 48 taps.  Shifts below 5 % of a sample are left."""
+    a shift is reported as a delay and not hidden in 48 taps.  Shifts below 5 % of a sample are left, and so is
+    an axis whose delay the adoption gate removed (``exclude``)."""
     if kinds and "delay" not in kinds:
         return
     for f in [f for f in twin.found if f.position == "lti"]:
         e = f.effect
         ft = lti_features(e.taps.detach().numpy().reshape(-1), int(round(e.t0_s / e.dt_s)), e.dt_s)
         tau = ft["delay_s"]
-        if not np.isfinite(tau) or abs(tau) < 0.05 * data.dt_s:
+        if f"delay[{e.axis}]" in exclude or not np.isfinite(tau) or abs(tau) < 0.05 * data.dt_s:
             continue
         chi_old = _chi2(Workspace(data, sigma, folds, twin.predict()))
         order = list(twin.found)

@@ -18,7 +18,10 @@ Three tests of the found model, each a reason not to adopt an effect (docs/ident
    *test* samples alone (disjoint data: waveforms, or time windows of a single waveform), with its standard
    error; when the fold estimates disagree beyond their errors (chi-square homogeneity test,
    p < :data:`STABILITY_P`) and by more than :data:`STABILITY_REL` of the parameter's size, the parameter
-   describes different things in different parts of the data and is not adopted.
+   describes different things in different parts of the data and is not adopted.  Effects on an axis that
+   also carries an ``lti`` filter are exempt (the taps are not re-solved per fold, so a parameter the filter
+   can trade with, e.g. a delay, would be forced to absorb the difference); the filter and they passed the
+   held-out score together.
 """
 
 from __future__ import annotations
@@ -190,9 +193,10 @@ def stability_problems(twin: Twin, fit: dict, est: np.ndarray, se: np.ndarray) -
     out = []
     free = fit.get("free") or []
     u = fit.get("u")
+    lti_axes = {f.effect.axis for f in twin.found if f.effect.kind == "lti"}
     for k, (i, n, t) in enumerate(free):
         e = twin.found[i].effect
-        if (e.kind, n) in UNSIZED or e.kind == "lti":
+        if (e.kind, n) in UNSIZED or e.kind == "lti" or (lti_axes and (e.axis in lti_axes or e.axis is None)):
             continue
         ok = np.isfinite(est[:, k]) & np.isfinite(se[:, k]) & (se[:, k] > 0)
         if ok.sum() < 2:
