@@ -44,7 +44,7 @@ def test_identical_waveforms_on_all_axes_give_no_axis_label(declared):
     is adopted with an axis label; the report says why and what to play instead.  Control: the same truth with
     different waveforms per axis is adopted as cross_eddy[y]<-x."""
     cross = ("cross_eddy", {"alpha": 0.01, "tau_s": 1e-3}, {"axis": "y", "input_axis": "x"})
-    g1 = probe_waveforms(3, 2000, DT, seed=3, axes=(0,))
+    g1 = probe_waveforms(2, 1500, DT, seed=3, axes=(0,))
     g = np.repeat(g1[:, :1], 3, axis=1)
     kinds = ["exp_eddy", "cross_eddy"]
     r = identify(simulate_measurement(_truth(declared, cross), g, DT), declared, kinds=kinds)
@@ -53,7 +53,7 @@ def test_identical_waveforms_on_all_axes_give_no_axis_label(declared):
     notes = " | ".join(r.remaining)
     assert "not identifiable from these waveforms" in notes, notes
     assert "the three axes played identical waveforms" in notes and "one axis at a time" in notes, notes
-    g2 = probe_waveforms(3, 2000, DT, seed=3)
+    g2 = probe_waveforms(2, 1500, DT, seed=3)
     r2 = identify(simulate_measurement(_truth(declared, cross), g2, DT), declared, kinds=kinds)
     assert ("cross_eddy", "y", "x") in _names(r2), (_names(r2), r2.remaining)
     assert not any("not identifiable" in n for n in r2.remaining)
