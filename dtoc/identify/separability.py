@@ -102,9 +102,45 @@ def _restore(twin: Twin, snap) -> None:
         f.effect.load_state_dict(st)
 
 
+#: An alternative whose best-scaled contribution misses the found effect's by more than this many times the
+#: threshold (chi-square units) is not refitted: a refit of the other parameters cannot close such a gap.
+PRESCREEN_FACTOR = 25.0
+
+
+def _whitened(twin: Twin, pred) -> np.ndarray:
+    """The prediction as one whitened vector over the measured channels (what the refit's chi-square sees)."""
+    from dtoc.identify.data import integrate_k
+
+    d = twin.data
+    parts = []
+    for c in d.channels():
+        if c == "G":
+            x = pred.G
+        elif c == "k":
+            x = integrate_k(pred.G, d.dt_s)
+        else:
+            x = pred.b0
+        parts.append((x * d.mask(c) / twin.sigma[c]).reshape(-1))
+    return np.concatenate(parts)
+
+
+def _gap(twin: Twin, i: int, alt: Found) -> float:
+    """min over a of || c_found - a c_alt ||^2 (whitened): how far the alternative's contribution, at the found
+    effect's parameters and best scale, is from the found effect's own."""
+    others = [f for j, f in enumerate(twin.found) if j != i]
+    base = _whitened(twin, twin.predict(include=others))
+    cf = _whitened(twin, twin.predict()) - base
+    ca = _whitened(twin, twin.predict(include=[*others[:i], alt, *others[i:]])) - base
+    den = float(ca @ ca)
+    a = float(cf @ ca) / den if den > 0 else 0.0
+    r = cf - a * ca
+    return float(r @ r)
+
+
 def label_problems(twin: Twin, chi2: float, threshold: float) -> list[tuple[int, str, list[str]]]:
     """[(index, reason, names to exclude from further search)] for effects whose driving axis the data cannot
-    tell (module docstring, test 1).  The twin is left as it was."""
+    tell (module docstring, test 1).  Alternatives whose contribution at the found parameters is far from the
+    found effect's (:data:`PRESCREEN_FACTOR`) are not refitted.  The twin is left as it was."""
     out = []
     snap = _snapshot(twin)
     for i, f in enumerate(list(twin.found)):
@@ -118,7 +154,10 @@ def label_problems(twin: Twin, chi2: float, threshold: float) -> list[tuple[int,
                 eff = build_effect(kind, params, axis=axis, input_axis=inp)
             except Exception:  # noqa: BLE001 - an alternative that cannot be built is no alternative
                 continue
-            twin.found[i] = Found(eff, f.score, f.position)
+            alt = Found(eff, f.score, f.position)
+            if _gap(twin, i, alt) > PRESCREEN_FACTOR * threshold:
+                continue
+            twin.found[i] = alt
             try:
                 chi_alt = twin.refit(max_iter=10)["chi2"]
             finally:
