@@ -222,3 +222,23 @@ def test_rejected_line_never_contradicts_an_adopted_effect():
     line = rejected_line(r, {"exp_eddy[x]"})
     assert line.startswith("not adopted: a further exp_eddy[x] term (alpha 0.001, tau_s 3e-06) beside the adopted")
     assert rejected_line(r, set()) == "not adopted: exp_eddy[x]: tau_s ..."
+
+
+def test_clock_error_that_changes_within_the_record_is_not_adopted():
+    """One waveform measured in k with a clock error of -40 ppm in its first half and -90 ppm in its second (the
+    issue's spiral: -41.6 ppm on the whole window, -87.6 ppm on the spiral part): the time-block folds disagree
+    and time_base is not adopted, with the fold estimates named.  Control: -40 ppm throughout is adopted."""
+    g = probe_waveforms(1, 8000, DT, seed=21)
+    clock = lambda ppm, seed: simulate_measurement(  # noqa: E731
+        HardwareModel([build_effect("time_base", {"ppm": ppm})]), g, DT, sigma_G=None, sigma_k=0.02, seed=seed
+    )
+    d = clock(-40.0, 1)
+    d.k[..., 4000:] = clock(-90.0, 2).k[..., 4000:]
+    kinds = ["time_base", "gain", "delay"]
+    r = identify(d, None, kinds=kinds)
+    assert "time_base" not in [k for k, _, _ in _names(r)]
+    note = [n for n in r.remaining if n.startswith("not adopted: time_base: ppm is not stable")]
+    assert note and "-90" in note[0] and "-40" in note[0], r.remaining
+    r2 = identify(clock(-40.0, 1), None, kinds=kinds)
+    assert [k for k, _, _ in _names(r2)] == ["time_base"]
+    assert float(r2.twin.found[0].effect.ppm.detach()) == pytest.approx(-40.0, abs=0.5)
