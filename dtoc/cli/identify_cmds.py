@@ -113,6 +113,77 @@ def identify_cmd(
         progress(f"no model written to {out}: no effect beyond the declared model was adopted")
 
 
+def identify_plan_cmd(
+    out: Path | None = typer.Option(
+        None, "-o", "--out", help="write the proposed waveforms here (.npz: dt, g, labels)"
+    ),
+    kinds: str | None = typer.Option(
+        None, "--kinds", help="candidate kinds to identify (default: all parametric: delay,gain,offset,exp_eddy,...)"
+    ),
+    dt_us: float = typer.Option(10.0, "--dt-us", min=0.1, help="sample interval of the waveforms, us"),
+    gmax: float = typer.Option(30.0, "--gmax", min=0.1, help="largest amplitude to play, mT/m"),
+    smax: float = typer.Option(150.0, "--smax", min=1.0, help="largest slew rate to play, T/m/s"),
+    record_ms: float = typer.Option(50.0, "--record-ms", min=1.0, help="length of each waveform, ms"),
+    sigma_g: float = typer.Option(0.01, "--sigma-g", min=1e-9, help="expected G noise per sample, mT/m"),
+    json_out: str | None = typer.Option(None, "--json", help="write the check as JSON here ('-' = stdout)"),
+    force: bool = typer.Option(False, "--force", help="overwrite existing outputs"),
+):
+    """Propose a short set of test waveforms (one axis at a time) that identifies a candidate set, and check it
+    with the identifiability test identify uses (docs/identify.md, "Planning a measurement")."""
+    import json
+
+    import numpy as np
+
+    from dtoc.errors import InputError
+    from dtoc.identify.plan import NOMINAL, check, propose
+    from dtoc.util.atomic import atomic_write_bytes, check_outputs
+
+    kind_list = None
+    if kinds is not None:
+        kind_list = [k.strip() for k in kinds.split(",") if k.strip()]
+        bad = [k for k in kind_list if k not in NOMINAL]
+        if not kind_list or bad:
+            raise InputError(f"--kinds: unknown or no kind(s) {bad}; plannable: {', '.join(NOMINAL)}")
+    check_outputs({"-o": out, "--json": json_out}, {}, force)
+    dt_s = dt_us / 1e6
+    g, labels = propose(dt_s, gmax, smax, record_ms * 1e-3)
+    verdicts = check(g, dt_s, kind_list, sigma_g)
+    report = {
+        "dt_s": dt_s,
+        "waveforms": labels,
+        "candidates": [
+            {
+                "name": v.name,
+                "identifiable": v.identifiable,
+                "relative_stderr": None if not np.isfinite(v.rel_se) else float(v.rel_se),
+                "most_correlated_with": v.partner,
+                "correlation": float(v.corr),
+                "reason": v.reason,
+            }
+            for v in verdicts
+        ],
+        "all_identifiable": all(v.identifiable for v in verdicts),
+    }
+    from dtoc.cli.output import Output
+
+    outp = Output(json_out)
+    con = outp.console()
+    con.print(f"{len(labels)} test waveforms of {record_ms:g} ms at {dt_us:g} us (one axis at a time):", markup=False)
+    for lab in labels:
+        con.print(f"  - {lab}", markup=False)
+    con.print(f"identifiability on these waveforms (G measured, noise {sigma_g:g} mT/m):", markup=False)
+    for v in verdicts:
+        con.print(f"  {v.name}: {v.reason}", markup=False)
+    if out is not None:
+        import io
+
+        buf = io.BytesIO()
+        np.savez(buf, dt=np.float64(dt_s), g=g, labels=np.asarray(labels))
+        atomic_write_bytes(out, buf.getvalue(), force=force)
+    outp.write_json(json.dumps(report, indent=2) + "\n", force)
+
+
 def register(app: typer.Typer) -> None:
     """Add this stage's commands to app."""
     app.command("identify")(identify_cmd)
+    app.command("identify-plan")(identify_plan_cmd)

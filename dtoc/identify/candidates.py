@@ -529,16 +529,41 @@ def excited_band_hz(x: np.ndarray, dt_s: float, db: float = 50.0) -> float:
 def lti_features(taps: np.ndarray, first_lag: int, dt_s: float, fmax_hz: float | None = None) -> dict:
     """Dominant features of an FIR correction dH(f) = sum_j taps[j] exp(-2 pi i f (j + first_lag) dt):
     peak |dH| and its frequency (searched up to ``fmax_hz``, the band the data excite, when given;
-    default Nyquist), and the DC change (sum of taps)."""
+    default Nyquist), and the DC change (sum of taps).
+
+    Physical names of the corrected response H = 1 + dH (the lti is additive, docs/contracts.md §3):
+    ``dc_gain`` = H(0); ``delay_s`` = its group delay at low frequency, sum_j h_j t_j / sum_j h_j with
+    h = delta + taps (the first moment: the delay a pure shift would have); ``bandwidth_hz`` = the lowest
+    frequency where |H(f)| / |H(0)| falls below 1/sqrt(2) (None when it does not within the band searched,
+    reported as "beyond" it)."""
     nfft = 4096
+    taps = np.asarray(taps, dtype=np.float64).reshape(-1)
     f = np.fft.rfftfreq(nfft, dt_s)
-    H = np.fft.rfft(np.asarray(taps, dtype=np.float64), nfft) * np.exp(-2j * np.pi * f * first_lag * dt_s)
+    H = np.fft.rfft(taps, nfft) * np.exp(-2j * np.pi * f * first_lag * dt_s)
     band = np.ones(f.size, dtype=bool) if fmax_hz is None else (f <= fmax_hz)
     k = int(np.argmax(np.where(band, np.abs(H), -1.0)))
     out = {"peak_hz": float(f[k]), "peak_abs": float(np.abs(H[k])), "dc_change": float(np.real(H[0]))}
+    dc = 1.0 + float(np.sum(taps))
+    t = (np.arange(taps.size) + first_lag) * dt_s
+    out["dc_gain"] = dc
+    out["delay_s"] = float(np.sum(taps * t) / dc) if abs(dc) > 1e-9 else float("nan")
+    full = np.abs(1.0 + H) / max(abs(dc), 1e-300)
+    below = np.nonzero(band & (full < 1.0 / np.sqrt(2.0)))[0]
+    out["bandwidth_hz"] = float(f[below[0]]) if below.size else None
     if fmax_hz is not None:
         out["band_hz"] = float(min(fmax_hz, f[-1]))
     return out
+
+
+def lti_physical_text(ft: dict) -> str:
+    """ "delay 1.23 us, DC gain 0.998, bandwidth (-3 dB) 9.1 kHz" of :func:`lti_features`' result."""
+    bw = ft.get("bandwidth_hz")
+    band = ft.get("band_hz")
+    if bw is not None:
+        bwt = f"bandwidth (-3 dB) {bw / 1e3:.3g} kHz"
+    else:
+        bwt = "no -3 dB point" + (f" within the excited band 0-{band / 1e3:.3g} kHz" if band else "")
+    return f"delay {ft['delay_s'] * 1e6:+.3g} us (group delay at low frequency), DC gain {ft['dc_gain']:.4g}, {bwt}"
 
 
 # -- slew limit (non-linear, on the demanded input) --------------------------------------------------

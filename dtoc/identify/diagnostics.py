@@ -139,6 +139,23 @@ def power_growth(x: np.ndarray, zG: np.ndarray, m: np.ndarray):
     return ratio, zstat, hi_thr, hi.mean()
 
 
+def gradient_residual(data: IdentData, res: dict, sigma: dict):
+    """(residual in mT/m (M, 3, N), its white-noise level, a suffix for notes) of the gradient: the G residual
+    when G is measured; else, for k-only data, the k residual differenced sample to sample and divided by
+    gamma dt (the G error it implies; noise sqrt(2) sigma_k / (gamma dt), neighbours anti-correlated, which
+    makes the dependence and last-ramp tests conservative); None without G or k."""
+    from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
+
+    if data.G is not None:
+        return res["G"], sigma["G"], ""
+    if data.k is None:
+        return None
+    gdt = GAMMA_RAD_PER_S_PER_MT * data.dt_s
+    r = np.diff(res["k"], axis=-1, prepend=0.0) / gdt
+    r[..., 0] = 0.0
+    return r, np.sqrt(2.0) * sigma["k"] / gdt, " (from the k residual differenced in time)"
+
+
 def dependence_note(data: IdentData, zG: np.ndarray, what: str = "slew") -> str | None:
     """A note when whitened residual power grows with the demanded slew rate (``what='slew'``) or amplitude.
 
@@ -160,12 +177,24 @@ def dependence_note(data: IdentData, zG: np.ndarray, what: str = "slew") -> str 
         ratio, zstat, hi_thr, hi_mean = r
         if ratio > 2.0 and hi_mean > 1.2 and zstat > 5 and (best is None or zstat > best[2]):
             best = (name, ratio, zstat, hi_thr)
+    on_axes = []
+    if what == "slew":  # which axes: the residual of each axis against its own demanded slew
+        for a, ax in enumerate(AXES):
+            ma = np.zeros(g.shape, dtype=bool)
+            ma[:, a] = m[:, a]
+            r = power_growth(tests[0][1], zG, ma)
+            if r is not None and r[0] > 2.0 and r[3] > 1.2 and r[1] > 5:
+                on_axes.append((ax, r))
+        if best is None and on_axes:
+            ax, (ratio, zstat, hi_thr, _) = max(on_axes, key=lambda t: t[1][1])
+            best = ("own", ratio, zstat, hi_thr)
     if best is None:
         return None
     name, ratio, _, hi_thr = best
     if what == "slew":
+        where = " on " + ", ".join(ax for ax, _ in on_axes) if on_axes and len(on_axes) < 3 else ""
         return (
-            f"residual grows with slew rate: mean power {ratio:.1f}x higher at the top 10 % of |dg/dt| "
+            f"residual grows with slew rate{where}: mean power {ratio:.1f}x higher at the top 10 % of |dg/dt| "
             f"(>= {hi_thr * 1e-3:.0f} T/m/s) than at the lower half: non-linear (e.g. slew-rate limit) or "
             f"unmodelled fast dynamics"
         )

@@ -7,7 +7,8 @@ JSON keys (minimum, exactly as the contract): ``before``, ``after``, ``heldout_b
 (rmse per axis), ``noise_method``, ``heldout`` (how folds were made), ``declared`` (description),
 ``screening`` (top candidates per round with their scores), ``n_samples``, ``dtoc_version``, ``adopted``
 (true when the updated model holds at least one found effect and was therefore written), ``rejected`` (effects
-the adoption gate removed: name, kind, axes, params, score, reasons; docs/identify.md).
+the adoption gate removed: name, kind, axes, params, score, reasons; docs/identify.md), ``residual_energy``
+(per channel: where the final residual's energy above the noise floor is, :mod:`dtoc.identify.energy`).
 Units: G mT/m, k rad/m, b0 uT; scores in chi-square units (held-out BIC decrease).
 """
 
@@ -19,9 +20,9 @@ import math
 import numpy as np
 
 from dtoc.constants import AXES
-from dtoc.identify.candidates import lti_features
+from dtoc.identify.candidates import lti_features, lti_physical_text
 from dtoc.identify.kinds import effect_name
-from dtoc.identify.search import IdentifyResult
+from dtoc.identify.search import IdentifyResult, rejected_line
 from dtoc.util.figures import png_bytes
 from dtoc.version import __version__
 
@@ -60,6 +61,21 @@ def _effect_entry(f) -> dict:
     return entry
 
 
+def _energy_entry(d: dict) -> dict:
+    """JSON form of :func:`dtoc.identify.energy.describe` (shares of the energy above the noise floor)."""
+    below = d.get("below_hz")
+    return {
+        "rms": _num(d["rms"]),
+        "excess_fraction": _num(d["excess_fraction"]),
+        "below_hz": None if below is None else {"edge_hz": _num(below[0]), "share": _num(below[1])},
+        "band_90_hz": [_num(x) for x in d["band_90_hz"]],
+        "windows": {k: _num(v) for k, v in d["windows"].items()},
+        "top_amplitude": _num(d.get("top_amplitude")),
+        "top_slew": _num(d.get("top_slew")),
+        "axes": {k: _num(v) for k, v in (d.get("axes") or {}).items()},
+    }
+
+
 def report_dict(r: IdentifyResult) -> dict:
     """The JSON report as a dict (deterministic for deterministic inputs)."""
     noise = {c: (_num(r.noise[c].sigma) if c in r.noise else None) for c in CH}
@@ -94,6 +110,7 @@ def report_dict(r: IdentifyResult) -> dict:
         "screening": [[{"candidate": n, "score": s} for n, s in rnd] for rnd in r.history],
         "n_samples": int(sum(np.sum(r.data.mask(c) > 0) for c in r.data.channels())),
         "adopted": bool(r.adopted),
+        "residual_energy": {c: _energy_entry(v) for c, v in r.energy.items()},
         "rejected": [{**x, "params": {k: v for k, v in x["params"].items() if k != "taps"}} for x in r.rejected],
         "dtoc_version": __version__,
     }
@@ -116,7 +133,7 @@ def _fmt_params(entry: dict) -> str:
         ft = entry["features"]
         n = len(np.asarray(entry["params"]["taps"]).reshape(-1))
         parts.append(
-            f"{n} taps; peak |dH|={ft['peak_abs']:.3g} at {ft['peak_hz'] / 1e3:.2f} kHz; DC {ft['dc_change']:+.3g}"
+            f"{n} taps; {lti_physical_text(ft)}; peak |dH|={ft['peak_abs']:.3g} at {ft['peak_hz'] / 1e3:.2f} kHz"
         )
     return ", ".join(parts)
 
@@ -170,8 +187,9 @@ def print_table(r: IdentifyResult, console=None) -> None:
     if not d["effects"]:
         e.add_row("—", "none", "", "", "no candidate is both significant and adopted", "")
     con.print(e)
-    for x in d["rejected"]:
-        con.print(f"not adopted: {x['effect']}: {'; '.join(x['reasons'])}", markup=False, soft_wrap=True)
+    adopted_names = {effect_name(f.effect) for f in r.twin.found}
+    for x in r.rejected:
+        con.print(rejected_line(x, adopted_names), markup=False, soft_wrap=True)
     if not d["adopted"]:
         con.print(
             "no updated model: nothing beyond the declared model is supported by the data (no model file written)"

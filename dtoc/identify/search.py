@@ -29,8 +29,8 @@ from dtoc.constants import AXES
 from dtoc.errors import InputError
 from dtoc.hardware.effects import SlewLimit
 from dtoc.hardware.model import HardwareModel
-from dtoc.identify import adopt, diagnostics
-from dtoc.identify.candidates import Context, excited_band_hz, lti_features, screen_all
+from dtoc.identify import adopt, diagnostics, energy, separability
+from dtoc.identify.candidates import Context, excited_band_hz, lti_features, lti_physical_text, screen_all
 from dtoc.identify.data import IdentData
 from dtoc.identify.folds import Folds, make_folds, waveform_groups
 from dtoc.identify.kinds import effect_name
@@ -68,6 +68,7 @@ class IdentifyResult:
     residual_after: dict
     history: list = field(default_factory=list)  # per round: list of (name, score) of the top proposals
     rejected: list = field(default_factory=list)  # effects the adoption gate removed, with the reasons
+    energy: dict = field(default_factory=dict)  # channel -> dtoc.identify.energy.describe of the final residual
 
     @property
     def adopted(self) -> bool:
@@ -254,7 +255,8 @@ def _identify(
                     fo.effect.load_state_dict(st)
                 break
             ws = ws_new
-        ltis_to_physical(twin, data, sigma, folds, kinds, say)
+        ltis_to_physical(twin, data, sigma, folds, kinds, say, exclude=gate_excluded)
+        lti_delays_to_delay(twin, data, sigma, folds, kinds, threshold, say, exclude=gate_excluded)
         # Final full-data refit, standard errors, noise floors and held-out errors; then the adoption gate
         # (dtoc.identify.adopt): effects the data do not support are removed one at a time and the rest
         # refitted; the search then resumes without them (another effect may explain what they could not).
@@ -266,6 +268,19 @@ def _identify(
             problems = adopt.bound_problems(twin.found, data.dt_s) + adopt.identification_problems(
                 twin.found, fit.get("at_bound", [])
             )
+            also_exclude: dict = {}
+            if not problems:  # what the waveforms can separate (dtoc.identify.separability)
+                problems = [
+                    adopt.Problem(i, r) for i, r in separability.stability_problems(twin, fit, *fit["fold_est"])
+                ]
+            if not problems:
+                labels = separability.label_problems(twin, fit["chi2"], threshold)
+                problems = [adopt.Problem(i, r) for i, r, _ in labels]
+                also_exclude = {i: names for i, _, names in labels}
+            if not problems:
+                n_meas = int(sum(np.sum(data.mask(c) > 0) for c in data.channels()))
+                red = separability.redundancy_problems(twin, fit, threshold, n_meas)
+                problems = [adopt.Problem(i, r) for i, r in red]
             problems += adopt.heldout_problems(heldout_before, heldout_after, data.channels())
             if not problems:
                 rt = adopt.roundtrip_problem(twin.updated_model(), data.g, data.dt_s)
@@ -273,6 +288,7 @@ def _identify(
             if not problems:
                 break
             i = adopt.pick_offender(problems, twin.found)
+            gate_excluded.update(also_exclude.get(i, []))
             f = twin.found[i]
             reasons = [p.reason for p in problems if p.index == i] or [p.reason for p in problems]
             rejected.append(
@@ -297,6 +313,7 @@ def _identify(
     after = diagnostics.rmse(data, res_after)
     # Explained?
     remaining = []
+    energy_desc: dict = {}
     explained = True
     for c in data.channels():
         ratio = heldout_after[c] / sigma[c]
@@ -310,6 +327,10 @@ def _identify(
                     worst = f" (worst axis {ax}: {per[ax] / sigma[c]:.2f}x)"
             remaining.append(f"held-out {c} residual is {ratio:.2f}x the noise floor{worst}")
         z = res_after[c] / sigma[c]
+        desc = energy.describe(data, c, res_after[c], sigma[c])
+        if desc is not None:
+            energy_desc[c] = desc
+        during = desc is not None and desc["windows"].get("during demanded gradients", 0.0) >= 0.5
         for pk in diagnostics.spectral_peaks(data, c, z):
             explained = False
             if pk["narrow"]:
@@ -320,16 +341,22 @@ def _identify(
                 remaining.append(
                     f"broadband {c} residual from {pk['f_lo_hz'] / 1e3:.2f} to {pk['f_hi_hz'] / 1e3:.2f} kHz "
                     f"(up to {pk['ratio']:.1f}x the high-frequency level, peak near {pk['f_hz'] / 1e3:.2f} "
-                    f"kHz): structure that follows the waveforms, not a resonance"
+                    f"kHz in 256-sample segments): "
+                    + ("structure that follows the waveforms, " if during else "")
+                    + "not a resonance"
                 )
-    if data.G is not None:
-        zG = res_after["G"] / sigma["G"]
+        if desc is not None:
+            remaining.append(energy.note(c, desc, UNITS[c]))
+    gres = diagnostics.gradient_residual(data, res_after, sigma)
+    if gres is not None:
+        rG, sG, how = gres
+        zG = rG / sG
         for what in ("slew", "amplitude"):
             note = diagnostics.dependence_note(data, zG, what)
             if note:
-                remaining.append(note)
+                remaining.append(note + how)
                 explained = False
-        note = diagnostics.direction_note(data, res_after["G"], sigma["G"], quiet_samples(data.g))
+        note = diagnostics.direction_note(data, rG, sG, quiet_samples(data.g))
         if note:
             remaining.append(note)
             explained = False
@@ -359,14 +386,15 @@ def _identify(
             n = lti_features(e.taps.detach().numpy().reshape(-1), int(round(e.t0_s / e.dt_s)), e.dt_s, band)
             fo.notes = {**fo.notes, "features": n}
             remaining.append(
-                f"lti correction on {fo.effect.axis}: largest |dH| {n['peak_abs']:.3f} near "
+                f"lti correction on {fo.effect.axis}: {lti_physical_text(n)}; largest |dH| {n['peak_abs']:.3f} near "
                 f"{n['peak_hz'] / 1e3:.2f} kHz within the excited band 0-{band / 1e3:.1f} kHz, DC change "
                 f"{n['dc_change']:+.4f} (a linear response no parametric effect explained)"
             )
     if len(twin.found) >= max_effects:
         remaining.append(f"stopped at the cap of {max_effects} added effects")
+    adopted_names = {effect_name(f.effect) for f in twin.found}
     for r in rejected:
-        remaining.append(f"not adopted: {'; '.join(r['reasons'])}")
+        remaining.append(rejected_line(r, adopted_names))
     say("done")
     return IdentifyResult(
         data,
@@ -383,7 +411,23 @@ def _identify(
         res_after,
         history,
         rejected,
+        energy_desc,
     )
+
+
+#: Units of the channels, for the notes.
+UNITS = {"G": "mT/m", "k": "rad/m", "b0": "uT"}
+
+
+def rejected_line(r: dict, adopted_names: set) -> str:
+    """ "not adopted: ..." for an effect the gate removed; when an effect of the same name (a further term of a
+    repeatable kind, e.g. a second ``exp_eddy[x]``) *is* adopted, the line says so and gives the removed term's
+    parameters, so that the two are never confused."""
+    reasons = "; ".join(r["reasons"])
+    if r["effect"] in adopted_names:
+        ps = ", ".join(f"{k} {v:.4g}" for k, v in r["params"].items() if isinstance(v, float))
+        return f"not adopted: a further {r['effect']} term ({ps}) beside the adopted {r['effect']}: {reasons}"
+    return f"not adopted: {reasons}"
 
 
 def _refined_noise(noise_first: dict, res_after: dict, data: IdentData) -> dict:
@@ -446,6 +490,7 @@ def _evaluate(twin: Twin, data: IdentData, noise_first: dict, folds: Folds):
     else:
         held_res = res_after
     heldout_after = diagnostics.rmse(data, held_res)
+    fit["fold_est"] = twin.fold_estimates(fit, [folds.sample_mask(k, train=False) for k in range(folds.K)])
     for c in data.channels():
         if heldout_after[c] is None or not np.isfinite(heldout_after[c]):
             heldout_after[c] = float("inf")  # a held-out refit failed: never "explained"
@@ -456,14 +501,15 @@ def _evaluate(twin: Twin, data: IdentData, noise_first: dict, folds: Folds):
 LTI_EQUIVALENTS = ("delay", "delay_bandlimited", "gain", "exp_eddy", "resonance")
 
 
-def ltis_to_physical(twin: Twin, data: IdentData, sigma: dict, folds: Folds, kinds, say) -> None:
+def ltis_to_physical(twin: Twin, data: IdentData, sigma: dict, folds: Folds, kinds, say, exclude=frozenset()) -> None:
     """Replace every found ``lti`` that is equivalent within noise to one physical effect on its axis.
 
     For each lti: the model without it is the base; every kind of :data:`LTI_EQUIVALENTS` allowed by
     ``kinds`` is screened on the lti's axis against that base, the best one is added and refitted with the
     rest, and it replaces the lti when its information criterion is no worse: chi2_param + p ln n <=
     chi2_lti + L ln n (p its parameters, L the taps).  The report then names the physical effect (with its
-    parameters and errors) instead of a filter.  Otherwise the lti is restored unchanged.
+    parameters and errors) instead of a filter.  Otherwise the lti is restored unchanged.  Candidates named
+    in ``exclude`` (removed by the adoption gate) are not tried.
     """
     from dtoc.identify.candidates import screen_delay, screen_exp_eddy, screen_gain, screen_resonance
 
@@ -489,7 +535,11 @@ def ltis_to_physical(twin: Twin, data: IdentData, sigma: dict, folds: Folds, kin
             "exp_eddy": (screen_exp_eddy, {}),
             "resonance": (screen_resonance, {}),
         }
-        props = [p for p in (screens[k][0](ws, ctx, ax, **screens[k][1]) for k in allowed) if p is not None]
+        props = [
+            p
+            for p in (screens[k][0](ws, ctx, ax, **screens[k][1]) for k in allowed)
+            if p is not None and p.name not in exclude
+        ]
         best = max(props, key=lambda p: p.score) if props else None
         replaced = False
         if best is not None:
@@ -502,6 +552,43 @@ def ltis_to_physical(twin: Twin, data: IdentData, sigma: dict, folds: Folds, kin
             else:
                 twin.found.remove(g)
         if not replaced:
+            twin.found[:] = order
+            for x, st in zip(twin.found, state):
+                x.effect.load_state_dict(st)
+
+
+def lti_delays_to_delay(
+    twin: Twin, data: IdentData, sigma: dict, folds: Folds, kinds, threshold: float, say, exclude=frozenset()
+) -> None:
+    """Move the delay a found ``lti`` carries (its group delay at low frequency, :func:`lti_features`) into a
+    ``delay`` effect on its axis (added, or the axis's found delay adjusted), re-solve the filter and refit;
+    kept when the chi-square is within ``threshold`` of before (the two descriptions are equivalent), so that
+    a shift is reported as a delay and not hidden in 48 taps.  Shifts below 5 % of a sample are left, and so is
+    an axis whose delay the adoption gate removed (``exclude``)."""
+    if kinds and "delay" not in kinds:
+        return
+    for f in [f for f in twin.found if f.position == "lti"]:
+        e = f.effect
+        ft = lti_features(e.taps.detach().numpy().reshape(-1), int(round(e.t0_s / e.dt_s)), e.dt_s)
+        tau = ft["delay_s"]
+        if f"delay[{e.axis}]" in exclude or not np.isfinite(tau) or abs(tau) < 0.05 * data.dt_s:
+            continue
+        chi_old = _chi2(Workspace(data, sigma, folds, twin.predict()))
+        order = list(twin.found)
+        state = [copy.deepcopy(x.effect.state_dict()) for x in twin.found]
+        have = next((x for x in twin.found if x.effect.kind == "delay" and x.effect.axis == e.axis), None)
+        if have is not None:
+            with torch.no_grad():
+                have.effect.seconds.add_(tau)
+        else:
+            twin.add("delay", e.axis, None, {"seconds": tau}, f.score, "post", {"moved from lti": True})
+        twin.refit()
+        chi_new = _chi2(Workspace(data, sigma, folds, twin.predict()))
+        if chi_new <= chi_old + threshold:
+            say(
+                f"  the {tau * 1e6:+.3g} us delay lti[{e.axis}] carried is now a delay effect (chi2 {chi_old:.1f} -> {chi_new:.1f})"
+            )
+        else:
             twin.found[:] = order
             for x, st in zip(twin.found, state):
                 x.effect.load_state_dict(st)

@@ -341,6 +341,43 @@ class Twin:
             self._set_u(free, fit["u"] + step)
         self._refit_lti(weight)
 
+    def fold_estimates(self, fit: dict, masks: list) -> tuple[np.ndarray, np.ndarray]:
+        """Each scalar parameter estimated on the samples of each mask in ``masks`` alone ((M, N) 0/1, e.g. the
+        held-out folds' test samples: disjoint data), by one Gauss-Newton step from the full-data optimum
+        ``fit`` (rows of its Jacobian restricted to the mask), with standard errors (J^T J)^-1 x max(1,
+        chi2/dof) on those rows.  Parameters stay as they are.
+
+        Returns:
+            (est, se), each (len(masks), p) in the refit's transformed units (logs, dt units); NaN where a
+            mask does not constrain the parameters.
+        """
+        free = fit.get("free") or []
+        p = len(free)
+        est = np.full((len(masks), p), np.nan)
+        se = np.full((len(masks), p), np.nan)
+        if not p or "J" not in fit:
+            return est, se
+        for k, w in enumerate(masks):
+            rows = np.concatenate([t[1].numpy().reshape(-1) for t in self._targets(w).values()]) > 0
+            J = fit["J"][rows]
+            r = fit["r"][rows]
+            JTJ = _gram(J)
+            if rows.sum() <= p or np.any(np.diag(JTJ) <= 0):
+                continue
+            try:
+                inv = np.linalg.inv(JTJ)
+            except np.linalg.LinAlgError:
+                continue
+            step = -inv @ _proj(J, r)
+            r1 = r + J @ step
+            scale = max(1.0, _dot(r1, r1) / (int(rows.sum()) - p))
+            d = np.diag(inv)
+            if np.any(d <= 0) or not np.all(np.isfinite(step)):
+                continue
+            est[k] = fit["u"] + step
+            se[k] = np.sqrt(d * scale)
+        return est, se
+
     def set_stderr(self, fit: dict) -> None:
         """Store standard errors (in the parameters' own units) from a full-data :meth:`refit`."""
         for f in self.found:
