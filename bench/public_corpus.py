@@ -273,9 +273,10 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
     if r["timed_out"]:
         est = [ln for ln in r["err"].splitlines() if "estimat" in ln.lower()]
         row["result"] = f"timed out after {budgets['optimize']:.0f} s" + (f" ({est[-1].strip()})" if est else "")
-    elif r["rc"] == 0 and man.exists():
+    elif r["rc"] in (0, 1) and man.exists():  # 1: written, but the output fails a check (docs/cli.md)
         m = json.loads(man.read_text())
-        row["result"] = "optimized"
+        failed = (m.get("output") or {}).get("check_failed")
+        row["result"] = "optimized" + (f"; output check FAILED: {failed}" if r["rc"] == 1 and failed else "")
         row["k_before_dk"] = m["before"].get("kspace_max_error_dk")
         row["k_after_dk"] = m["after"].get("kspace_max_error_dk")
         row["nrmse_before_pct"] = m["before"].get("nrmse_percent")
@@ -315,7 +316,7 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: s
             cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu)
     except OSError:
         pass
-    n_opt = sum(r["result"] == "optimized" for r in rows)
+    n_opt = sum(r["result"].startswith("optimized") for r in rows)
     for r in rows:  # rows of an earlier version of this script said "exit 3"
         for k in ("check", "predict", "simulate", "result"):
             if isinstance(r.get(k), str) and r[k].startswith("exit 3: "):
@@ -374,7 +375,7 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: s
             if r.get("simulate") == "ok"
             else _cell(r.get("simulate", "-")).split("; ")[0]
         )
-        if r["result"] == "optimized":
+        if r["result"].startswith("optimized"):
             kba = f"{_f(r.get('k_before_dk'))} -> {_f(r.get('k_after_dk'))}"
             nba = (
                 f"{_f(r.get('nrmse_before_pct'))} -> {_f(r.get('nrmse_after_pct'))}"

@@ -345,3 +345,28 @@ def test_detected_use_of_a_tse_and_an_inversion_prepared_file(tmp_path):
     assert [(e["use"], e["flip_deg"]) for e in ir.meta["rf_use"]] == [("inversion", 180.0), ("excitation", 8.0)]
     k_as_refocusing = load_sequence(q, rf_use={1: "refocusing"}).nominal_kspace_rad_per_m()
     np.testing.assert_array_equal(ir.nominal_kspace_rad_per_m(), k_as_refocusing)
+
+
+def test_a_file_without_encoding_gradients_has_no_image(tmp_path, capsys):
+    """An FID (RF + ADC, no gradient) sits at k = 0 at every sample: no image grid is made up from a FOV
+    definition (it was given an 8 x 8 grid and a 300-dummy simulation before), simulate refuses in one line."""
+    from dtoc.seq.pulseq import import_pypulseq, quiet
+
+    pp = import_pypulseq()
+    sys_ = pp.Opts(rf_ringdown_time=20e-6, rf_dead_time=100e-6, adc_dead_time=10e-6)
+    seq = pp.Sequence(sys_)
+    rf = pp.make_block_pulse(flip_angle=math.radians(30), duration=0.5e-3, system=sys_, use="excitation")
+    adc = pp.make_adc(256, dwell=20e-6, delay=100e-6, system=sys_)
+    for _ in range(4):
+        seq.add_block(rf)
+        seq.add_block(adc, pp.make_delay(50e-3))
+    seq.set_definition("FOV", [0.25, 0.25, 0.005])
+    p = tmp_path / "fid.seq"
+    with quiet():
+        seq.write(str(p))
+    ir = load_sequence(p)
+    assert any("every ADC sample sits at k = 0" in n for n in ir.meta.get("notes", []))
+    assert ir.matrix is None
+    code, _, err = run_cli(capsys, "simulate", p, "-q")
+    assert code == 2 and err.strip().splitlines()[-1].startswith("dtoc: error:")
+    assert "no image grid" in err

@@ -55,8 +55,14 @@ def infer_missing_geometry(ir: SequenceIR) -> None:
                 ir.meta.setdefault("notes", []).append(g3.describe())
         return
     k0 = ir.nominal_kspace_rad_per_m()  # (3, N_adc), computed once for every inference below
-    g = infer_cartesian_grid(k0, sizes)
     notes = ir.meta.setdefault("notes", [])
+    if float(abs(k0).max(initial=0.0)) < 1e-6:  # rad/m: every sample at the k-space centre
+        notes.append(
+            "every ADC sample sits at k = 0 (the file plays no encoding gradient: an FID or spectroscopy "
+            "acquisition): k-space figures only, no image"
+        )
+        return
+    g = infer_cartesian_grid(k0, sizes)
     declared = declared_geometry(ir)
     if g is None:
         _free_encoded_slice_axes(ir, k0, notes)
