@@ -50,6 +50,7 @@ class OptimizeRequest(BaseModel):
     smax: float | None = None
     iters: int | None = None
     warm_iters: int | None = None
+    k_tol: float | None = None
     lr: float | None = None
     w_image: float | None = None
     w_k: float | None = None
@@ -152,6 +153,7 @@ def run_request(
         "smax_T_per_m_per_s": smax,
         "iters": req.iters,
         "warm_iters": req.warm_iters,
+        "k_tol_dk": req.k_tol,
         "lr": req.lr,
         "augment_rotations": req.augment,
         "seed": req.seed,
