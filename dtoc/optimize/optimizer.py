@@ -285,7 +285,28 @@ def solve_warm_start(
         x, rep = SV.solve_to_tolerance(
             f, x0, twin.projector, twin.free_t, k_error, k_tol_dk=k_tol_dk, budget=budget,
             sample_times_s=adc_sample_times_s(twin.ir), progress=progress,
+            cuts=np.array([round(r.t_center_s / twin.ir.raster_s) for r in twin.ir.rf if r.excites], dtype=np.int64),
         )  # fmt: skip
+        left = budget - rep.evaluations
+        if rep.stop_reason == "limits-bound" and left >= 40:
+            # limits active over much of the waveform: CG then projected FISTA from the start (the fixed-count
+            # algorithm) on what is left of the budget, with the same rule; kept if it lowers the objective
+            sub = SV.SolveReport(method="cg-fista")
+            x2 = constrained_least_squares(
+                f, x0, twin.projector, twin.free_t, left, None, progress, 0.5,
+                k_stop=lambda z: bool(k_error(z).max() <= k_tol_dk), report=sub,
+            )  # fmt: skip
+            rep.evaluations += sub.evaluations
+            rep.method = "pcg-active-set+cg-fista"
+            if float(f(x2)[0].detach()) < float(f(x)[0].detach()):
+                x = x2
+                err = k_error(x)
+                rep.achieved_max_dk = float(err.max()) if err.size else 0.0
+                rep.unreachable = SV.explain_unreachable(
+                    x, err, rep.unconstrained_errors, k_tol_dk, twin.projector, adc_sample_times_s(twin.ir),
+                    rep.unconstrained_converged,
+                )  # fmt: skip
+                rep.stop_reason = "tolerance" if sub.stop_reason == "tolerance" else sub.stop_reason
     else:
         rep = SV.SolveReport(method="cg-fista", k_tol_dk=k_tol_dk)
         x = constrained_least_squares(

@@ -9,8 +9,8 @@ gradient to k: ``H ~ c (D D^T)^-1`` with ``D`` the first difference on the raste
 grows with the square of the number of samples, and so did the iterations of plain CG / FISTA.  Here:
 
 1. **Preconditioned CG** on the unconstrained problem with the preconditioner ``D D^T`` (the inverse of the
-   integrator, applied as a multiplier on its spectrum: a real FFT of the even extension), whose iteration count does not grow with the matrix
-   (EPI 64 to 256: docs/benchmarks.md).  If the optimum is within the limits: done.
+   integrator: the path Laplacian of the raster edges, cut where k restarts), whose iteration count does not
+   grow with the matrix.  If the optimum is within the limits: done.
 2. Otherwise **active-set rounds**: the CG's optimum is projected exactly onto the limits
    (:meth:`~dtoc.optimize.limits.EdgeProjector.project`); the edges the projection moved are held at their
    projected values and the CG solves again for the others, from there (warm), until no further edge is
@@ -26,6 +26,9 @@ Stop reasons (``SolveReport.stop_reason``):
   (the unconstrained optimum within the limits, or the held edges' optimum); the samples still above
   tolerance are named with the reason (:func:`explain_unreachable`);
   also when a round lowered the objective by less than ``stall_rel``;
+* ``limits-bound``: the first projection moved more than ``held_max`` of the free edges (a waveform at its
+  slew limit throughout): the rounds do not suit it, :func:`dtoc.optimize.optimizer.solve_warm_start` runs
+  CG and projected FISTA from the base instead, on the rest of the budget;
 * ``rounds``: ``max_rounds`` active-set rounds ran (the samples above tolerance are named as well);
 * ``budget``: ``budget`` objective evaluations were spent first.
 
@@ -55,7 +58,8 @@ class Unreachable:
         indices: ADC sample indices (into the sequence's concatenated samples).
         error_dk: their k error, dk.
         reason: per sample: 'fixed' (not reachable even without the limits: the free edges cannot move it,
-            e.g. the hardware's response to fixed RF-block gradients), or 'limits' (reachable without them).
+            e.g. the hardware's response to fixed RF-block gradients), 'unresolved' (the unconstrained solve did
+            not converge within its budget: no claim), or 'limits' (reachable without them).
         limit: per sample, the active limit nearest before it: 'slew x', 'amplitude y', ... ('' if none).
         limit_time_s: the time of that active limit, s (nan if none).
         unconstrained_dk: per sample, its error at the unconstrained optimum (how far the limits cost).
@@ -74,6 +78,7 @@ class Unreachable:
             "n_samples": int(self.indices.size),
             "n_fixed": int(sum(r == "fixed" for r in self.reason)),
             "n_limits": int(sum(r == "limits" for r in self.reason)),
+            "n_unresolved": int(sum(r == "unresolved" for r in self.reason)),
             "worst": [
                 {
                     "sample": int(self.indices[i]),
@@ -96,6 +101,8 @@ class Unreachable:
             why = (
                 f"not reachable by the free gradient even without limits ({self.unconstrained_dk[i]:.3g} dk)"
                 if self.reason[i] == "fixed"
+                else "the solve did not converge within its budget"
+                if self.reason[i] == "unresolved"
                 else f"{self.limit[i] or 'a'} limit active at {1e3 * self.limit_time_s[i]:.3f} ms "
                 f"(without limits {self.unconstrained_dk[i]:.3g} dk)"
             )
@@ -118,6 +125,8 @@ class SolveReport:
     within_limits_unconstrained: bool = False
     unreachable: Unreachable | None = None
     history: list = field(default_factory=list)
+    unconstrained_errors: np.ndarray | None = None  # (N_adc,) dk, at the unconstrained solve
+    unconstrained_converged: bool = False
 
     def as_dict(self) -> dict:
         return {
@@ -174,25 +183,33 @@ class _Quadratic:
 
 
 class _Precond:
-    """The inverse of the integrator model of the Hessian, ``H ~ c (D D^T)^-1`` (a free edge moves the k of
-    every later sample; D the first difference on the raster), restricted to the variables ``act``: ``D D^T``
-    applied as a multiplier on its spectrum (even extension, real FFT: symmetric positive definite, the scale
-    c does not matter to CG).  With it the CG's iteration count depends on the chain's frequency response, not
-    on the number of samples."""
+    """The inverse of the integrator model of the Hessian, ``H ~ c (D D^T)^-1``: a free edge moves the k of
+    every later sample up to the next excitation (D the first difference on the raster).  ``D D^T`` is the
+    path graph's Laplacian on the raster edges (``2 r[n] - r[n-1] - r[n+1]``), cut at the excitations
+    (``cuts``: edge indices where k restarts, each period its own Neumann path), plus the smallest nonzero
+    eigenvalue's half of each period on the diagonal (positive definite); restricted to the variables ``act``.
+    The scale c does not matter to CG.  With it the CG's iteration count depends on the chain's frequency
+    response, not on the number of samples."""
 
-    def __init__(self, act: torch.Tensor):
+    def __init__(self, act: torch.Tensor, cuts: np.ndarray | None = None):
         n = act.shape[-1]
-        self.n = n
         self.act = act
-        j = torch.arange(n + 1, dtype=torch.float64, device=act.device)
-        lam = 2.0 - 2.0 * torch.cos(math.pi * j / n)
-        self.mult = lam.clamp_min(float(lam[1]) / 2)
+        link = torch.ones(n - 1, dtype=torch.bool, device=act.device)  # link[j]: edges j and j+1 coupled
+        bounds = np.unique(np.clip(np.asarray([] if cuts is None else cuts, dtype=np.int64), 1, n - 1))
+        link[torch.as_tensor(bounds - 1, dtype=torch.long, device=act.device)] = False
+        starts = np.concatenate([[0], bounds])
+        lengths = np.diff(np.concatenate([starts, [n]]))
+        seg_eps = (2.0 - 2.0 * np.cos(np.pi / np.maximum(lengths, 2))) / 2
+        self.eps = torch.as_tensor(np.repeat(seg_eps, lengths), dtype=torch.float64, device=act.device)
+        self.link = link.to(torch.float64)
 
     def __call__(self, r: torch.Tensor) -> torch.Tensor:
         r = torch.where(self.act, r, torch.zeros_like(r))
-        ext = torch.cat([r, r.flip(-1)], dim=-1)
-        y = torch.fft.irfft(torch.fft.rfft(ext) * self.mult.to(r.dtype), n=2 * self.n)
-        z = 0.5 * (y[..., : self.n] + y[..., self.n :].flip(-1))
+        lk = self.link.to(r.dtype)
+        d = (r[..., 1:] - r[..., :-1]) * lk  # differences across the coupled pairs
+        z = self.eps.to(r.dtype) * r
+        z[..., :-1] -= d
+        z[..., 1:] += d
         return torch.where(self.act, z, torch.zeros_like(z))
 
 
@@ -238,8 +255,10 @@ def solve_to_tolerance(
     cg_max: int = 150,
     cg_round_max: int = 40,
     max_rounds: int = 8,
-    stall_rel: float = 0.01,
+    stall_rel: float = 0.02,
+    held_max: float = 0.2,
     sample_times_s: np.ndarray | None = None,
+    cuts: np.ndarray | None = None,
     progress: Callable[[str, int, int, float], None] | None = None,
 ) -> tuple[torch.Tensor, SolveReport]:
     """Minimise the quadratic ``f`` within the limits of ``P`` to a k-space tolerance (module doc).
@@ -255,7 +274,10 @@ def solve_to_tolerance(
             or after ``cg_max`` iterations (the first solve) or ``cg_round_max`` (each later round, warm).
         max_rounds / stall_rel: most active-set rounds; stop when a round lowered the objective by less than
             ``stall_rel`` (relative).
+        held_max: when the first projection moves more than this fraction of the free edges, stop with
+            'limits-bound' (the caller then runs the projected-gradient path).
         sample_times_s: (N_adc,) sample times, to name the active limit before an unreachable sample.
+        cuts: raster-edge indices where k restarts (excitations): the preconditioner's periods.
     Returns:
         (x within the limits (exactly projected), :class:`SolveReport`).
     """
@@ -264,12 +286,13 @@ def solve_to_tolerance(
     x = P.project(q.x0, n_iter=60)
     best: dict = {"x": x, "f": float(f(x)[0].detach()), "err": k_error(x)}
     err_unc = None
+    unc_converged = False
     fixed = torch.zeros_like(free)
     try:
         x = q.x0
         for rnd in range(max_rounds):
             act = free & ~fixed
-            M = _Precond(act)
+            M = _Precond(act, cuts)
 
             def op(u, act=act):
                 return torch.where(act, q.hv(torch.where(act, u, 0.0)), 0.0)
@@ -280,6 +303,7 @@ def solve_to_tolerance(
             rep.cg_iterations += k
             x_unc = x + d
             if rnd == 0:
+                unc_converged = k < n_max
                 err_unc = k_error(x_unc)
                 rep.unconstrained_max_dk = float(err_unc.max())
                 rep.within_limits_unconstrained = bool(P.is_feasible(x_unc.detach().cpu().numpy()))
@@ -302,6 +326,9 @@ def solve_to_tolerance(
             if bool(np.all(best["err"][err_unc <= k_tol_dk] <= k_tol_dk)):
                 rep.stop_reason = "tolerance"
                 break
+            if rnd == 0 and float(fixed.sum()) > held_max * float(free.sum()):
+                rep.stop_reason = "limits-bound"  # the limits bind over much of the waveform: not for rounds
+                break
             if not bool(new.any()) and k < n_max:
                 rep.stop_reason = "converged"  # no new limit became active and CG converged: no further change
                 break
@@ -317,16 +344,19 @@ def solve_to_tolerance(
     rep.evaluations = q.n
     err = best["err"]
     rep.achieved_max_dk = float(err.max()) if err.size else 0.0
+    rep.unconstrained_errors, rep.unconstrained_converged = err_unc, unc_converged
     if err_unc is not None:
-        rep.unreachable = explain_unreachable(best["x"], err, err_unc, k_tol_dk, P, sample_times_s)
+        rep.unreachable = explain_unreachable(best["x"], err, err_unc, k_tol_dk, P, sample_times_s, unc_converged)
     return best["x"], rep
 
 
-def explain_unreachable(x, err, err_unc, k_tol_dk, P, sample_times_s) -> Unreachable:
-    """Name the samples above tolerance: 'fixed' when the unconstrained optimum misses them too, else 'limits'
-    with the active limit (amplitude or slew at its bound, per axis) nearest before the sample."""
+def explain_unreachable(x, err, err_unc, k_tol_dk, P, sample_times_s, unc_converged: bool = True) -> Unreachable:
+    """Name the samples above tolerance: 'fixed' when the unconstrained optimum misses them too ('unresolved'
+    when the solve did not reach that optimum within its budget: no claim), else 'limits' with the active limit
+    (amplitude or slew at its bound, per axis) nearest before the sample."""
     idx = np.flatnonzero(err > k_tol_dk)
-    reason = ["fixed" if err_unc[i] > k_tol_dk else "limits" for i in idx]
+    miss = "fixed" if unc_converged else "unresolved"
+    reason = [miss if err_unc[i] > k_tol_dk else "limits" for i in idx]
     limit = [""] * idx.size
     lt = np.full(idx.size, np.nan)
     if idx.size and sample_times_s is not None:
