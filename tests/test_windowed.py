@@ -97,7 +97,7 @@ def solved():
         horizon_s=causal,
         lookahead_s=acausal,
     )
-    e_whole = O.warm_start(twin, ctx, cfg.weights, cfg.warm_iters)
+    e_whole = O.warm_start(twin, ctx, cfg.weights, 400)  # the fixed count this comparison was made with
     out = {"ir": ir, "P": P, "st": st, "ctx": ctx}
     with torch.no_grad():
         for name, e in (("base", P.base), ("win", e_win), ("whole", e_whole)):
@@ -125,6 +125,43 @@ def test_windowed_changes_only_free_edges(solved):
     s = solved
     P = s["P"]
     assert np.array_equal(s["e_win"][~P.free], P.base[~P.free])
+
+
+@pytest.mark.slow
+def test_identical_periods_share_one_solve():
+    """Three identical shots (one partition): each TR of shots 2 and 3 takes the solution of the same TR of shot 1
+    (the manifest lists them as solved as one), and the result equals solving every window to 1e-3 mT/m."""
+    import tempfile
+    from pathlib import Path
+
+    from dtoc.optimize import loss as L
+    from dtoc.optimize.config import load_config
+    from dtoc.optimize.limits import EdgeProjector
+    from dtoc.optimize.run import free_edges, limits_and_sources
+    from dtoc.optimize.windowed import windowed_warm_start
+    from dtoc.seq.load import load_sequence
+    from tests.foreign.writers import mprage
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "mp.seq"
+        p.write_bytes(mprage(n=8, nz=1, tr=8e-3, ti=0.06, tr_shot=0.2, shots=3))
+        ir = load_sequence(p)
+    hw = HardwareModel([ExpEddy(0.01, 2e-3), Delay(4e-6)]).frozen()
+    cfg = load_config(ir.kind, None).model_copy(update={"gmax_mT_per_m": 32, "smax_T_per_m_per_s": 130})
+    lim, _ = limits_and_sources(ir, cfg)
+    free = free_edges(ir)
+    ctx = L.build_context(ir, lim)
+    c, a = memory_s(hw)
+    runs = {
+        r: windowed_warm_start(ir, hw, lim, free, cfg.weights, ctx, horizon_s=c, lookahead_s=a, reuse=r)
+        for r in (True, False)
+    }
+    e, st = runs[True]
+    assert st.reused >= 14 and runs[False][1].reused == 0
+    groups = st.as_dict()["solved_as_one"]
+    assert {"windows": 3, "runs": [[1, 1], [9, 9], [17, 17]]} in groups  # TR 1 of each shot
+    assert np.abs(e - runs[False][0]).max() < 1e-3
+    assert EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, lim).is_feasible(e)
 
 
 def test_window_jacobian_equals_unit_perturbations():

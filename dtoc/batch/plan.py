@@ -25,6 +25,7 @@ OPTION_KEYS = (
     "method",
     "iters",
     "warm_iters",
+    "k_tol",
     "lr",
     "w_image",
     "w_k",

@@ -40,7 +40,12 @@ def optimize_cmd(
     gmax: float | None = typer.Option(None, "--gmax", help="gradient limit per axis, mT/m (default: the sequence's)"),
     smax: float | None = typer.Option(None, "--smax", help="slew limit per axis, T/m/s (default: the sequence's)"),
     iters: int | None = typer.Option(None, "--iters", help="full-loss iterations"),
-    warm_iters: int | None = typer.Option(None, "--warm-iters", help="warm-start iterations"),
+    warm_iters: int | None = typer.Option(
+        None, "--warm-iters", help="warm-start iterations (a fixed count; default: solve to --k-tol)"
+    ),
+    k_tol: float | None = typer.Option(
+        None, "--k-tol", help="warm-start stopping tolerance on every reachable sample's k error, dk (default 0.01)"
+    ),
     lr: float | None = typer.Option(None, "--lr", help="Adam learning rate"),
     w_image: float | None = typer.Option(None, "--w-image", help="weight of the image (NRMSE) term"),
     w_k: float | None = typer.Option(None, "--w-k", help="weight of the k-space term (dk^2 per sample)"),
@@ -85,7 +90,7 @@ def optimize_cmd(
         base=base, out=out, girf=girf, model=model, ideal=ideal, config=config, json_out=json_out, png=png,
         force=force, resume=resume, checkpoint=checkpoint, trajectory=trajectory, no_trajectory=no_trajectory,
         orientation=orientation, scanner=scanner, offset=offset, method=method, gmax=gmax, smax=smax, iters=iters,
-        warm_iters=warm_iters, lr=lr, w_image=w_image, w_k=w_k, w_rf=w_rf, augment=augment, no_discard=no_discard,
+        warm_iters=warm_iters, k_tol=k_tol, lr=lr, w_image=w_image, w_k=w_k, w_rf=w_rf, augment=augment, no_discard=no_discard,
         phantom=phantom, b0=b0, seed=seed, threads=threads, device=device, format_version=format_version,
         rf_use=rf_use, allow_worse=allow_worse,
     )  # fmt: skip
@@ -182,6 +187,9 @@ def _print_summary(m: dict, con) -> None:
         f"gmax {lim['gmax_mT_per_m']:g} mT/m ({src.get('gmax_mT_per_m', '?')}), "
         f"smax {lim['smax_T_per_m_per_s']:g} T/m/s ({src.get('smax_T_per_m_per_s', '?')})"
     )
+    sv = m.get("solver")
+    if sv and sv.get("summary"):
+        note(sv["summary"])
     if out.get("check_ok", True):
         note(f"wrote {out.get('path')} in {m['run_time_s']:.1f} s; limits verified, 0 violations at {at}")
     else:  # never "0 violations" for a file dtoc check fails (exit 1 in optimize_cmd)

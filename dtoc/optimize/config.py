@@ -51,7 +51,12 @@ class OptimizeConfig(BaseModel):
         gmax_mT_per_m / smax_T_per_m_per_s: hard limits (default: from the sequence's system limits).
         amp_margin / slew_margin: relative safety margins of the hard limits.
         weights: loss weights (defaults per kind).
-        warm_iters: iterations of the constrained least-squares warm start.
+        warm_iters: None (default): the warm start is solved to the k-space tolerance ``k_tol_dk``
+            (:mod:`dtoc.optimize.solver`, within ``solve_budget`` evaluations); an integer: the fixed-count
+            algorithm with that many iterations (CG then projected FISTA, as before the solver).
+        k_tol_dk: the warm start's stopping tolerance on the k error of every reachable ADC sample, dk
+            (``--k-tol``).
+        solve_budget: most objective evaluations (forward + backward passes) of one warm-start solve.
         robust_rounds: rounds of iteratively reweighted least squares after the warm start (Cauchy
             weights on the per-sample k error, scale ``robust_scale_dk`` in dk): samples that cannot
             reach their target within the limits stop pulling the others off theirs (0 = plain LS).
@@ -92,7 +97,9 @@ class OptimizeConfig(BaseModel):
     amp_margin: float = Field(0.005, ge=0, lt=0.5)
     slew_margin: float = Field(0.01, ge=0, lt=0.5)
     weights: LossWeights = Field(default_factory=LossWeights)
-    warm_iters: int = Field(400, ge=0)
+    warm_iters: int | None = Field(None, ge=0)
+    k_tol_dk: float = Field(0.01, gt=0)
+    solve_budget: int = Field(600, ge=8)
     robust_rounds: int = Field(0, ge=0)
     robust_scale_dk: float = Field(0.5, gt=0)
     iters: int = Field(60, ge=0)

@@ -139,6 +139,8 @@ def constrained_least_squares(
     cg_fraction: float = 0.5,
     cg_tol: float = 1e-12,
     rel_tol: float = 1e-7,
+    k_stop: Callable[[torch.Tensor], bool] | None = None,
+    report=None,
 ) -> torch.Tensor:
     """The warm start's algorithm on any quadratic objective ``f`` of edge samples within the limits of ``P``.
 
@@ -151,6 +153,8 @@ def constrained_least_squares(
             differences), differentiable.
         x0: (3, N+1) start (the base edges).  P: an :class:`~dtoc.optimize.limits.EdgeProjector`.
         free: (3, N+1) bool tensor of the variables.
+        k_stop: ``x -> bool``, checked on the projected iterate every 20 FISTA iterations: stop when True
+            (the solver's k-space tolerance); ``report``: a :class:`~dtoc.optimize.solver.SolveReport` to fill.
     Returns:
         (3, N+1) projected edge samples, mT/m.
     """
@@ -195,6 +199,7 @@ def constrained_least_squares(
     f0 = f0 if n_cg == 0 else min(f0, float(f(x)[0].detach()))
     # --- projected FISTA on the constrained problem ---
     n_fista = iters - it
+    j = 0
     if n_fista > 0 and not (state is not None and state.interrupted):
         # Lipschitz constant by power iteration on H (on free entries)
         v = torch.where(free, torch.ones_like(x0), torch.zeros_like(x0))
@@ -223,8 +228,13 @@ def constrained_least_squares(
                 x_prev, t = x_new, t_new
                 if j > 20 and j % 20 == 1:
                     if f_prev - fy <= max(rel_tol * abs(fy), 1e-6 * f0) or fy <= 1e-14:
+                        if report is not None:
+                            report.stop_reason = "converged"
                         break
                     f_prev = fy
+                    if k_stop is not None and k_stop(P.project(x_prev, n_iter=60)):
+                        report.stop_reason = "tolerance"
+                        break
                 if progress:
                     progress("warm", it + j, iters, fy)
                 if j % 10 == 0 or j == n_fista:
@@ -237,18 +247,100 @@ def constrained_least_squares(
     x = P.project(x, n_iter=60)
     fx = float(f(x)[0].detach())
     hist.append({"stage": "warm", "it": iters, "loss": fx})
+    if report is not None:
+        report.stop_reason = report.stop_reason or "budget"
+        report.evaluations = iters if report.stop_reason == "budget" else it + j
+        report.cg_iterations = it
+        report.rounds = 0
     return x
+
+
+def solve_warm_start(
+    twin,
+    ctx,
+    weights,
+    k_tol_dk: float,
+    budget: int,
+    state: StageState | None = None,
+    progress: ProgressFn | None = None,
+    x_init: torch.Tensor | None = None,
+):
+    """The warm start's problem solved to a k-space tolerance (:mod:`dtoc.optimize.solver`); returns (x, report).
+
+    An affine chain: preconditioned CG and active-set rounds (:func:`~dtoc.optimize.solver.solve_to_tolerance`).
+    Otherwise (e.g. a slew-rate-limited amplifier) the iterative path (:func:`constrained_least_squares`) with the
+    same stopping rule, checked every 20 iterations, within ``budget`` evaluations.
+    """
+    from dtoc.hardware.memory import is_affine
+    from dtoc.optimize import solver as SV
+
+    x0 = twin.base_edges() if x_init is None else x_init.detach().clone()
+    f = linear_objective(twin, ctx, weights)
+
+    def k_error(x):
+        with torch.no_grad():
+            return kspace_error_dk(twin.forward_edges(x, moments=False).kspace_rad_per_m, ctx)
+
+    if is_affine(twin.hardware):
+        x, rep = SV.solve_to_tolerance(
+            f, x0, twin.projector, twin.free_t, k_error, k_tol_dk=k_tol_dk, budget=budget,
+            sample_times_s=adc_sample_times_s(twin.ir), progress=progress,
+            cuts=np.array([round(r.t_center_s / twin.ir.raster_s) for r in twin.ir.rf if r.excites], dtype=np.int64),
+        )  # fmt: skip
+        left = budget - rep.evaluations
+        if rep.stop_reason == "limits-bound" and left >= 40:
+            # limits active over much of the waveform: CG then projected FISTA from the start (the fixed-count
+            # algorithm) on what is left of the budget, with the same rule; kept if it lowers the objective
+            sub = SV.SolveReport(method="cg-fista")
+            x2 = constrained_least_squares(
+                f, x0, twin.projector, twin.free_t, left, None, progress, 0.5,
+                k_stop=lambda z: bool(k_error(z).max() <= k_tol_dk), report=sub,
+            )  # fmt: skip
+            rep.evaluations += sub.evaluations
+            rep.method = "pcg-active-set+cg-fista"
+            if float(f(x2)[0].detach()) < float(f(x)[0].detach()):
+                x = x2
+                err = k_error(x)
+                rep.achieved_max_dk = float(err.max()) if err.size else 0.0
+                rep.unreachable = SV.explain_unreachable(
+                    x, err, rep.unconstrained_errors, k_tol_dk, twin.projector, adc_sample_times_s(twin.ir),
+                    rep.unconstrained_converged,
+                )  # fmt: skip
+                rep.stop_reason = "tolerance" if sub.stop_reason == "tolerance" else sub.stop_reason
+    else:
+        rep = SV.SolveReport(method="cg-fista", k_tol_dk=k_tol_dk)
+        x = constrained_least_squares(
+            f, x0, twin.projector, twin.free_t, budget, state, progress, 0.5 if x_init is None else 0.0,
+            k_stop=lambda x: bool(k_error(x).max() <= k_tol_dk), report=rep,
+        )  # fmt: skip
+        err = k_error(x)
+        rep.achieved_max_dk = float(err.max()) if err.size else 0.0
+    if state is not None:
+        if rep.stop_reason == "interrupted":
+            state.interrupted = True
+        state.history.append({"stage": "warm", "it": rep.evaluations, "loss": float(f(x)[0].detach())})
+    return x, rep
+
+
+def adc_sample_times_s(ir) -> np.ndarray:
+    """(N_adc,) times of every ADC sample, s, in the order of the sequence's samples."""
+    if not ir.adc:
+        return np.zeros(0)
+    return np.concatenate([a.sample_times_s for a in ir.adc])
 
 
 def robust_warm_start(
     twin,
     ctx,
     weights,
-    iters: int,
+    iters: int | None,
     rounds: int = 2,
     scale_dk: float = 0.5,
     state: StageState | None = None,
     progress: ProgressFn | None = None,
+    k_tol_dk: float = 0.01,
+    budget: int = 600,
+    reports: list | None = None,
 ) -> torch.Tensor:
     """Warm start, then ``rounds`` of iteratively reweighted least squares on the k-space term.
 
@@ -256,8 +348,21 @@ def robust_warm_start(
     Cauchy weights ``1 / (1 + (err / scale_dk)^2)`` (err in dk), so the solution hits the reachable
     samples exactly instead of spreading the error over all of them (the later discarding then skips
     few samples).  Without active limits the first solve is already exact and no round runs.
+
+    ``iters`` None: each solve to the tolerance ``k_tol_dk`` within ``budget`` evaluations
+    (:func:`solve_warm_start`; its :class:`~dtoc.optimize.solver.SolveReport` appended to ``reports``);
+    an integer: the fixed-count algorithm (:func:`warm_start`, ``iters // 2`` per round).
     """
-    x = warm_start(twin, ctx, weights, iters, state, progress)
+
+    def solve(x_init=None, n=iters):
+        if iters is None:
+            x, rep = solve_warm_start(twin, ctx, weights, k_tol_dk, budget, state, progress, x_init)
+            if reports is not None:
+                reports.append(rep)
+            return x
+        return warm_start(twin, ctx, weights, n, state, progress, x_init=x_init)
+
+    x = solve()
     for _r in range(rounds):
         if state is not None and state.interrupted:
             break
@@ -268,7 +373,7 @@ def robust_warm_start(
         old = ctx.sample_weight
         ctx.sample_weight = torch.as_tensor(1.0 / (1.0 + (err / scale_dk) ** 2), dtype=x.dtype, device=x.device)
         try:
-            x = warm_start(twin, ctx, weights, iters // 2, state, progress, x_init=x)
+            x = solve(x, None if iters is None else iters // 2)
         finally:
             ctx.sample_weight = old
     return x

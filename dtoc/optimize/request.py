@@ -51,6 +51,7 @@ class OptimizeRequest(BaseModel):
     smax: float | None = None
     iters: int | None = None
     warm_iters: int | None = None
+    k_tol: float | None = None
     lr: float | None = None
     w_image: float | None = None
     w_k: float | None = None
@@ -82,6 +83,7 @@ class OptimizeRequest(BaseModel):
             ("lr", "--lr", self.lr),
             ("iters", "--iters", self.iters),
             ("iters", "--warm-iters", self.warm_iters),
+            ("k_tol", "--k-tol", self.k_tol),
             ("augment", "--augment", self.augment),
             ("threads", "--threads", self.threads),
         ):
@@ -190,6 +192,7 @@ def run_request(
         "smax_T_per_m_per_s": smax,
         "iters": req.iters,
         "warm_iters": req.warm_iters,
+        "k_tol_dk": req.k_tol,
         "lr": req.lr,
         "augment_rotations": req.augment,
         "seed": req.seed,

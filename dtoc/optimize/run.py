@@ -183,6 +183,19 @@ def _head(w: torch.Tensor, n: int | None) -> np.ndarray:
     return w.cpu().numpy() if n is None else w[:, :n].cpu().numpy().copy()  # copied: the rest is not kept
 
 
+def solver_record(solves: list) -> dict:
+    """The manifest's ``solver`` record of the warm start's solves (the first, then one per IRLS round):
+    the last solve's figures, the evaluations of all, and the stderr line."""
+    last = solves[-1]
+    rec = last.as_dict()
+    rec["evaluations"] = sum(r.evaluations for r in solves)
+    rec["solves"] = len(solves)
+    rec["summary"] = last.line().replace(
+        f"after {last.evaluations} evaluations", f"after {rec['evaluations']} evaluations"
+    )
+    return rec
+
+
 def _window_plan(ir, hardware, cfg: OptimizeConfig, free, with_image: bool | None) -> dict | None:
     """Whether to solve period by period (:mod:`dtoc.optimize.windowed`) and with which horizon; None = whole.
     'auto' windows a sequence longer than ``window_auto_s`` unless an image term is asked for."""
@@ -366,21 +379,134 @@ def optimize_sequence(
         :class:`RunOutputs` (manifest dict, output IR, arrays for plots).
     """
     t_start = time.time()
+    io = RunIO(
+        out=out,
+        manifest_path=manifest_path,
+        png_path=png_path,
+        force=force,
+        resume=resume,
+        checkpoint_path=checkpoint_path,
+        trajectory_path=trajectory_path,
+        base_path=base_path if base_path is not None else base,
+        girf=girf,
+        model=model,
+        config_path=config_path,
+        scanner_path=scanner_path,
+        safety=safety,
+        offset_m=offset_m,
+        format_version=format_version,
+    )
+    plan = plan_run(
+        base, io, config=config, hardware=hardware, ideal=ideal, device=device, phantom=phantom,
+        with_image=with_image, orientation=orientation, limit_sources=limit_sources,
+    )  # fmt: skip
+    sol = start_solution(plan, io)
+    report = _reporter(progress)
+    try:  # an interrupt between or inside the stages keeps the best-so-far (each stage keeps its own)
+        sol.x = warm_start_stage(plan, sol, report)
+        if not sol.final:
+            sol.x = full_loss_stage(plan, sol, io, report)
+            discard_stage(plan, sol)
+    except KeyboardInterrupt:
+        sol.state.interrupted = True
+        if sol.x is None:
+            sol.x = sol.state.best_edges.detach().clone()
+    return export_stage(plan, sol, io, t_start)
+
+
+# ---------------------------------------------------------------------------------------------------
+# the stages: plan -> warm start -> full loss -> discard -> export
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class RunIO:
+    """What one run reads besides the base and where its outputs go (checked before any work)."""
+
+    out: Any = None
+    manifest_path: Any = None
+    png_path: Any = None
+    force: bool = False
+    resume: Any = None
+    checkpoint_path: Any = None
+    trajectory_path: Any = None
+    base_path: Any = None
+    girf: Any = None
+    model: Any = None
+    config_path: Any = None
+    scanner_path: Any = None
+    safety: SafetyChecks | None = None
+    offset_m: Any = None
+    format_version: str | None = None  # Pulseq format of the output (None: the base's)
+
+
+@dataclass
+class Plan:
+    """The output of :func:`plan_run`: everything the stages read, fixed for the run.
+
+    ``limits``: the logical-axis limits the waveform is held to (``phys_limits``: the physical ones they came
+    from); ``free``: (3, N+1) optimizable edges; ``window``: the period-by-period plan (None: whole);
+    ``n_wave``: the fine samples of the report's waveform panel kept (None: all); ``before``: the base's figures.
+    """
+
+    ir: SequenceIR
+    cfg: OptimizeConfig
+    hardware: Any
+    R: np.ndarray | None
+    limits: Limits
+    phys_limits: Limits
+    limit_sources: dict
+    free: np.ndarray
+    projector: EdgeProjector
+    twin: EdgeTwin
+    ctx: Any
+    imager: Imager | None
+    window: dict | None
+    with_image: bool
+    phantom: Any
+    warnings: list
+    dtype: torch.dtype
+    device: str
+    n_wave: int | None
+    before: dict
+
+
+@dataclass
+class Solution:
+    """The stages' running result: the edges ``x`` (None before the first stage), the kept samples and their
+    threshold, the optimizer state, times, the manifest's extra records, and where a checkpoint goes."""
+
+    state: O.StageState
+    keep: np.ndarray
+    x: torch.Tensor | None = None
+    thr: float = math.inf
+    start_it: int = 0
+    final: bool = False  # preemphasis / windowed: no full-loss stage and no discarding
+    stage_times: dict = dataclasses.field(default_factory=dict)
+    extra: dict = dataclasses.field(default_factory=dict)
+    resumed_from: dict | None = None
+    ckpt_target: Any = None
+
+
+def plan_run(
+    base, io: RunIO, *, config=None, hardware=None, ideal=False, device="cpu", phantom=None, with_image=None,
+    orientation=None, limit_sources=None,
+) -> Plan:  # fmt: skip
+    """Stage 1: check the paths, read the base, resolve config, hardware, limits, variables, twin, loss context,
+    windowing and imager, and evaluate the base (one-line InputError / LimitError on bad input, nothing written)."""
     from dtoc.optimize.config import load_config
     from dtoc.seq.load import load_sequence
 
     check_run_paths(
         base if isinstance(base, (str, os.PathLike)) else None,
-        out,
-        manifest_path,
-        png_path,
-        force,
-        girf,
-        model,
-        config_path,
-        resume,
-        checkpoint_path,
-        trajectory_path,
+        io.out,
+        io.manifest_path,
+        io.png_path,
+        io.force,
+        io.girf,
+        io.model,
+        io.config_path,
+        io.resume,
+        io.checkpoint_path,
+        io.trajectory_path,
     )
     if isinstance(base, (str, os.PathLike)):
         bp = Path(base)
@@ -393,15 +519,15 @@ def optimize_sequence(
         raise InputError(
             f"{base if isinstance(base, (str, os.PathLike)) else 'sequence'}: has no ADC event: nothing to optimize for"
         )
-    if out is not None:  # the output's Pulseq format: the base written in it and read back before any work
-        ir.meta["output_format_version"] = version_str(preflight_write(ir, format_version))
-    cfg = config if config is not None else load_config(ir.kind, config_path)
+    if io.out is not None:  # the output's Pulseq format: the base written in it and read back before any work
+        ir.meta["output_format_version"] = version_str(preflight_write(ir, io.format_version))
+    cfg = config if config is not None else load_config(ir.kind, io.config_path)
     O.set_deterministic(cfg.seed, cfg.threads, device)
     if hardware is None:
         from dtoc.hardware.model import resolve_model
 
-        require_hardware(girf, model, ideal)
-        hardware = resolve_model(girf=girf, model=model)
+        require_hardware(io.girf, io.model, ideal)
+        hardware = resolve_model(girf=io.girf, model=io.model)
     R = None if orientation is None else np.asarray(orientation, dtype=np.float64)
     if R is not None:
         from dtoc.hardware.orientation import RotatedChain
@@ -463,110 +589,159 @@ def optimize_sequence(
     n_wave = None if window is None else plotted_span(ir)[0]
     before = quality(twin, imager, ctx, ir.grad_mT_per_m, waveform_samples=n_wave)
     fault_point("setup")
-    state = O.StageState(best_edges=twin.base_edges())
-    stage_times = {}
-    keep = np.ones(ir.n_adc_samples, dtype=bool)
-    thr = math.inf
-    start_it = 0
-    x = None
-    resumed_from = None
-    if resume is not None:
-        ck = load_checkpoint(resume, projector.n_edges)
-        x = projector.project(torch.as_tensor(ck["edges"], dtype=dtype))
-        start_it = ck["it"] if ck["stage"] == "full" else 0
-        state.history = list(ck["history"])
-        resumed_from = {"path": str(resume), "sha256": sha256_file(resume), "stage": ck["stage"], "iteration": ck["it"]}
-    default_ckpt = None if out is None else unused_path(str(out) + ".ckpt.npz", keep=resume)  # never an unrelated file
-    ckpt_target = checkpoint_path or default_ckpt
+    return Plan(
+        ir, cfg, hardware, R, limits, phys_limits, limit_sources, free, projector, twin, ctx, imager, window,
+        bool(with_image), phantom, warnings_out, dtype, device, n_wave, before,
+    )  # fmt: skip
 
-    def ckpt(edges, it):
-        if checkpoint_path is not None:
-            save_checkpoint(checkpoint_path, edges, it, "full", state.history, cfg)
 
+def start_solution(plan: Plan, io: RunIO) -> Solution:
+    """The stages' starting state: the base edges as best-so-far, or the checkpoint resumed from."""
+    sol = Solution(
+        state=O.StageState(best_edges=plan.twin.base_edges()),
+        keep=np.ones(plan.ir.n_adc_samples, dtype=bool),
+        # the default checkpoint never replaces an unrelated file (a free name beside it)
+        ckpt_target=io.checkpoint_path
+        or (None if io.out is None else unused_path(str(io.out) + ".ckpt.npz", keep=io.resume)),
+    )
+    if io.resume is not None:
+        ck = load_checkpoint(io.resume, plan.projector.n_edges)
+        sol.x = plan.projector.project(torch.as_tensor(ck["edges"], dtype=plan.dtype))
+        sol.start_it = ck["it"] if ck["stage"] == "full" else 0
+        sol.state.history = list(ck["history"])
+        sol.resumed_from = {
+            "path": str(io.resume),
+            "sha256": sha256_file(io.resume),
+            "stage": ck["stage"],
+            "iteration": ck["it"],
+        }
+    return sol
+
+
+def _reporter(progress: Callable | None) -> Callable:
     def report(stage, it, n, loss):
         fault_point({"warm": "warm_start", "full": "full_loss"}.get(stage, stage))
         if progress is not None:
             progress(stage, it, n, loss)
 
-    extra: dict = {}
-    try:  # an interrupt between or inside the stages keeps the best-so-far (each stage keeps its own)
-        if cfg.method == "preemphasis":
-            from dtoc.optimize import preemphasis as PE
+    return report
 
-            t0 = time.time()
-            pe = PE.run_preemphasis(ir, twin, ctx, imager, limits)
-            stage_times["preemphasis_s"] = time.time() - t0
-            x = torch.as_tensor(pe["edges"], dtype=dtype)
-            keep = pe["keep_mask"]
-            extra["preemphasis"] = pe["report"]
-        elif window is not None:
-            from dtoc.optimize.windowed import windowed_warm_start
 
-            t0 = time.time()
-            e, wst = windowed_warm_start(
-                ir,
-                hardware,
-                limits,
-                free,
-                cfg.weights,
-                ctx,
-                horizon_s=window["horizon_s"],
-                lookahead_s=window["lookahead_s"],
-                dtype=dtype,
-                device=device,
-                progress=report,
-            )
-            x = torch.as_tensor(e, dtype=dtype, device=device)
-            stage_times["windowed_s"] = time.time() - t0
-            extra["windowed"] = {"note": window["note"], "memory_s": window["memory_s"], **wst.as_dict()}
-        else:
-            if x is None:
-                if cfg.method in ("dto", "warmstart"):
-                    t0 = time.time()
-                    x = O.robust_warm_start(
-                        twin,
-                        ctx,
-                        cfg.weights,
-                        cfg.warm_iters,
-                        rounds=cfg.robust_rounds,
-                        scale_dk=cfg.robust_scale_dk,
-                        state=state,
-                        progress=report,
-                    )
-                    stage_times["warm_start_s"] = time.time() - t0
-                else:
-                    x = projector.project(twin.base_edges())
-            if cfg.method in ("dto", "adam-paper") and not state.interrupted and cfg.iters > 0:
-                t0 = time.time()
-                state.best_loss = math.inf
-                opt_imager = loop_imager(imager, cfg) if cfg.weights.image > 0 else None
-                stage_times["loop_imager_s"] = time.time() - t0
-                x = O.full_loss(
-                    twin,
-                    opt_imager,
-                    ctx,
-                    cfg,
-                    x,
-                    state,
-                    report,
-                    start_it=start_it,
-                    paper=cfg.method == "adam-paper",
-                    checkpoint=ckpt,
-                )
-                stage_times["full_loss_s"] = time.time() - t0
-            if cfg.discard and imager is not None and not state.interrupted:
-                t0 = time.time()
-                keep, thr, _ = O.choose_discard(twin, imager, ctx, x)
-                stage_times["discard_s"] = time.time() - t0
-    except KeyboardInterrupt:
-        state.interrupted = True
-        if x is None:
-            x = state.best_edges.detach().clone()
+def warm_start_stage(plan: Plan, sol: Solution, report: Callable) -> torch.Tensor:
+    """Stage 2: the starting waveform: pre-emphasis (``--method preemphasis``: final), the period-by-period solve
+    of a long sequence (final), the robust linear warm start (dto / warmstart), or the projected base; a resumed
+    checkpoint is kept as it is."""
+    cfg, ir, stage_times, extra = plan.cfg, plan.ir, sol.stage_times, sol.extra
+    if cfg.method == "preemphasis":
+        from dtoc.optimize import preemphasis as PE
+
+        t0 = time.time()
+        pe = PE.run_preemphasis(ir, plan.twin, plan.ctx, plan.imager, plan.limits)
+        stage_times["preemphasis_s"] = time.time() - t0
+        sol.keep = pe["keep_mask"]
+        extra["preemphasis"] = pe["report"]
+        sol.final = True
+        return torch.as_tensor(pe["edges"], dtype=plan.dtype)
+    if plan.window is not None:
+        from dtoc.optimize.windowed import windowed_warm_start
+
+        window = plan.window
+        t0 = time.time()
+        e, wst = windowed_warm_start(
+            ir,
+            plan.hardware,
+            plan.limits,
+            plan.free,
+            cfg.weights,
+            plan.ctx,
+            horizon_s=window["horizon_s"],
+            lookahead_s=window["lookahead_s"],
+            dtype=plan.dtype,
+            device=plan.device,
+            progress=report,
+        )
+        stage_times["windowed_s"] = time.time() - t0
+        extra["windowed"] = {"note": window["note"], "memory_s": window["memory_s"], **wst.as_dict()}
+        sol.final = True
+        return torch.as_tensor(e, dtype=plan.dtype, device=plan.device)
+    if sol.x is not None:
+        return sol.x
+    if cfg.method not in ("dto", "warmstart"):
+        return plan.projector.project(plan.twin.base_edges())
+    t0 = time.time()
+    solves: list = []
+    x = O.robust_warm_start(
+        plan.twin,
+        plan.ctx,
+        cfg.weights,
+        cfg.warm_iters,
+        rounds=cfg.robust_rounds,
+        scale_dk=cfg.robust_scale_dk,
+        state=sol.state,
+        progress=report,
+        k_tol_dk=cfg.k_tol_dk,
+        budget=cfg.solve_budget,
+        reports=solves,
+    )
+    stage_times["warm_start_s"] = time.time() - t0
+    if solves:
+        extra["solver"] = solver_record(solves)
+    return x
+
+
+def full_loss_stage(plan: Plan, sol: Solution, io: RunIO, report: Callable) -> torch.Tensor:
+    """Stage 3: the full loss through the simulator (dto / adam-paper, ``iters`` > 0), checkpointed to
+    ``io.checkpoint_path`` every ``checkpoint_every`` iterations; otherwise the warm start unchanged."""
+    cfg, state = plan.cfg, sol.state
+    assert sol.x is not None
+    if cfg.method not in ("dto", "adam-paper") or state.interrupted or cfg.iters <= 0:
+        return sol.x
+
+    def ckpt(edges, it):
+        if io.checkpoint_path is not None:
+            save_checkpoint(io.checkpoint_path, edges, it, "full", state.history, cfg)
+
+    t0 = time.time()
+    state.best_loss = math.inf
+    opt_imager = loop_imager(plan.imager, cfg) if cfg.weights.image > 0 else None
+    sol.stage_times["loop_imager_s"] = time.time() - t0
+    x = O.full_loss(
+        plan.twin,
+        opt_imager,
+        plan.ctx,
+        cfg,
+        sol.x,
+        state,
+        report,
+        start_it=sol.start_it,
+        paper=cfg.method == "adam-paper",
+        checkpoint=ckpt,
+    )
+    sol.stage_times["full_loss_s"] = time.time() - t0
+    return x
+
+
+def discard_stage(plan: Plan, sol: Solution) -> None:
+    """Stage 4: the post-hoc discarding threshold (``sol.keep``, ``sol.thr``) when an image is simulated."""
+    if plan.cfg.discard and plan.imager is not None and not sol.state.interrupted:
+        t0 = time.time()
+        assert sol.x is not None
+        sol.keep, sol.thr, _ = O.choose_discard(plan.twin, plan.imager, plan.ctx, sol.x)
+        sol.stage_times["discard_s"] = time.time() - t0
+
+
+def export_stage(plan: Plan, sol: Solution, io: RunIO, t_start: float) -> RunOutputs:
+    """Stage 5: the final projection and verification, the figures, the manifest, and the outputs written
+    together (a signal waits until they are complete, then exits 130/143)."""
+    ir, cfg, twin, ctx, imager, limits = plan.ir, plan.cfg, plan.twin, plan.ctx, plan.imager, plan.limits
+    state, keep, thr, extra, R, free = sol.state, sol.keep, sol.thr, sol.extra, plan.R, plan.free
+    before, warnings_out = plan.before, plan.warnings
+    assert sol.x is not None
     with deferred():  # from here on a signal waits until the outputs are complete, then exits 130/143
         fault_point("export")
 
         # final projection (feasible by construction) and verification
-        x = projector.project(x, n_iter=60, exact=True)
+        x = plan.projector.project(sol.x, n_iter=60, exact=True)
         fine = twin.export_fine(x)
         viol = limit_violations(fine, ir.dt_fine_s, limits)
         if viol:
@@ -574,23 +749,23 @@ def optimize_sequence(
         ir_out = ir.with_grad(fine)
         _check_system_limits(ir_out, limits)
         # the exported waveform itself (bit for bit what twin.played(x) gives): no second whole-sequence copy
-        after = quality(twin, imager, ctx, fine, keep_mask=keep, waveform_samples=n_wave)
-        if state.interrupted and ckpt_target is not None:
-            done = max([h["it"] for h in state.history if h.get("stage") == "full"] or [start_it])
-            save_checkpoint(ckpt_target, x, done, "full", state.history, cfg, force=True)
-            extra["checkpoint"] = str(ckpt_target)
-        if resumed_from is not None:
-            extra["resumed_from"] = resumed_from
+        after = quality(twin, imager, ctx, fine, keep_mask=keep, waveform_samples=plan.n_wave)
+        if state.interrupted and sol.ckpt_target is not None:
+            done = max([h["it"] for h in state.history if h.get("stage") == "full"] or [sol.start_it])
+            save_checkpoint(sol.ckpt_target, x, done, "full", state.history, cfg, force=True)
+            extra["checkpoint"] = str(sol.ckpt_target)
+        if sol.resumed_from is not None:
+            extra["resumed_from"] = sol.resumed_from
         adc_offsets = None
-        if offset_m is not None:
+        if io.offset_m is not None:
             from dtoc.optimize.offcentre import offcentre_correction
             from dtoc.seq.read import slice_axes
 
             if any(free[a].any() for a in slice_axes(ir)):
                 raise InputError("--offset with a freed slice axis: the interpreter's RF frequency would be wrong")
-            oc = offcentre_correction(ir, ir_out, before["_k"], after["_k"], offset_m, R)
+            oc = offcentre_correction(ir, ir_out, before["_k"], after["_k"], io.offset_m, R)
             adc_offsets = {a.block: (float(p), float(f)) for a, p, f in zip(ir.adc, oc.adc_phase_rad, oc.adc_freq_hz)}
-            extra["offcentre"] = {"offset_m": [float(x) for x in offset_m], **oc.summary()}
+            extra["offcentre"] = {"offset_m": [float(x) for x in io.offset_m], **oc.summary()}
         nb, na = before.get("nrmse"), after.get("nrmse")
         if nb is not None and na is not None and na > nb * (1 + 1e-6) + 1e-9:  # not float noise (1e-13 % vs 0)
             warnings_out.append(
@@ -601,21 +776,21 @@ def optimize_sequence(
         manifest = {
             "dtoc_optimize": 1,
             "inputs": {
-                **_inputs(base_path if base_path is not None else base, girf, model, config_path, resume),
+                **_inputs(io.base_path, io.girf, io.model, io.config_path, io.resume),
                 "scanner": None
-                if scanner_path is None
-                else {"path": str(scanner_path), "sha256": sha256_file(scanner_path)},
+                if io.scanner_path is None
+                else {"path": str(io.scanner_path), "sha256": sha256_file(io.scanner_path)},
             },
             "options": json.loads(cfg.model_dump_json()),
             "orientation": None if R is None else {"R_logical_to_physical": R.tolist(), "name": _orient_name(R)},
             "limits": {
-                "physical_gmax_mT_per_m": phys_limits.gmax_mT_per_m,
-                "physical_smax_T_per_m_per_s": phys_limits.smax_T_per_m_per_s,
+                "physical_gmax_mT_per_m": plan.phys_limits.gmax_mT_per_m,
+                "physical_smax_T_per_m_per_s": plan.phys_limits.smax_T_per_m_per_s,
                 "gmax_mT_per_m": limits.gmax_mT_per_m,
                 "smax_T_per_m_per_s": limits.smax_T_per_m_per_s,
                 "amp_margin": limits.amp_margin,
                 "slew_margin": limits.slew_margin,
-                "source": limit_sources,
+                "source": plan.limit_sources,
             },
             "sequence": {
                 "kind": ir.kind,
@@ -625,13 +800,13 @@ def optimize_sequence(
                 "duration_s": ir.duration_s,
                 "notes": list(ir.meta.get("notes", [])),
                 "rf_use": ir.meta.get("rf_use"),  # per [RF] event: use and how decided (dtoc.seq.rfuse)
-                "image_term": with_image,
+                "image_term": plan.with_image,
                 "dk_rad_per_m": [float(x) for x in ctx.dk_rad_per_m.cpu().numpy()],
                 "dk_source": "grid (2 pi / FOV)" if ir.dk_rad_per_m is not None else "sampling step of the readouts",
             },
             "versions": package_versions(),
-            "device": str(device),
-            "phantom": _phantom_record(phantom),
+            "device": str(plan.device),
+            "phantom": _phantom_record(plan.phantom),
             "before": metrics.report_figures(before),
             "after": metrics.report_figures(after),
             "n_samples_discarded": int(np.sum(~keep)),
@@ -642,26 +817,28 @@ def optimize_sequence(
             "limit_violations": 0,
             "loss_history": state.history,
             "interrupted": state.interrupted,
-            "stage_times_s": stage_times,
+            "stage_times_s": sol.stage_times,
             "warnings": warnings_out,
             "run_time_s": None,
             **extra,
         }
         figures = {"before": before, "after": after, "keep": keep, "ir": ir, "imager": imager, "history": state.history}
         with outputs_together():  # the .seq, manifest, PNG and side-car appear together, or none of them
-            if trajectory_path is not None:
-                manifest["trajectory"] = _write_sidecar(trajectory_path, ir, after, keep, ctx, girf or model, force)
+            if io.trajectory_path is not None:
+                manifest["trajectory"] = _write_sidecar(
+                    io.trajectory_path, ir, after, keep, ctx, io.girf or io.model, io.force
+                )
             _write_outputs(
                 ir_out,
-                out,
-                force,
+                io.out,
+                io.force,
                 limits,
                 manifest,
-                manifest_path,
-                png_path,
+                io.manifest_path,
+                io.png_path,
                 figures,
                 t_start,
-                None if safety is None else dataclasses.replace(safety, rotation=R),
+                None if io.safety is None else dataclasses.replace(io.safety, rotation=R),
                 adc_offsets,
             )
     return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)

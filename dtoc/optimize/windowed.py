@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -49,6 +50,8 @@ from dtoc.seq.kspace import kspace_at
 
 #: a period with more free variables than this is not solved densely (the whole-sequence path is used)
 DENSE_MAX = 6000
+#: solutions of the most recent distinct window problems kept for identical later windows
+SOLVES_KEPT = 32
 #: edges farther than this from any non-zero base gradient or ADC sample are held at the base value, s
 PAD_S = 2e-3
 
@@ -72,6 +75,8 @@ class WindowStats:
     max_free: int = 0
     direct: int = 0
     admm_iters: int = 0
+    reused: int = 0
+    groups: dict = field(default_factory=dict)  # solve key -> [window indices solved as one]
     horizon_s: float = 0.0
     lookahead_s: float = 0.0
     times_s: dict = field(default_factory=dict)
@@ -83,10 +88,29 @@ class WindowStats:
             "max_free_variables_per_window": self.max_free,
             "windows_solved_directly": self.direct,
             "admm_iterations": self.admm_iters,
+            "windows_reusing_a_solve": self.reused,
+            "solved_as_one": solved_as_one(self.groups),
             "horizon_s": self.horizon_s,
             "lookahead_s": self.lookahead_s,
             "times_s": {k: round(v, 3) for k, v in self.times_s.items()},
         }
+
+
+def solved_as_one(groups: dict, max_groups: int = 20) -> list[dict]:
+    """The manifest's record of the windows that shared one solve: per group (largest first, at most
+    ``max_groups``) the number of windows and their indices as ``[first, last]`` runs."""
+    out = []
+    for idx in sorted(groups.values(), key=lambda v: (-len(v), v[0]))[:max_groups]:
+        if len(idx) < 2:
+            break
+        runs: list[list[int]] = []
+        for i in idx:
+            if runs and i == runs[-1][1] + 1:
+                runs[-1][1] = i
+            else:
+                runs.append([i, i])
+        out.append({"windows": len(idx), "runs": runs})
+    return out
 
 
 def period_starts(ir: SequenceIR) -> list[int]:
@@ -183,6 +207,7 @@ def windowed_warm_start(
     dtype: torch.dtype = torch.float64,
     device: str = "cpu",
     progress: Callable | None = None,
+    reuse: bool = True,
 ) -> tuple[np.ndarray, WindowStats]:
     """Solve the warm start's objective period by period (module doc).
 
@@ -193,6 +218,8 @@ def windowed_warm_start(
         ctx: the run's :class:`~dtoc.optimize.loss.LossContext` (nominal k at the ADC samples and before
             the RF pulses, k unit per axis, RF samples, gradient normalisation).
         horizon_s / lookahead_s: history kept before / base waveform kept after each core.
+        reuse: a window whose problem equals an earlier one's (:func:`_solve_key`) takes its solution
+            (``WindowStats.solved_as_one`` lists them).
     Returns:
         (3, N+1) edges within the limits, and :class:`WindowStats`.
     Raises:
@@ -219,6 +246,8 @@ def windowed_warm_start(
     edges = np.array(ir.edge_grad_mT_per_m, dtype=np.float64)  # committed as we go
     played = base_fine.copy()
     cache: dict[str, dict] = {}
+    # solve key -> the change of the window's edges; the last SOLVES_KEPT only (memory)
+    solved: OrderedDict[str, np.ndarray] = OrderedDict()
     tt = {"setup": 0.0, "jacobian": 0.0, "residual": 0.0, "solve": 0.0}
     for wi, w in enumerate(windows):
         t0 = time.time()
@@ -291,6 +320,22 @@ def windowed_warm_start(
             tt["jacobian"] += time.time() - t0
         t0 = time.time()
         r0n = r0.cpu().numpy()
+        # a window whose problem is an earlier one's (same structure; residual to 1e-6 of its largest entry and
+        # edges to 1e-4 mT/m: identical repetitions, averages, slices that differ only in RF frequency or labels)
+        # takes its change of the edges, if that is within the limits here
+        skey = _solve_key(key, r0n, x_sub)
+        st.groups.setdefault(skey, []).append(wi)
+        if reuse and skey in solved:
+            x_p = x_sub + solved[skey]
+            solved.move_to_end(skey)
+            if P.is_feasible(x_p[:, rs]):
+                st.reused += 1
+                tt["solve"] += time.time() - t0
+                edges[:, e0 : e1 + 1] = x_p
+                played[:, m0 : m1 + 1] = edges_to_played(x_p, fine_sub, fmask)
+                if progress is not None:
+                    progress("windows", wi + 1, len(windows), float((r0**2).sum()))
+                continue
         nd = c["J"].shape[0]
         r0d, r0r = r0n[:nd], r0n[nd:]
         grad0 = c["J"].T @ r0d + c["S"].T @ r0r
@@ -305,6 +350,9 @@ def windowed_warm_start(
         if _quadratic(c, r0d, r0r, x_p[fr] - x_sub[fr]) > float(r0n @ r0n):  # never worse than unchanged
             x_p = x_sub
         tt["solve"] += time.time() - t0
+        solved[skey] = x_p - x_sub
+        if len(solved) > SOLVES_KEPT:
+            solved.popitem(last=False)
         edges[:, e0 : e1 + 1] = x_p
         played[:, m0 : m1 + 1] = edges_to_played(x_p, fine_sub, fmask)
         if progress is not None:
@@ -335,6 +383,17 @@ def window_residual(hardware, dtf, fmask_t, fine_t, g0_t, t_adc, k0_t, t_mom, mo
         return torch.cat(parts, dim=1)
 
     return residual
+
+
+def _solve_key(structure: str, r0: np.ndarray, x_sub: np.ndarray, rel: float = 1e-6, edge_q: float = 1e-4) -> str:
+    """Key of a window's whole problem: its structure, its residual to ``rel`` of its largest entry and its edges
+    to ``edge_q`` mT/m (far below the writer's 6 digits; repeated periods differ by rounding in their times and
+    in the history the earlier windows committed)."""
+    h = hashlib.sha256(structure.encode())
+    scale = max(float(np.abs(r0).max()) if r0.size else 0.0, 1e-300)
+    h.update(np.round(r0 / (scale * rel)).astype(np.int64).tobytes())
+    h.update(np.round(x_sub / edge_q).astype(np.int64).tobytes())
+    return h.hexdigest()
 
 
 def _structure_key(*parts) -> str:

@@ -43,6 +43,7 @@ RANGES: dict[str, Range] = {
     "weight": Range(0, 1e6, what="loss weight (--w-image, --w-k, --w-rf)"),
     "lr": Range(0, 1e3, lo_open=True, what="learning rate / first move, mT/m"),
     "iters": Range(0, 100_000, integer=True, what="iterations (--iters, --warm-iters)"),
+    "k_tol": Range(0, 10, "dk", lo_open=True, what="k-space tolerance of the solver"),
     "augment": Range(0, 64, integer=True, what="rotated phantoms"),
     "dummies": Range(0, 100_000, integer=True, what="dummy repetitions"),
     "workers": Range(1, 1024, integer=True, what="batch workers"),

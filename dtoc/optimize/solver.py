@@ -1,0 +1,382 @@
+"""The warm start's convex problem solved to a stated k-space tolerance (docs/optimize.md, "Solver").
+
+With an affine hardware chain (GIRF, eddy terms, delays, gains, rotations) the warm start's objective
+(:func:`dtoc.optimize.optimizer.linear_objective`: k at every ADC sample, the moment before every RF pulse,
+G during RF, a tiny change penalty) is a convex quadratic ``f(x) = f0 + g0.d + d.H d / 2`` of the free edges
+``x = x0 + d``, and the hard limits are the polyhedron ``lo <= x <= hi``, ``|x[n+1] - x[n]| <= S``
+(:class:`~dtoc.optimize.limits.EdgeProjector`).  Its Hessian is dominated by the time integral from the
+gradient to k: ``H ~ c (D D^T)^-1`` with ``D`` the first difference on the raster, so its condition number
+grows with the square of the number of samples, and so did the iterations of plain CG / FISTA.  Here:
+
+1. **Preconditioned CG** on the unconstrained problem with the preconditioner ``D D^T`` (the inverse of the
+   integrator: the path Laplacian of the raster edges, cut where k restarts), whose iteration count does not
+   grow with the matrix.  If the optimum is within the limits: done.
+2. Otherwise **active-set rounds**: the CG's optimum is projected exactly onto the limits
+   (:meth:`~dtoc.optimize.limits.EdgeProjector.project`); the edges the projection moved are held at their
+   projected values and the CG solves again for the others, from there (warm), until no further edge is
+   moved, the tolerance is met, or ``max_rounds``.  Every round's iterate is within the limits; the best
+   objective is kept.  The held values are the projection's, not the constrained optimum's: the rounds are a
+   fast heuristic for the few, local active limits (EPI blips and ramps), not a certificate.
+
+Stop reasons (``SolveReport.stop_reason``):
+
+* ``tolerance``: every sample reachable at all is within ``k_tol_dk`` of its target (after the exact
+  projection: the figure is the exported waveform's);
+* ``converged``: the last round's CG converged and the projection moved no new edge: no further change
+  (the unconstrained optimum within the limits, or the held edges' optimum); the samples still above
+  tolerance are named with the reason (:func:`explain_unreachable`);
+  also when a round lowered the objective by less than ``stall_rel``;
+* ``limits-bound``: the first projection moved more than ``held_max`` of the free edges (a waveform at its
+  slew limit throughout): the rounds do not suit it, :func:`dtoc.optimize.optimizer.solve_warm_start` runs
+  CG and projected FISTA from the base instead, on the rest of the budget;
+* ``rounds``: ``max_rounds`` active-set rounds ran (the samples above tolerance are named as well);
+* ``budget``: ``budget`` objective evaluations were spent first.
+
+Units: mT/m (edges), dk (k errors), s.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from dtoc.constants import AXES
+
+#: at most this many samples are listed by name in a report (the count is always complete)
+MAX_NAMED = 8
+
+
+@dataclass
+class Unreachable:
+    """Samples whose k error stays above the tolerance at the solver's stop, and why.
+
+    Attributes:
+        indices: ADC sample indices (into the sequence's concatenated samples).
+        error_dk: their k error, dk.
+        reason: per sample: 'fixed' (not reachable even without the limits: the free edges cannot move it,
+            e.g. the hardware's response to fixed RF-block gradients), 'unresolved' (the unconstrained solve did
+            not converge within its budget: no claim), or 'limits' (reachable without them).
+        limit: per sample, the active limit nearest before it: 'slew x', 'amplitude y', ... ('' if none).
+        limit_time_s: the time of that active limit, s (nan if none).
+        unconstrained_dk: per sample, its error at the unconstrained optimum (how far the limits cost).
+    """
+
+    indices: np.ndarray
+    error_dk: np.ndarray
+    reason: list[str]
+    limit: list[str]
+    limit_time_s: np.ndarray
+    unconstrained_dk: np.ndarray
+
+    def as_dict(self, max_named: int = MAX_NAMED) -> dict:
+        order = np.argsort(-self.error_dk)[:max_named]
+        return {
+            "n_samples": int(self.indices.size),
+            "n_fixed": int(sum(r == "fixed" for r in self.reason)),
+            "n_limits": int(sum(r == "limits" for r in self.reason)),
+            "n_unresolved": int(sum(r == "unresolved" for r in self.reason)),
+            "worst": [
+                {
+                    "sample": int(self.indices[i]),
+                    "error_dk": float(self.error_dk[i]),
+                    "reason": self.reason[i],
+                    "unconstrained_error_dk": float(self.unconstrained_dk[i]),
+                    "limit": self.limit[i] or None,
+                    "limit_time_ms": None if not math.isfinite(self.limit_time_s[i]) else 1e3 * self.limit_time_s[i],
+                }
+                for i in order
+            ],
+        }
+
+    def summary(self) -> str:
+        """One line: how many samples, the worst ones and why."""
+        if self.indices.size == 0:
+            return ""
+        parts = []
+        for i in np.argsort(-self.error_dk)[:3]:
+            why = (
+                f"not reachable by the free gradient even without limits ({self.unconstrained_dk[i]:.3g} dk)"
+                if self.reason[i] == "fixed"
+                else "the solve did not converge within its budget"
+                if self.reason[i] == "unresolved"
+                else f"{self.limit[i] or 'a'} limit active at {1e3 * self.limit_time_s[i]:.3f} ms "
+                f"(without limits {self.unconstrained_dk[i]:.3g} dk)"
+            )
+            parts.append(f"sample {int(self.indices[i])} at {self.error_dk[i]:.3g} dk: {why}")
+        return f"{self.indices.size} samples above tolerance; " + "; ".join(parts)
+
+
+@dataclass
+class SolveReport:
+    """What the solver did: the manifest's ``solver`` record."""
+
+    method: str = "pcg-active-set"
+    k_tol_dk: float = 0.01
+    stop_reason: str = ""
+    evaluations: int = 0
+    cg_iterations: int = 0
+    rounds: int = 0
+    achieved_max_dk: float = math.nan
+    unconstrained_max_dk: float = math.nan
+    within_limits_unconstrained: bool = False
+    unreachable: Unreachable | None = None
+    history: list = field(default_factory=list)
+    unconstrained_errors: np.ndarray | None = None  # (N_adc,) dk, at the unconstrained solve
+    unconstrained_converged: bool = False
+
+    def as_dict(self) -> dict:
+        return {
+            "method": self.method,
+            "k_tol_dk": self.k_tol_dk,
+            "stop_reason": self.stop_reason,
+            "evaluations": self.evaluations,
+            "cg_iterations": self.cg_iterations,
+            "active_set_rounds": self.rounds,
+            "achieved_max_dk": self.achieved_max_dk,
+            "unconstrained_max_dk": self.unconstrained_max_dk,
+            "unconstrained_within_limits": self.within_limits_unconstrained,
+            "unreachable": None if self.unreachable is None else self.unreachable.as_dict(),
+        }
+
+    def line(self) -> str:
+        """The stderr line."""
+        s = (
+            f"solver: {self.stop_reason} after {self.evaluations} evaluations ({self.cg_iterations} CG iterations, "
+            f"{self.rounds} active-set rounds); max k error {self.achieved_max_dk:.3g} dk "
+            f"(tolerance {self.k_tol_dk:g} dk)"
+        )
+        if self.unreachable is not None and self.unreachable.indices.size:
+            s += "; " + self.unreachable.summary()
+        return s
+
+
+class _Stop(Exception):
+    pass
+
+
+class _Quadratic:
+    """f, its gradient and Hessian-vector products of a quadratic objective of the free edges."""
+
+    def __init__(self, f, x0: torch.Tensor, free: torch.Tensor, budget: int):
+        self.f, self.x0, self.free, self.budget = f, x0, free, budget
+        self.n = 0
+        self.g0, self.f0 = self.grad(x0)
+
+    def grad(self, x: torch.Tensor) -> tuple[torch.Tensor, float]:
+        if self.n >= self.budget:
+            raise _Stop
+        self.n += 1
+        x = x.detach().requires_grad_(True)
+        val, _ = self.f(x)
+        (gx,) = torch.autograd.grad(val, x)
+        return torch.where(self.free, gx, torch.zeros_like(gx)), float(val.detach())
+
+    def hv(self, v: torch.Tensor) -> torch.Tensor:
+        return self.grad(self.x0 + v)[0] - self.g0
+
+    def value(self, d: torch.Tensor, Hd: torch.Tensor) -> float:
+        return self.f0 + float((self.g0 * d).sum()) + 0.5 * float((d * Hd).sum())
+
+
+class _Precond:
+    """The inverse of the integrator model of the Hessian, ``H ~ c (D D^T)^-1``: a free edge moves the k of
+    every later sample up to the next excitation (D the first difference on the raster).  ``D D^T`` is the
+    path graph's Laplacian on the raster edges (``2 r[n] - r[n-1] - r[n+1]``), cut at the excitations
+    (``cuts``: edge indices where k restarts, each period its own Neumann path), plus the smallest nonzero
+    eigenvalue's half of each period on the diagonal (positive definite); restricted to the variables ``act``.
+    The scale c does not matter to CG.  With it the CG's iteration count depends on the chain's frequency
+    response, not on the number of samples."""
+
+    def __init__(self, act: torch.Tensor, cuts: np.ndarray | None = None):
+        n = act.shape[-1]
+        self.act = act
+        link = torch.ones(n - 1, dtype=torch.bool, device=act.device)  # link[j]: edges j and j+1 coupled
+        bounds = np.unique(np.clip(np.asarray([] if cuts is None else cuts, dtype=np.int64), 1, n - 1))
+        link[torch.as_tensor(bounds - 1, dtype=torch.long, device=act.device)] = False
+        starts = np.concatenate([[0], bounds])
+        lengths = np.diff(np.concatenate([starts, [n]]))
+        seg_eps = (2.0 - 2.0 * np.cos(np.pi / np.maximum(lengths, 2))) / 2
+        self.eps = torch.as_tensor(np.repeat(seg_eps, lengths), dtype=torch.float64, device=act.device)
+        self.link = link.to(torch.float64)
+
+    def __call__(self, r: torch.Tensor) -> torch.Tensor:
+        r = torch.where(self.act, r, torch.zeros_like(r))
+        lk = self.link.to(r.dtype)
+        d = (r[..., 1:] - r[..., :-1]) * lk  # differences across the coupled pairs
+        z = self.eps.to(r.dtype) * r
+        z[..., :-1] -= d
+        z[..., 1:] += d
+        return torch.where(self.act, z, torch.zeros_like(z))
+
+
+def _pcg(op, b, M, d0, tol, max_iter, on_iter=None) -> tuple[torch.Tensor, int]:
+    """Preconditioned CG for ``op(d) = b`` from ``d0``; stops when the residual's M-norm has dropped by ``tol``
+    (relative to the start's residual: a warm start is refined, not re-solved)."""
+    d = d0.clone()
+    r = b - op(d) if bool(d0.any()) else b.clone()
+    z = M(r)
+    p = z.clone()
+    rz = float((r * z).sum())
+    bz = rz
+    it = 0
+    for it in range(1, max_iter + 1):
+        if rz <= tol * tol * max(bz, 1e-300):
+            return d, it - 1
+        Hp = op(p)
+        pHp = float((p * Hp).sum())
+        if pHp <= 0:
+            break
+        a = rz / pHp
+        d = d + a * p
+        r = r - a * Hp
+        z = M(r)
+        rz_new = float((r * z).sum())
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+        if on_iter is not None:
+            on_iter(d)
+    return d, it
+
+
+def solve_to_tolerance(
+    f: Callable[[torch.Tensor], tuple[torch.Tensor, dict]],
+    x0: torch.Tensor,
+    P,
+    free: torch.Tensor,
+    k_error: Callable[[torch.Tensor], np.ndarray],
+    *,
+    k_tol_dk: float = 0.01,
+    budget: int = 1500,
+    cg_tol: float = 1e-6,
+    cg_max: int = 150,
+    cg_round_max: int = 40,
+    max_rounds: int = 8,
+    stall_rel: float = 0.02,
+    held_max: float = 0.2,
+    sample_times_s: np.ndarray | None = None,
+    cuts: np.ndarray | None = None,
+    progress: Callable[[str, int, int, float], None] | None = None,
+) -> tuple[torch.Tensor, SolveReport]:
+    """Minimise the quadratic ``f`` within the limits of ``P`` to a k-space tolerance (module doc).
+
+    Args:
+        f: ``x -> (loss, terms)``, a convex quadratic of ``x`` (3, N+1) (exact for an affine chain).
+        x0: (3, N+1) start (the base edges or a previous solution).  P: the run's
+            :class:`~dtoc.optimize.limits.EdgeProjector`.  free: (3, N+1) bool tensor.
+        k_error: ``x -> (N_adc,)`` k error per ADC sample in dk.
+        k_tol_dk: stop when every sample reachable at all is within it.
+        budget: most objective evaluations (forward + backward passes).
+        cg_tol / cg_max / cg_round_max: the CG stops when its preconditioned residual has dropped by ``cg_tol``
+            or after ``cg_max`` iterations (the first solve) or ``cg_round_max`` (each later round, warm).
+        max_rounds / stall_rel: most active-set rounds; stop when a round lowered the objective by less than
+            ``stall_rel`` (relative).
+        held_max: when the first projection moves more than this fraction of the free edges, stop with
+            'limits-bound' (the caller then runs the projected-gradient path).
+        sample_times_s: (N_adc,) sample times, to name the active limit before an unreachable sample.
+        cuts: raster-edge indices where k restarts (excitations): the preconditioner's periods.
+    Returns:
+        (x within the limits (exactly projected), :class:`SolveReport`).
+    """
+    rep = SolveReport(k_tol_dk=k_tol_dk)
+    q = _Quadratic(f, x0.detach().clone(), free, max(budget, 8))
+    x = P.project(q.x0, n_iter=60)
+    best: dict = {"x": x, "f": float(f(x)[0].detach()), "err": k_error(x)}
+    err_unc = None
+    unc_converged = False
+    fixed = torch.zeros_like(free)
+    try:
+        x = q.x0
+        for rnd in range(max_rounds):
+            act = free & ~fixed
+            M = _Precond(act, cuts)
+
+            def op(u, act=act):
+                return torch.where(act, q.hv(torch.where(act, u, 0.0)), 0.0)
+
+            g = q.grad(x)[0] if rnd else q.g0
+            n_max = cg_max if rnd == 0 else cg_round_max
+            d, k = _pcg(op, torch.where(act, -g, 0.0), M, torch.zeros_like(x), cg_tol, n_max)
+            rep.cg_iterations += k
+            x_unc = x + d
+            if rnd == 0:
+                unc_converged = k < n_max
+                err_unc = k_error(x_unc)
+                rep.unconstrained_max_dk = float(err_unc.max())
+                rep.within_limits_unconstrained = bool(P.is_feasible(x_unc.detach().cpu().numpy()))
+            x = P.project(x_unc, n_iter=60)
+            err = k_error(x)
+            val = float(f(x)[0].detach())
+            gain = best["f"] - val
+            if val < best["f"]:
+                best.update(x=x, f=val, err=err)
+            moved = free & ((x - x_unc).abs() > 1e-9)
+            new = moved & ~fixed
+            fixed = fixed | moved
+            rep.rounds = rnd + 1
+            rep.history.append(
+                {"round": rnd + 1, "evals": q.n, "f": val, "max_dk": float(err.max()), "held": int(fixed.sum())}
+            )
+            if progress is not None:
+                progress("warm", q.n, budget, val)
+            assert err_unc is not None
+            if bool(np.all(best["err"][err_unc <= k_tol_dk] <= k_tol_dk)):
+                rep.stop_reason = "tolerance"
+                break
+            if rnd == 0 and float(fixed.sum()) > held_max * float(free.sum()):
+                rep.stop_reason = "limits-bound"  # the limits bind over much of the waveform: not for rounds
+                break
+            if not bool(new.any()) and k < n_max:
+                rep.stop_reason = "converged"  # no new limit became active and CG converged: no further change
+                break
+            if rnd > 0 and gain < stall_rel * abs(best["f"]):
+                rep.stop_reason = "converged"  # the rounds stopped paying: the held edges' optimum
+                break
+        else:
+            rep.stop_reason = "rounds"
+    except _Stop:
+        rep.stop_reason = "budget"
+    except KeyboardInterrupt:
+        rep.stop_reason = "interrupted"
+    rep.evaluations = q.n
+    err = best["err"]
+    rep.achieved_max_dk = float(err.max()) if err.size else 0.0
+    rep.unconstrained_errors, rep.unconstrained_converged = err_unc, unc_converged
+    if err_unc is not None:
+        rep.unreachable = explain_unreachable(best["x"], err, err_unc, k_tol_dk, P, sample_times_s, unc_converged)
+    return best["x"], rep
+
+
+def explain_unreachable(x, err, err_unc, k_tol_dk, P, sample_times_s, unc_converged: bool = True) -> Unreachable:
+    """Name the samples above tolerance: 'fixed' when the unconstrained optimum misses them too ('unresolved'
+    when the solve did not reach that optimum within its budget: no claim), else 'limits' with the active limit
+    (amplitude or slew at its bound, per axis) nearest before the sample."""
+    idx = np.flatnonzero(err > k_tol_dk)
+    miss = "fixed" if unc_converged else "unresolved"
+    reason = [miss if err_unc[i] > k_tol_dk else "limits" for i in idx]
+    limit = [""] * idx.size
+    lt = np.full(idx.size, np.nan)
+    if idx.size and sample_times_s is not None:
+        xe = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+        free = P.free
+        amp = free & ((xe >= P.hi - 1e-6 * max(P.step, 1e-9)) | (xe <= P.lo + 1e-6 * max(P.step, 1e-9)))
+        slew = np.zeros_like(free)
+        slew[:, :-1] = P.pair_free & (np.abs(np.diff(xe, axis=1)) >= P.step * (1 - 1e-6))
+        events = []
+        for kind, m in (("amplitude", amp), ("slew", slew)):
+            for a in range(3):
+                for n in np.flatnonzero(m[a]):
+                    events.append((n * P.raster_s, f"{kind} {AXES[a]}"))
+        if events:
+            events.sort()
+            te = np.array([e[0] for e in events])
+            for j, i in enumerate(idx):
+                if reason[j] != "limits":
+                    continue
+                p = int(np.searchsorted(te, sample_times_s[i], side="right")) - 1
+                p = max(p, 0)
+                lt[j], limit[j] = te[p], events[p][1]
+    return Unreachable(idx, err[idx], reason, limit, lt, err_unc[idx])
