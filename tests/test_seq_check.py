@@ -352,3 +352,50 @@ def test_check_ir_limits_equals_plain_reference():
     want = _limits_reference(ir, system)
     assert len(want) > 50 and {w[0] for w in want} == {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector"}
     assert got == want
+
+
+_HALF_RASTER_SEQ = """# Pulseq sequence file
+# a shaped gradient sampled at raster centres through an explicit time shape (as Pulseq MATLAB writes some)
+
+[VERSION]
+major 1
+minor 4
+revision 1
+
+[DEFINITIONS]
+AdcRasterTime 1e-07
+BlockDurationRaster 1e-05
+GradientRasterTime 1e-05
+RadiofrequencyRasterTime 1e-06
+
+[BLOCKS]
+1 100   0   1   0   0   0   0
+
+[GRADIENTS]
+1 100000 1 2 0
+
+[SHAPES]
+
+shape_id 1
+num_samples 4
+0
+1
+1
+0
+
+shape_id 2
+num_samples 4
+TIMES
+
+"""
+
+
+@pytest.mark.parametrize("times, ok", [("0.5 1.5 2.5 3.5", True), ("0 1 2 3", True), ("0.25 1.5 2.5 3.5", False)])
+def test_shaped_gradient_times_on_the_half_raster_are_the_formats(tmp_path, times, ok):
+    """Shaped-gradient times at raster centres (x.5 rasters: arbitrary gradients, 1.5.1 oversampling) are legal
+    (a field-camera calibration file got a false grad_raster violation); a quarter raster is not."""
+    p = tmp_path / "half.seq"
+    p.write_text(_HALF_RASTER_SEQ.replace("TIMES", "\n".join(times.split())))
+    res = check_file(p, SystemSpec(max_grad_mT_per_m=40, max_slew_T_per_m_per_s=1000))
+    assert res.ok is ok
+    assert ok or {v.rule for v in res.violations} == {"grad_raster"}

@@ -428,8 +428,11 @@ def _event_rules(
                                 f"trapezoid {nm} not on the gradient raster",
                             )
                         )
-            elif gr.time_id not in (0, -1) and not _all_on_raster(gr.tt, r):
-                q = np.asarray(gr.tt, dtype=np.float64) / r
+            elif gr.time_id not in (0, -1) and not _all_on_raster(gr.tt, r / 2):
+                # shaped gradients sample at raster edges (extended trapezoids), raster centres (arbitrary
+                # gradients with an explicit time shape, e.g. 0.5 1.5 ...) or every half raster (1.5.1
+                # oversampling): every time a multiple of half the gradient raster is the format's
+                q = np.asarray(gr.tt, dtype=np.float64) / (r / 2)
                 off = float(np.asarray(gr.tt)[np.argmax(np.abs(q - np.round(q)) >= 1e-6)])
                 out.append(
                     Violation(
@@ -437,9 +440,9 @@ def _event_rules(
                         key,
                         AXES[a],
                         off * 1e6,
-                        r * 1e6,
+                        r / 2 * 1e6,
                         "us",
-                        f"extended-trapezoid vertex at {off * 1e6:.4g} us not on the gradient raster",
+                        f"shaped-gradient time {off * 1e6:.4g} us not on the half gradient raster",
                     )
                 )
             if tv[-1] > dur + _TTOL:
