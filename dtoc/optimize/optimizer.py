@@ -288,8 +288,9 @@ def solve_warm_start(
             cuts=np.array([round(r.t_center_s / twin.ir.raster_s) for r in twin.ir.rf if r.excites], dtype=np.int64),
         )  # fmt: skip
         left = budget - rep.evaluations
-        if rep.stop_reason == "limits-bound" and left >= 40:
-            # limits active over much of the waveform: CG then projected FISTA from the start (the fixed-count
+        if rep.stop_reason not in ("tolerance", "interrupted") and rep.achieved_max_dk > k_tol_dk and left >= 40:
+            # above the tolerance (limits active over much of the waveform, or active-set rounds that stopped
+            # paying -- a heuristic, not a certificate): CG then projected FISTA from the start (the fixed-count
             # algorithm) on what is left of the budget, with the same rule; kept if it lowers the objective
             sub = SV.SolveReport(method="cg-fista")
             x2 = constrained_least_squares(
