@@ -197,7 +197,7 @@ def test_output_may_not_overwrite_an_input_even_with_force(tmp_path, capsys):
     p = _tiny(tmp_path)
     before = p.read_bytes()
     code, _, err = _run(["identify", str(p), "-o", str(p), "--force", "-q"], capsys)
-    assert code == 2 and "overwrite the measurement" in err and err.count("\n") == 1
+    assert code == 2 and "would overwrite the MEASURED input" in err and err.count("\n") == 1
     assert p.read_bytes() == before
 
 
