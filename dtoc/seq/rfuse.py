@@ -65,7 +65,8 @@ def parse_rf_use_overrides(text: str | None) -> dict[int, str]:
     return out
 
 
-def _detect_one(flip_rad: float, duration_s: float, freq_offset_hz: float, b0_T: float, gamma_hz_per_T: float) -> str:
+def detect_use(flip_rad: float, duration_s: float, freq_offset_hz: float, b0_T: float, gamma_hz_per_T: float) -> str:
+    """The use a pre-1.5 reader gives a pulse (Pulseq's ``detectRFuse``, pypulseq's ``detect_rf_use``): full name."""
     flip_deg = math.degrees(abs(flip_rad))
     if flip_deg < _FLIP_EXCITATION_DEG:
         return "excitation"
@@ -141,7 +142,7 @@ def resolve_rf_use(
         if rid in overrides:
             use, how = overrides[rid], "--rf-use"
         elif pre15:  # the format has no use field: whatever a reader filled in is a guess
-            use = _detect_one(r.flip_angle_rad, r.duration_s, r.freq_offset_hz, b0_T, gamma_hz_per_T)
+            use = detect_use(r.flip_angle_rad, r.duration_s, r.freq_offset_hz, b0_T, gamma_hz_per_T)
             how = "detected"
         else:
             use, how = r.use, "file"
@@ -250,6 +251,7 @@ def describe_rf_use(table: list[dict], version) -> str:
 
 __all__ = [
     "USES",
+    "detect_use",
     "parse_rf_use_overrides",
     "resolve_rf_use",
     "rf_event_ids",

@@ -273,14 +273,8 @@ def unwritable(ir: SequenceIR, version: tuple[int, int, int]) -> list[str]:
     pp = import_pypulseq()
     src_v = parse_version(ir.meta.get("format_version") or "1.5.0")  # what the input itself stated
     stated_use = src_v >= (1, 5, 0)  # before 1.5 a use is detected, not stated
-    names = {
-        "e": "excitation",
-        "r": "refocusing",
-        "i": "inversion",
-        "s": "saturation",
-        "p": "preparation",
-        "o": "other",
-    }
+    from dtoc.seq.rfuse import USES
+
     for k, lib in src.rf_library.data.items():
         use = src.rf_library.type.get(k, "u")
         if lib[6] or lib[7]:
@@ -295,10 +289,11 @@ def unwritable(ir: SequenceIR, version: tuple[int, int, int]) -> list[str]:
                 f"RF event {k} rotates at {stated * 1e6:.6g} us, more than one RF raster from its peak "
                 f"({peak * 1e6:.6g} us), and format 1.4 states no centre"
             )
-        if stated_use and use in names and use != _detected_use(src, rf):
+        detected = _detected_use(src, rf)
+        if stated_use and use != "u" and use in USES and use != detected:
             out.append(
-                f"RF event {k} is stated as {names[use]}, which format 1.4 cannot say (1.4 readers would take it as "
-                f"{names[_detected_use(src, rf)]})"
+                f"RF event {k} is stated as {USES[use]}, which format 1.4 cannot say (1.4 readers would take it as "
+                f"{USES[detected]})"
             )
     for k, lib in src.adc_library.data.items():
         if lib[3] or lib[4]:
@@ -319,12 +314,13 @@ def unwritable(ir: SequenceIR, version: tuple[int, int, int]) -> list[str]:
 
 
 def _detected_use(seq, rf) -> str:
-    """The RF use a 1.4 reader detects (pypulseq's and Pulseq MATLAB's ``detectRFuse``)."""
-    flip_deg = float(np.abs(np.sum(rf.signal[:-1] * (rf.t[1:] - rf.t[:-1])))) * 360
-    ppm = 1e6 * rf.freq_offset / seq.system.B0 / seq.system.gamma
-    if flip_deg < 90.01:
-        return "e"
-    return "s" if rf.shape_dur > 6e-3 and -3.5 <= ppm <= -3.4 else "r"
+    """The RF use (initial) a 1.4 reader detects (pypulseq's and Pulseq MATLAB's ``detectRFuse``: one rule,
+    :func:`dtoc.seq.rfuse.detect_use`)."""
+    from dtoc.seq.rfuse import USES, detect_use
+
+    flip_rad = 2 * np.pi * float(np.abs(np.sum(rf.signal[:-1] * (rf.t[1:] - rf.t[:-1]))))
+    use = detect_use(flip_rad, rf.shape_dur, rf.freq_offset, seq.system.B0, seq.system.gamma)
+    return next(k for k, v in USES.items() if v == use)
 
 
 def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> None:
