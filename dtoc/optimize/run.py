@@ -27,7 +27,15 @@ from dtoc.errors import InputError, LimitError, ValidationFailed
 from dtoc.optimize import loss as L
 from dtoc.optimize import optimizer as O
 from dtoc.optimize.config import OptimizeConfig
-from dtoc.optimize.limits import EdgeProjector, Limits, check_area_reachable, limit_violations, waveform_extremes
+from dtoc.optimize.limits import (
+    EdgeProjector,
+    Limits,
+    base_physical_warnings,
+    check_area_reachable,
+    limit_violations,
+    physical_violations,
+    waveform_extremes,
+)
 from dtoc.optimize.report import plotted_span
 from dtoc.optimize.twin import EdgeTwin
 from dtoc.seq.check import SafetyChecks, check_file, check_ir_limits
@@ -538,18 +546,9 @@ def plan_run(
     limits, sources = limits_and_sources(ir, cfg)
     limit_sources = {**sources, **(limit_sources or {})}
     phys_limits = limits
-    if R is not None:
-        from dtoc.hardware.orientation import logical_limit_scale
-
-        f = logical_limit_scale(R)
-        if f < 1.0:  # per-axis limits hold on the physical axes: a logical bound that guarantees them
-            limits = Limits(
-                limits.gmax_mT_per_m * f,
-                limits.smax_T_per_m_per_s * f,
-                amp_margin=limits.amp_margin,
-                slew_margin=limits.slew_margin,
-            )
-            limit_sources = {k: f"{v}, x {f:.4g} on the logical axes (oblique)" for k, v in limit_sources.items()}
+    limits = limits.rotated(R)  # oblique: the limits hold on the physical axes too (dtoc.optimize.limits)
+    if limits.rotation is not None:
+        limit_sources = {k: f"{v}, on the physical and the logical axes (oblique)" for k, v in limit_sources.items()}
     free = free_edges(ir)
     if not free.any():
         raise InputError(
@@ -558,7 +557,7 @@ def plan_run(
         )
     projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
     check_area_reachable(ir, limits)
-    warnings_out = base_limit_warnings(ir, limits)
+    warnings_out = base_limit_warnings(ir, limits) + base_physical_warnings(ir.grad_mT_per_m, ir.dt_fine_s, limits)
     dtype = torch.float64
     twin = EdgeTwin(ir, hardware, projector, dtype=dtype, device=device)
     ctx = L.build_context(ir, limits, dtype=dtype, device=device)
@@ -946,9 +945,10 @@ def _check_system_limits(ir_out: SequenceIR, limits: Limits) -> None:
         max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
         grad_raster_s=ir_out.raster_s,
     )
-    v = check_ir_limits(ir_out, sysspec)
+    v = [x.message for x in check_ir_limits(ir_out, sysspec)]
+    v += physical_violations(ir_out.grad_mT_per_m, ir_out.dt_fine_s, limits)  # what the scanner checks (oblique)
     if v:
-        raise LimitError(f"exported waveform fails the validator: {v[0].message}; nothing written")
+        raise LimitError(f"exported waveform fails the validator: {v[0]}; nothing written")
 
 
 def _write_checked(
