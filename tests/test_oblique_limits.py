@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from dtoc.optimize.limits import EdgeProjector, Limits, physical_violations, wav
 from dtoc.seq.load import load_sequence
 
 RASTER = 1e-5
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _rot_x(deg: float) -> np.ndarray:
@@ -161,3 +163,20 @@ def test_a_base_beyond_the_physical_limits_is_refused_in_one_line(tmp_path, caps
     assert code == 2 and len(lines) == 1, err
     assert "on the physical" in lines[0] and "at this orientation" in lines[0] and "Traceback" not in err
     assert not out.exists()
+
+
+@pytest.mark.slow
+def test_the_issue_epi_at_20_degrees_about_y_optimizes_within_the_physical_limits(tmp_path, capsys):
+    # issue 35's case (formerly "z slews 174 T/m/s, beyond smax 140.4"); the base's prephasers ramp x and z
+    # together, so at 20 deg about y it slews 221.7 T/m/s on physical x: not playable as it is at smax 180;
+    # the output is within the limits there and a warning says the base is not
+    base = REPO / "sequences" / "epi_esp081.seq"
+    R = _rot_y(20)
+    ir = load_sequence(base)
+    assert physical_violations(ir.grad_mT_per_m, ir.dt_fine_s, Limits(72.0, 180.0).rotated(R))
+    out = tmp_path / "o.seq"
+    code, _, err = run_cli(capsys, "optimize", base, "--ideal", "--orientation", _text(R), "-o", out, "-q")
+    assert code == 0, err
+    assert "the base sequence exceeds the limits at this orientation (physical x: slew 221.7" in err
+    o = load_sequence(out)
+    assert physical_violations(o.grad_mT_per_m, o.dt_fine_s, Limits(72.0, 180.0).rotated(R)) == []
