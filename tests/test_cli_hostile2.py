@@ -413,7 +413,7 @@ def test_unbounded_work_is_refused_before_it_starts(capsys, tmp_path, case):
 
 def test_a_simulation_estimate_beyond_memory_is_refused():
     from dtoc.errors import InputError
-    from dtoc.util.validate import check_simulation_cost
+    from dtoc.util.cost import check_simulation_cost
 
     text, sec = check_simulation_cost("x", 512 * 512, 512 * 512)  # a legal 512x512 EPI: estimated, allowed here
     assert "262144 voxels" in text and sec > 10

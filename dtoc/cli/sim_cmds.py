@@ -123,20 +123,34 @@ def simulate_cmd(
     intent = ir if base is None else base  # the grid and phantom follow what the acquisition intends
     if not check_phantom_matches(intent, phantom):  # one line for a 2D phantom on a 3D file and the reverse
         intent.require_geometry(f"{reference or seq}: simulate")
-    from dtoc.util.validate import check_simulation_cost
+    from dtoc.util.cost import check_simulation_cost, fine_per_repetition
 
-    n_vox = _planned_voxels(intent, phantom)
-    if n_vox is not None:
-        est, sec = check_simulation_cost(f"{seq}: simulate", n_vox, ir.n_adc_samples, n_runs=2)
-        if not quiet and sec > 30:
-            note(f"note: {est}")
-    ph = phantom_for(intent, phantom, field_T=field_T, b0=b0_map, b1=b1_map)
+    default_train = dummies is None
     if dummies is None:  # the same "before" as dtoc optimize (dtoc.constants.default_dummies)
         from dtoc.constants import default_dummies
 
         dummies = default_dummies(ir.kind)
-        if dummies:
-            note(f"note: {dummies} dummy repetitions before the sequence (steady state of a {ir.kind}, as optimize)")
+
+    def cost(n_vox: int) -> None:  # the dummy train, then the ideal and the realized runs
+        est, sec = check_simulation_cost(
+            f"{seq}: simulate",
+            n_vox,
+            ir.n_adc_samples,
+            n_runs=2,
+            n_dummies=dummies,
+            fine_per_rep=fine_per_repetition(ir),
+        )
+        if not quiet and sec > 30:
+            note(f"note: {est}")
+
+    n_vox = _planned_voxels(intent, phantom)
+    if n_vox is not None:
+        cost(n_vox)
+    ph = phantom_for(intent, phantom, field_T=field_T, b0=b0_map, b1=b1_map)
+    if n_vox is None:  # a phantom file (its header checked by its loader): its voxels are known once read
+        cost(int(ph.pd.size))
+    if default_train and dummies:
+        note(f"note: {dummies} dummy repetitions before the sequence (steady state of a {ir.kind}, as optimize)")
     res = compare_ideal_realized(
         ir,
         ph,

@@ -22,6 +22,20 @@ this convex set:
    (``e[n] = clip(y[n], e[n-1] -+ S) & [L[n], U[n]]``; both passes are feasible because the envelopes
    are S-Lipschitz, and the feasible set is convex, so their mean is feasible too).
 
+At an oblique orientation (``Limits.rotation`` = R, logical -> physical, not an axis permutation) the scanner
+enforces the limits on the physical axes ``R @ g``, which couple the logical axes.  The projector keeps its
+per-logical-axis structure with *per-sample* bounds: every edge gets a box ``alo[:, n] <= e[:, n] <= ahi[:, n]``
+and every segment a box ``dlo[:, n] <= e[:, n+1] - e[:, n] <= dhi[:, n]`` whose every corner is within the
+physical limits (and each logical axis within them too: the file checks clean on its own axes).  The boxes
+are chosen from the base (:func:`_physical_boxes`): the largest common half-width ``a`` around zero that still
+holds the base's own value on every axis (``max(a, |b_j|)``), then each axis grown by what the physical rows
+it plays on leave, so a base within the physical limits always lies
+in the set and is never refused, whatever the orientation; where the base's values fit only through the signs
+(no symmetric box holds them) the box is the base's own value.  Fixed samples are checked on the physical axes
+(what the scanner enforces) and on the logical ones.  The envelopes then propagate the per-sample bounds
+(:func:`_envelope_var`).  This replaces the conservative uniform bound ``limit / max_i sum_j |R_ij|`` on every
+logical axis, which refused bases that play fine (a 20 degree EPI: 140.4 of 180 T/m/s).
+
 The projection works with limits tightened by a small safety margin (default 0.5 % amplitude, 1 %
 slew: room for the 6-digit amplitude and 1e-7 shape quantisation of the ``.seq`` writer), so the
 exported file stays within the true limits.  Units: mT/m, T/m/s, s.
@@ -47,12 +61,16 @@ class Limits:
         smax_T_per_m_per_s: maximum slew rate per axis, T/m/s (= mT/m/ms).
         amp_margin: relative safety margin applied to free samples' amplitude (0.005 = 0.5 %).
         slew_margin: relative safety margin applied to free segments' slew.
+        rotation: None (the file's axes are the physical ones, or an axis permutation of them: the per-axis
+            limits are the same) or the 9 numbers of the logical -> physical rotation R, row-major: the limits
+            then hold on the physical axes ``R @ g`` as well as on the logical ones (:meth:`rotated`).
     """
 
     gmax_mT_per_m: float
     smax_T_per_m_per_s: float
     amp_margin: float = 0.005
     slew_margin: float = 0.01
+    rotation: tuple | None = None
 
     def __post_init__(self):
         if not (np.isfinite(self.gmax_mT_per_m) and self.gmax_mT_per_m > 0):
@@ -61,6 +79,23 @@ class Limits:
             raise LimitError(f"smax must be a positive number of T/m/s, got {self.smax_T_per_m_per_s}")
         if not (0 <= self.amp_margin < 0.5 and 0 <= self.slew_margin < 0.5):
             raise LimitError("limit safety margins must lie in [0, 0.5)")
+        if self.rotation is not None and (len(self.rotation) != 9 or not np.all(np.isfinite(self.rotation))):
+            raise LimitError("the limits' rotation must be 9 finite numbers (row-major, logical -> physical)")
+
+    def rotated(self, R) -> Limits:
+        """These limits at orientation R (3x3, logical -> physical; None: unchanged).  An axis permutation with
+        signs (tra, cor, sag) maps per-axis limits onto themselves: no rotation is recorded."""
+        if R is None:
+            return self
+        R = np.asarray(R, dtype=np.float64)
+        perm = np.all(np.isclose(np.abs(R), 0.0, atol=1e-12) | np.isclose(np.abs(R), 1.0, atol=1e-12))
+        rot = None if perm else tuple(float(x) for x in R.ravel())
+        return Limits(self.gmax_mT_per_m, self.smax_T_per_m_per_s, self.amp_margin, self.slew_margin, rot)
+
+    @property
+    def R(self) -> np.ndarray | None:
+        """The logical -> physical rotation (3, 3), or None."""
+        return None if self.rotation is None else np.asarray(self.rotation, dtype=np.float64).reshape(3, 3)
 
     @property
     def gmax_eff_mT_per_m(self) -> float:
@@ -99,6 +134,30 @@ def limit_violations(fine_mT_per_m: np.ndarray, dt_fine_s: float, limits: Limits
     return out
 
 
+def physical_violations(
+    fine_mT_per_m: np.ndarray, dt_fine_s: float, limits: Limits, rel_tol: float = 1e-9
+) -> list[str]:
+    """:func:`limit_violations` of the waveform the scanner plays, ``R @ g`` on the physical axes, at an oblique
+    ``limits.rotation`` (empty without one: the logical check is the physical one)."""
+    R = limits.R
+    if R is None:
+        return []
+    g = R @ np.asarray(fine_mT_per_m, dtype=np.float64)
+    return [f"physical {v}" for v in limit_violations(g, dt_fine_s, limits, rel_tol)]
+
+
+def base_physical_warnings(fine_mT_per_m: np.ndarray, dt_fine_s: float, limits: Limits) -> list[str]:
+    """At an oblique orientation: one warning when the base itself exceeds the limits on a physical axis (the
+    output is held within them, so it cannot follow the base's k-space everywhere); empty otherwise."""
+    v = physical_violations(fine_mT_per_m, dt_fine_s, limits, rel_tol=1e-6)
+    if not v:
+        return []
+    return [
+        f"the base sequence exceeds the limits at this orientation ({'; '.join(v[:2])}): the output is held within "
+        "them on every physical axis and cannot follow the base's k-space everywhere"
+    ]
+
+
 def _greedy_pass(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, step: float) -> np.ndarray:
     """Sequential clip: x[n] = clip(y[n], [lo[n], hi[n]] & [x[n-1]-step, x[n-1]+step]) (1-D)."""
     yl, lol, hil = y.tolist(), lo.tolist(), hi.tolist()
@@ -116,6 +175,114 @@ def _greedy_pass(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, step: float) -> 
     return np.asarray(out)
 
 
+def _greedy_pass_var(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, dlo: np.ndarray, dhi: np.ndarray) -> np.ndarray:
+    """:func:`_greedy_pass` with per-segment step bounds: ``dlo[n] <= x[n+1] - x[n] <= dhi[n]``."""
+    yl, lol, hil, dll, dhl = y.tolist(), lo.tolist(), hi.tolist(), dlo.tolist(), dhi.tolist()
+    out = [0.0] * len(yl)
+    prev = None
+    for n, v in enumerate(yl):
+        a, b = lol[n], hil[n]
+        if prev is not None:
+            a = max(a, prev + dll[n - 1])
+            b = min(b, prev + dhl[n - 1])
+        if a > b:  # rounding of the envelopes' sums only (they are consistent): the bound nearest feasibility
+            b = a
+        prev = a if v < a else (b if v > b else v)
+        out[n] = prev
+    return np.asarray(out)
+
+
+def _envelope_var(alo, ahi, dlo, dhi):
+    """Exact reachability envelope of one axis under per-edge boxes ``alo..ahi`` and per-segment step boxes
+    ``dlo..dhi``: ``hi[n] = min_j ahi[j] + (the most the waveform can rise from j to n)``, and so on, by running
+    extrema over cumulative step sums (a sample reaches n only through the segments between)."""
+    Dh = np.concatenate([[0.0], np.cumsum(dhi)])
+    Dl = np.concatenate([[0.0], np.cumsum(dlo)])
+    hi_f = np.minimum.accumulate(ahi - Dh) + Dh
+    hi_b = np.minimum.accumulate((ahi - Dl)[::-1])[::-1] + Dl
+    lo_f = np.maximum.accumulate(alo - Dl) + Dl
+    lo_b = np.maximum.accumulate((alo - Dh)[::-1])[::-1] + Dh
+    hi = np.minimum(np.minimum(hi_f, hi_b), ahi)
+    lo = np.maximum(np.maximum(lo_f, lo_b), alo)
+    scale = max(1.0, float(np.abs(Dh).max()), float(np.abs(Dl).max()))
+    return lo, hi, 1e-12 * scale
+
+
+def _waterfill(W: np.ndarray, p_abs: np.ndarray, q_abs: np.ndarray, limit: float) -> np.ndarray:
+    """Per column m: the largest ``a >= 0`` with ``p_abs[i] + sum_j W[i, j, m] max(a, q_abs[j]) <= limit`` for
+    every row i (W: (3, 3, M) non-negative weights, zero for the fixed entries), -1 where even ``a = 0``
+    breaks it, inf where no row bounds it.  Each row is piecewise linear and increasing in ``a`` with
+    break points at the ``q_abs`` values: the crossing is found on the segment where it lies."""
+    M = q_abs.shape[1]
+    bp = np.concatenate([np.zeros((1, M)), np.sort(q_abs, axis=0)], axis=0)  # (4, M)
+    mx = np.maximum(bp[:, None, :], q_abs[None, :, :])  # (4, 3j, M): max(bp_k, q_j)
+    h = p_abs[None, :, :] + np.einsum("ijm,kjm->kim", W, mx)  # (4, 3i, M)
+    below = q_abs[None, :, :] <= bp[:, None, :]  # (4, 3j, M): q_j <= bp_k
+    slope = np.einsum("ijm,kjm->kim", W, below.astype(np.float64))  # slope after bp_k, (4, 3i, M)
+    ok = h <= limit
+    k = np.where(ok.any(axis=0), 3 - np.argmax(ok[::-1], axis=0), 0)  # last break point within, (3i, M)
+    hk = np.take_along_axis(h, k[None], axis=0)[0]
+    sk = np.take_along_axis(slope, k[None], axis=0)[0]
+    bk = bp[k, np.arange(M)[None, :]]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a_i = np.where(sk > 0, bk + (limit - hk) / np.where(sk > 0, sk, 1.0), np.inf)
+    a_i = np.where(ok[0], a_i, -1.0)
+    return a_i.min(axis=0)
+
+
+def _physical_boxes(v, fixed, R, limit: float, true_limit: float, what: str, raster_s: float):
+    """Per-logical-axis boxes ``lo..hi`` (3, M) for the values ``v`` (amplitudes or steps), every corner within
+    ``limit`` on the physical axes and on the logical ones, holding the base (see the module docstring).
+    ``fixed``: (3, M) values that must stay.  Raises LimitError where fixed values alone exceed
+    ``true_limit`` on a physical axis."""
+    A = np.abs(R)
+    q = np.where(fixed, v, np.clip(v, -limit, limit))  # the base, each logical axis within its own limit
+    p = R @ np.where(fixed, v, 0.0)
+    W = A[:, :, None] * (~fixed)[None, :, :]  # (3i, 3j, M)
+    q_abs = np.where(fixed, 0.0, np.abs(q))
+    a = np.minimum(_waterfill(W, np.abs(p), q_abs, limit), limit)
+    half = np.where(fixed, 0.0, np.maximum(a[None, :], q_abs))
+    point = np.zeros(a.shape, dtype=bool)
+    cols = np.flatnonzero(a < 0)  # no symmetric box holds the base's values
+    if cols.size:
+        # the base's own values where they are within the true limits (they fit only through their signs)
+        point[cols] = np.all(np.abs(R @ q[:, cols]) <= true_limit, axis=0)
+        rest = cols[~point[cols]]  # the base's free values are beyond the limits: the box the fixed values leave
+        if rest.size:
+            pr = np.abs(p[:, rest])
+            over = pr > true_limit * (1 + 1e-6)
+            if over.any():
+                i, c = np.argwhere(over)[0]
+                raise _physical_error(what, "xyz"[i], int(rest[c]), float(pr[i, c]), true_limit, raster_s)
+            wsum = W[:, :, rest].sum(axis=1)
+            with np.errstate(divide="ignore"):
+                a0 = np.where(wsum > 0, (limit - pr) / np.where(wsum > 0, wsum, 1.0), np.inf).min(axis=0)
+            half[:, rest] = np.where(fixed[:, rest], 0.0, np.clip(a0, 0.0, limit)[None, :])
+    # then each axis in turn takes what the physical rows it plays on leave (an axis that no tight row couples
+    # to keeps its own limit), so no box can grow alone
+    for j in range(3):
+        used = np.abs(p) + np.einsum("ijm,jm->im", W, half)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            room = np.where(W[:, j] > 0, (limit - used) / np.where(W[:, j] > 0, W[:, j], 1.0), np.inf).min(axis=0)
+        grow = ~point & ~fixed[j] & np.isfinite(room) & (room > 0)
+        half[j] = np.where(grow, np.minimum(half[j] + np.where(grow, room, 0.0), limit), half[j])
+    lo = np.where(fixed, v, np.where(point[None, :], q, -half))
+    hi = np.where(fixed, v, np.where(point[None, :], q, half))
+    return lo, hi
+
+
+def _physical_error(what: str, axis: str, n: int, value: float, limit: float, raster_s: float) -> LimitError:
+    if what == "amplitude":
+        return LimitError(
+            f"fixed (non-optimizable) gradient at t={n * raster_s * 1e3:.3f} ms plays {value:.4g} mT/m on the "
+            f"physical {axis} axis at this orientation, beyond gmax {limit:.4g} mT/m"
+        )
+    return LimitError(
+        f"fixed (non-optimizable) gradient at t={n * raster_s * 1e3:.3f} ms slews {value / raster_s * 1e-3:.4g} "
+        f"T/m/s on the physical {axis} axis at this orientation, beyond smax {limit / raster_s * 1e-3:.4g} T/m/s"
+    )
+
+
 class EdgeProjector:
     """Projection of raster-edge gradient samples onto the hard-limit set of one sequence.
 
@@ -123,10 +290,12 @@ class EdgeProjector:
         base_edges_mT_per_m: (3, N+1) base demanded gradient at raster edges (fixed values), mT/m.
         free_edges: (3, N+1) bool, True where the optimizer may change the sample.
         raster_s: gradient raster time, s.
-        limits: :class:`Limits`.
+        limits: :class:`Limits` (with a ``rotation``: the limits hold on the physical axes too, per-sample
+            boxes ``dlo``/``dhi`` bound the steps; without one every step is bounded by ``step``).
     Raises:
-        LimitError: when a fixed sample or a fixed-fixed segment already breaks the limits, or when
-            the fixed samples leave no waveform that meets them (empty reachability envelope).
+        LimitError: when a fixed sample or a fixed-fixed segment already breaks the limits (on the logical
+            axes, and on the physical ones at an oblique orientation), or when the fixed samples leave no
+            waveform that meets them (empty reachability envelope).
     """
 
     def __init__(
@@ -169,16 +338,36 @@ class EdgeProjector:
             )
         # reachability envelopes (exact distance transform, two sweeps per direction)
         n_e = e0.shape[1]
-        lo = np.full(e0.shape, -G)
-        hi = np.full(e0.shape, G)
-        lo[fixed] = e0[fixed]
-        hi[fixed] = e0[fixed]
-        for a in range(3):
-            if not fixed[a].any():
-                continue
-            lo[a], hi[a] = self._envelope(e0[a], fixed[a], G, S)
+        R = limits.R
+        self.uniform = R is None  # one step bound S for every segment (else per-segment bounds dlo..dhi)
+        tol = 1e-12
+        if R is None:
+            lo = np.full(e0.shape, -G)
+            hi = np.full(e0.shape, G)
+            lo[fixed] = e0[fixed]
+            hi[fixed] = e0[fixed]
+            for a in range(3):
+                if not fixed[a].any():
+                    continue
+                lo[a], hi[a] = self._envelope(e0[a], fixed[a], G, S)
+            self.dlo = np.full((3, n_e - 1), -S)
+            self.dhi = np.full((3, n_e - 1), S)
+        else:  # oblique: per-sample boxes within the physical limits that hold the base (module docstring)
+            alo, ahi = _physical_boxes(e0, fixed, R, G, limits.gmax_mT_per_m, "amplitude", raster_s)
+            fixed_pair = fixed[:, 1:] & fixed[:, :-1]
+            self.dlo, self.dhi = _physical_boxes(np.diff(e0, axis=1), fixed_pair, R, S, S_true, "slew", raster_s)
+            lo, hi = np.empty_like(e0), np.empty_like(e0)
+            for a in range(3):
+                lo[a], hi[a], t = _envelope_var(alo[a], ahi[a], self.dlo[a], self.dhi[a])
+                tol = max(tol, t)
+            lo = np.where(fixed, e0, lo)
+            hi = np.where(fixed, e0, hi)
+            # the envelopes' sums round by ~1e-16 of their size: a box that is one value stays one value
+            thin = (lo > hi) & (lo <= hi + tol)
+            mid = 0.5 * (lo + hi)
+            lo, hi = np.where(thin, mid, lo), np.where(thin, mid, hi)
         self.lo, self.hi = lo, hi
-        empty = free & (lo > hi + 1e-12)
+        empty = free & (lo > hi + tol)
         if empty.any():
             a, n = np.argwhere(empty)[0]
             raise LimitError(
@@ -220,7 +409,11 @@ class EdgeProjector:
         a, b = a[:, :m], b[:, :m]
         mask = self.pair_free[:, start::2][:, :m]
         d = b - a
-        excess = np.where(mask, np.clip(np.abs(d) - S, 0.0, None), 0.0) * np.sign(d)
+        if self.uniform:
+            excess = np.where(mask, np.clip(np.abs(d) - S, 0.0, None), 0.0) * np.sign(d)
+        else:
+            dlo, dhi = self.dlo[:, start::2][:, :m], self.dhi[:, start::2][:, :m]
+            excess = np.where(mask, d - np.clip(d, dlo, dhi), 0.0)
         y[:, start : start + 2 * m : 2] = a + 0.5 * excess
         y[:, start + 1 : start + 1 + 2 * m : 2] = b - 0.5 * excess
         return y
@@ -268,8 +461,22 @@ class EdgeProjector:
         x = np.asarray(x, dtype=np.float64)
         if np.any(x < self.lo - tol) or np.any(x > self.hi + tol):
             return False
-        d = np.abs(np.diff(x, axis=1))
-        return not np.any(self.pair_free & (d > self.step + tol))
+        if self.uniform:
+            d = np.abs(np.diff(x, axis=1))
+            return not np.any(self.pair_free & (d > self.step + tol))
+        d = np.diff(x, axis=1)
+        return not np.any(self.pair_free & ((d > self.dhi + tol) | (d < self.dlo - tol)))
+
+    def at_limits(self, x: np.ndarray, rtol: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+        """(amplitude, slew) masks of free edges at their bound and free segments at theirs ((3, N+1) and
+        (3, N), within ``rtol`` of the step bound)."""
+        x = np.asarray(x, dtype=np.float64)
+        t = rtol * max(self.step, 1e-9)
+        amp = self.free & ((x >= self.hi - t) | (x <= self.lo + t))
+        if self.uniform:
+            return amp, self.pair_free & (np.abs(np.diff(x, axis=1)) >= self.step * (1 - rtol))
+        d = np.diff(x, axis=1)
+        return amp, self.pair_free & ((d >= self.dhi - t) | (d <= self.dlo + t))
 
     def repair(self, x: np.ndarray) -> np.ndarray:
         """Feasible-by-construction correction (mean of forward and backward greedy passes)."""
@@ -280,8 +487,14 @@ class EdgeProjector:
         for a in range(3):
             if not self.free[a].any():
                 continue
-            fw = _greedy_pass(x[a], self.lo[a], self.hi[a], self.step)
-            bw = _greedy_pass(x[a, ::-1], self.lo[a, ::-1], self.hi[a, ::-1], self.step)[::-1]
+            if self.uniform:
+                fw = _greedy_pass(x[a], self.lo[a], self.hi[a], self.step)
+                bw = _greedy_pass(x[a, ::-1], self.lo[a, ::-1], self.hi[a, ::-1], self.step)[::-1]
+            else:  # backwards, x[n] - x[n+1] lies in -dhi..-dlo
+                fw = _greedy_pass_var(x[a], self.lo[a], self.hi[a], self.dlo[a], self.dhi[a])
+                bw = _greedy_pass_var(
+                    x[a, ::-1], self.lo[a, ::-1], self.hi[a, ::-1], -self.dhi[a, ::-1], -self.dlo[a, ::-1]
+                )[::-1]
             out[a] = 0.5 * (fw + bw)
         out = np.where(self.free, np.clip(out, self.lo, self.hi), self.base)
         return out

@@ -229,6 +229,7 @@ def run_request(
         safety=None if prof is None else prof.profile.safety_checks(),
         offset_m=r0,
         format_version=req.format_version or (None if prof is None else prof.profile.interpreter_version),
+        notes=notes,
     )
     return res.manifest
 
@@ -301,11 +302,14 @@ def _check_config(cfg, req: OptimizeRequest, ir, prof, notes) -> None:
     geo = getattr(ir, "geometry", None)
     name, _, size = str(req.phantom or "brain").partition(":")
     if cfg.weights.image > 0 and geo is not None and name in ("brain", "brain-noscalp"):
-        from dtoc.util.validate import check_simulation_cost
+        from dtoc.util.cost import check_simulation_cost, fine_per_repetition
 
         n = cfg.phantom_size or (int(size) if size.isdigit() else None)
         vox = n * n if n else int(geo.matrix_xy[0]) * int(geo.matrix_xy[1])
-        check_simulation_cost(f"{req.base}: optimize", vox, ir.n_adc_samples, n_phantoms=1 + cfg.augment_rotations)
+        check_simulation_cost(
+            f"{req.base}: optimize", vox, ir.n_adc_samples, n_phantoms=1 + cfg.augment_rotations,
+            n_dummies=cfg.n_dummies, fine_per_rep=fine_per_repetition(ir), dummies_option="n_dummies in --config",
+        )  # fmt: skip
     limits, sources = limits_and_sources(ir, cfg)
     for key, v, name in (
         ("gmax", limits.gmax_mT_per_m, "gmax_mT_per_m"),

@@ -27,7 +27,15 @@ from dtoc.errors import InputError, LimitError, ValidationFailed
 from dtoc.optimize import loss as L
 from dtoc.optimize import optimizer as O
 from dtoc.optimize.config import OptimizeConfig
-from dtoc.optimize.limits import EdgeProjector, Limits, check_area_reachable, limit_violations, waveform_extremes
+from dtoc.optimize.limits import (
+    EdgeProjector,
+    Limits,
+    base_physical_warnings,
+    check_area_reachable,
+    limit_violations,
+    physical_violations,
+    waveform_extremes,
+)
 from dtoc.optimize.report import plotted_span
 from dtoc.optimize.twin import EdgeTwin
 from dtoc.seq.check import SafetyChecks, check_file, check_ir_limits
@@ -349,6 +357,7 @@ def optimize_sequence(
     safety=None,
     offset_m=None,
     format_version: str | None = None,
+    notes: Callable | None = None,
 ) -> RunOutputs:
     """Run `dtoc optimize` (see the module doc).
 
@@ -375,6 +384,7 @@ def optimize_sequence(
             corrected per ADC event as far as the format allows (:mod:`dtoc.optimize.offcentre`).
         format_version: Pulseq format of the output (default: the base file's; :func:`dtoc.seq.write.preflight_write`
             writes the base in it and reads it back before any work).
+        notes: ``notes(line)`` receives the cost estimate of a long run before the work (:mod:`dtoc.util.cost`).
     Returns:
         :class:`RunOutputs` (manifest dict, output IR, arrays for plots).
     """
@@ -395,6 +405,7 @@ def optimize_sequence(
         safety=safety,
         offset_m=offset_m,
         format_version=format_version,
+        notes=notes,
     )
     plan = plan_run(
         base, io, config=config, hardware=hardware, ideal=ideal, device=device, phantom=phantom,
@@ -436,6 +447,7 @@ class RunIO:
     safety: SafetyChecks | None = None
     offset_m: Any = None
     format_version: str | None = None  # Pulseq format of the output (None: the base's)
+    notes: Callable | None = None  # notes(line): the run's estimate for a long file (dtoc.util.cost)
 
 
 @dataclass
@@ -538,18 +550,9 @@ def plan_run(
     limits, sources = limits_and_sources(ir, cfg)
     limit_sources = {**sources, **(limit_sources or {})}
     phys_limits = limits
-    if R is not None:
-        from dtoc.hardware.orientation import logical_limit_scale
-
-        f = logical_limit_scale(R)
-        if f < 1.0:  # per-axis limits hold on the physical axes: a logical bound that guarantees them
-            limits = Limits(
-                limits.gmax_mT_per_m * f,
-                limits.smax_T_per_m_per_s * f,
-                amp_margin=limits.amp_margin,
-                slew_margin=limits.slew_margin,
-            )
-            limit_sources = {k: f"{v}, x {f:.4g} on the logical axes (oblique)" for k, v in limit_sources.items()}
+    limits = limits.rotated(R)  # oblique: the limits hold on the physical axes too (dtoc.optimize.limits)
+    if limits.rotation is not None:
+        limit_sources = {k: f"{v}, on the physical and the logical axes (oblique)" for k, v in limit_sources.items()}
     free = free_edges(ir)
     if not free.any():
         raise InputError(
@@ -558,7 +561,7 @@ def plan_run(
         )
     projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
     check_area_reachable(ir, limits)
-    warnings_out = base_limit_warnings(ir, limits)
+    warnings_out = base_limit_warnings(ir, limits) + base_physical_warnings(ir.grad_mT_per_m, ir.dt_fine_s, limits)
     dtype = torch.float64
     twin = EdgeTwin(ir, hardware, projector, dtype=dtype, device=device)
     ctx = L.build_context(ir, limits, dtype=dtype, device=device)
@@ -580,6 +583,7 @@ def plan_run(
         with_image = ir.geometry is not None  # no grid (non-Cartesian): the k-space term alone
     if not with_image:
         cfg = cfg.model_copy(update={"weights": cfg.weights.model_copy(update={"image": 0.0})})
+    check_run_cost(ir, cfg, free, window, with_image, str(io.base_path or "sequence"), io.notes)
     imager = None
     if with_image:
         phantoms = make_phantoms(ir, cfg, phantom)
@@ -593,6 +597,34 @@ def plan_run(
         ir, cfg, hardware, R, limits, phys_limits, limit_sources, free, projector, twin, ctx, imager, window,
         bool(with_image), phantom, warnings_out, dtype, device, n_wave, before,
     )  # fmt: skip
+
+
+def check_run_cost(ir, cfg: OptimizeConfig, free, window: dict | None, with_image: bool, name: str, notes=None):
+    """The run's memory and time from its sizes (:func:`dtoc.util.cost.check_optimize_cost`), before any work:
+    the windowed plan's window sizes (windows, the most free variables and fine samples of one window) or the
+    whole solve, and the image term's simulation with its dummy train; one line refused, one noted."""
+    from dtoc.util.cost import check_optimize_cost, dummy_cost, fine_per_repetition, simulation_cost
+
+    sizes = None
+    if window is not None:
+        from dtoc.optimize.windowed import period_free_counts, plan_windows
+
+        ws = plan_windows(ir, window["horizon_s"], window["lookahead_s"])
+        be = ir.block_edges_s
+        sizes = {
+            "n_windows": len(ws),
+            "max_free": int(period_free_counts(ir, free).max()),
+            "max_fine": int(max(be[w.sub[1]] - be[w.sub[0]] for w in ws) / ir.dt_fine_s) + 1 if ws else 0,
+        }
+    sim = (0.0, 0.0)
+    geo = getattr(ir, "geometry", None)
+    if with_image and geo is not None:
+        vox = cfg.phantom_size**2 if cfg.phantom_size else int(geo.matrix_xy[0]) * int(geo.matrix_xy[1])
+        n_ph = 1 + cfg.augment_rotations
+        mem, sec = simulation_cost(vox, ir.n_adc_samples, n_ph, n_runs=2 * max(cfg.iters, 1))
+        dmem, dsec = dummy_cost(cfg.n_dummies, fine_per_repetition(ir), vox)
+        sim = (max(mem, dmem), sec + dsec * n_ph)
+    check_optimize_cost(f"{name}: optimize", ir.grad_mT_per_m.shape[1], ir.n_adc_samples, sizes, sim, notes)
 
 
 def start_solution(plan: Plan, io: RunIO) -> Solution:
@@ -946,9 +978,10 @@ def _check_system_limits(ir_out: SequenceIR, limits: Limits) -> None:
         max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
         grad_raster_s=ir_out.raster_s,
     )
-    v = check_ir_limits(ir_out, sysspec)
+    v = [x.message for x in check_ir_limits(ir_out, sysspec)]
+    v += physical_violations(ir_out.grad_mT_per_m, ir_out.dt_fine_s, limits)  # what the scanner checks (oblique)
     if v:
-        raise LimitError(f"exported waveform fails the validator: {v[0].message}; nothing written")
+        raise LimitError(f"exported waveform fails the validator: {v[0]}; nothing written")
 
 
 def _write_checked(

@@ -361,10 +361,9 @@ def explain_unreachable(x, err, err_unc, k_tol_dk, P, sample_times_s, unc_conver
     lt = np.full(idx.size, np.nan)
     if idx.size and sample_times_s is not None:
         xe = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
-        free = P.free
-        amp = free & ((xe >= P.hi - 1e-6 * max(P.step, 1e-9)) | (xe <= P.lo + 1e-6 * max(P.step, 1e-9)))
-        slew = np.zeros_like(free)
-        slew[:, :-1] = P.pair_free & (np.abs(np.diff(xe, axis=1)) >= P.step * (1 - 1e-6))
+        amp, slew_seg = P.at_limits(xe)
+        slew = np.zeros_like(P.free)
+        slew[:, :-1] = slew_seg
         events = []
         for kind, m in (("amplitude", amp), ("slew", slew)):
             for a in range(3):

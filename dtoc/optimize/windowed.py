@@ -475,8 +475,8 @@ def _admm(
     m = c[key]
     A, rho, Kinv = m["A"], m["rho"], m["Kinv"]
     x0 = xb.ravel()[idx]
-    l = np.r_[P.lo.ravel()[idx] - x0, -P.step - (x0[i1] - x0[i0])]
-    u = np.r_[P.hi.ravel()[idx] - x0, P.step - (x0[i1] - x0[i0])]
+    l = np.r_[P.lo.ravel()[idx] - x0, P.dlo[pa, pj] - (x0[i1] - x0[i0])]
+    u = np.r_[P.hi.ravel()[idx] - x0, P.dhi[pa, pj] - (x0[i1] - x0[i0])]
     alpha = 1.6
     if "admm_zy" in m:  # the last window of this structure: nearly the same active constraints
         z, y = m["admm_zy"]

@@ -147,49 +147,6 @@ def gib(n: float) -> str:
 NPZ_MAX_BYTES = 2 << 30
 
 
-def check_fits(what: str, need_bytes: float, fraction: float = 0.75) -> None:
-    """Refuse, before any work, a job whose estimated peak memory exceeds ``fraction`` of the available memory.
-
-    Raises:
-        InputError: ``"<what>: needs about X GiB (estimate), this machine has Y GiB available"``.
-    """
-    avail = available_memory_bytes()
-    if need_bytes > fraction * avail:
-        raise InputError(
-            f"{what}: needs about {gib(need_bytes)} of memory (estimate, before any work), more than "
-            f"{fraction:.0%} of the {gib(avail)} available here: refused"
-        )
-
-
-#: bytes per phantom voxel a simulation holds at least (maps, states, the signal's per-voxel factors; the
-#: 128x128 EPI on a 256x256 phantom peaks at ~0.97 GB, docs/benchmarks.md "sim": ~15 KB per voxel there)
-SIM_BYTES_PER_VOXEL = 4096
-#: seconds per (voxel x ADC sample) of one forward simulation (same benchmark: 0.65 s for 1.07e9)
-SIM_SECONDS_PER_VOXEL_SAMPLE = 6e-10
-
-
-def simulation_cost(n_voxels: int, n_samples: int, n_phantoms: int = 1, n_runs: int = 1) -> tuple[float, float]:
-    """(bytes, seconds) a lower-bound estimate of simulating ``n_phantoms`` phantoms of ``n_voxels`` each over
-    ``n_samples`` ADC samples ``n_runs`` times (constants above; measured on the benchmark machine)."""
-    mem = float(n_voxels) * SIM_BYTES_PER_VOXEL * max(1, n_phantoms)
-    sec = float(n_voxels) * float(n_samples) * SIM_SECONDS_PER_VOXEL_SAMPLE * max(1, n_phantoms) * max(1, n_runs)
-    return mem, sec
-
-
-def check_simulation_cost(
-    what: str, n_voxels: int, n_samples: int, n_phantoms: int = 1, n_runs: int = 1
-) -> tuple[str, float]:
-    """Refuse (one line, with the estimate) a simulation that cannot fit this machine's memory; returns the
-    estimate as text for a note and its seconds."""
-    mem, sec = simulation_cost(n_voxels, n_samples, n_phantoms, n_runs)
-    text = (
-        f"{n_phantoms} phantom(s) x {n_voxels} voxels x {n_samples} ADC samples: at least {gib(mem)} and "
-        f"~{sec:.3g} s of simulation (estimate)"
-    )
-    check_fits(f"{what}: {text}", mem)
-    return text, sec
-
-
 # ------------------------------------------------------------------------------------------------------
 # .npz archives: checked before numpy inflates them
 # ------------------------------------------------------------------------------------------------------

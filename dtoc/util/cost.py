@@ -1,0 +1,208 @@
+"""Cost estimates before work: memory and time from sizes, against this machine (docs/cli.md, "Cost estimates").
+
+Every estimate a command makes before it works lives here: a simulation (phantom voxels x ADC samples, and its
+steady-state dummy train: repetitions x samples per repetition x voxels) and an optimization (the whole solve
+from its fine samples, or the windowed solve from the plan's window sizes).  ``.npz`` archives are checked by
+their declared sizes in :func:`dtoc.util.validate.check_npz_archive`; the machine (available memory, cores) is
+read there too.  A job whose estimated peak memory exceeds 75 % of the available memory is refused in one line
+with the estimate and a way out; none of these functions does any of the work it estimates.
+
+The constants are measured: they are rough (a factor of about 2 either way), never a guarantee, and every
+printed figure says "estimate".  Where each was measured is stated beside it.
+"""
+
+from __future__ import annotations
+
+from dtoc.errors import InputError
+from dtoc.util.validate import available_memory_bytes, gib
+
+#: the share of the available memory a job may be estimated to need
+FIT_FRACTION = 0.75
+
+# --- the PDG simulation -------------------------------------------------------------------------------
+#: bytes per phantom voxel a simulation holds at least (maps, states, the signal's per-voxel factors; the
+#: 128x128 EPI on a 256x256 phantom peaks at ~0.97 GB, docs/benchmarks.md "sim": ~15 KB per voxel there)
+SIM_BYTES_PER_VOXEL = 4096
+#: seconds per (voxel x ADC sample) of one forward simulation (same benchmark: 0.65 s for 1.07e9)
+SIM_SECONDS_PER_VOXEL_SAMPLE = 6e-10
+#: the dummy train (:func:`dtoc.sim.pdg.steady_state_mz`) grows with every repetition: its time grid and
+#: moments (bytes per fine sample of a repetition), its states (per repetition) and the voxels' share.
+#: Measured 2026-11-27 on this project's 2-core Intel Xeon machine (peak RSS growth of a process, load ~10):
+#: sequences/gre_small.seq (1200 fine samples per repetition) 1.38 MB per dummy at 32x32 voxels, 1.58 MB at
+#: 64x64 (200 dummies); KomaMRI's gammaSTAR FID (568,905 fine samples per repetition) 100 MB per dummy.
+DUMMY_BYTES_PER_FINE = 180
+DUMMY_BYTES_PER_REPETITION = 1.1e6
+DUMMY_BYTES_PER_VOXEL = 70
+#: seconds per dummy (same runs, loaded machine): 0.39 s (GRE, state-bound), 0.69 s (FID, 1.2 us per sample)
+DUMMY_SECONDS_PER_FINE = 1.2e-6
+DUMMY_SECONDS_PER_REPETITION = 0.35
+
+# --- the optimizer ------------------------------------------------------------------------------------
+#: the process before any work (Python, torch, dtoc, the base read)
+PROCESS_BYTES = 0.35e9
+#: whole solve (every free edge at once, the twin with autograd over the whole sequence): peak bytes per fine
+#: sample and per ADC sample, CPU seconds per fine sample and per squared ADC sample.  Fitted to three runs of
+#: docs/benchmarks.md (2 cores): bench.protocols 2026-11-27 (Intel Xeon) EPI 256 (154,000 fine samples, 65,536
+#: ADC samples) 3.67 GB, 292 s CPU; EPI 128 (39,000 / 16,384) 0.71 GB, 19 s; bench.long 2026-11-25 MPRAGE 1 s
+#: whole (200,000 / 1,024) 0.84 GB, 45 s.  The fit is within 1.7x of each (above it for EPI 128).
+WHOLE_BYTES_PER_FINE = 2.4e3
+WHOLE_BYTES_PER_ADC = 45e3
+WHOLE_SECONDS_PER_FINE = 1.75e-4
+WHOLE_SECONDS_PER_ADC2 = 6.2e-8
+#: windowed solve (one excitation period at a time): the whole-sequence arrays (bytes per fine sample; once
+#: the windowed solve holds only its window's arrays this becomes per fine sample of the largest window), the
+#: dense matrices of the largest window (this many n_free x n_free float64 matrices held at once, with the
+#: cached ones of its structure) and CPU seconds per fine sample.  Measured 2026-11-27 on this project's
+#: 2-core Intel Xeon machine (load ~11): tests/foreign/writers.py mprage(shots=5) (5 s, 985,601 fine samples,
+#: 161 windows of at most 3,924 free variables), KCL 7 T GIRF: 2.29 GB peak RSS, 63 s CPU (234 s wall under
+#: that load); the model: 2.09 GB, 59 s.  Against bench.long (docs/benchmarks.md, 2026-11-25, ~5,700 free
+#: per window): 4 / 16 / 64 / 300 s peaked at 2.24 / 2.56 / 3.89 / 16.05 GB (the model: 3.7 / 4.3 / 6.8 / 19).
+WINDOW_BYTES_PER_FINE = 260
+WINDOW_DENSE_MATRICES = 12
+WINDOW_SECONDS_PER_FINE = 5e-5
+#: fixed seconds of a run (reading, the hardware model, the first evaluations)
+RUN_SECONDS = 10.0
+#: an optimization whose estimate reaches this many seconds prints its estimate (a windowed one always does)
+LONG_RUN_SECONDS = 60.0
+
+
+def check_fits(what: str, need_bytes: float, fraction: float = FIT_FRACTION, way_out: str = "") -> None:
+    """Refuse, before any work, a job whose estimated peak memory exceeds ``fraction`` of the available memory.
+
+    Raises:
+        InputError: ``"<what>: needs about X GiB ... (estimate, before any work), more than 75 % of the Y GiB
+        available here: refused[; way out]"``.
+    """
+    avail = available_memory_bytes()
+    if need_bytes > fraction * avail:
+        raise InputError(
+            f"{what}: needs about {gib(need_bytes)} of memory (estimate, before any work), more than "
+            f"{fraction:.0%} of the {gib(avail)} available here: refused" + (f"; {way_out}" if way_out else "")
+        )
+
+
+def simulation_cost(n_voxels: int, n_samples: int, n_phantoms: int = 1, n_runs: int = 1) -> tuple[float, float]:
+    """(bytes, seconds) a lower-bound estimate of simulating ``n_phantoms`` phantoms of ``n_voxels`` each over
+    ``n_samples`` ADC samples ``n_runs`` times (constants above; measured on the benchmark machine)."""
+    mem = float(n_voxels) * SIM_BYTES_PER_VOXEL * max(1, n_phantoms)
+    sec = float(n_voxels) * float(n_samples) * SIM_SECONDS_PER_VOXEL_SAMPLE * max(1, n_phantoms) * max(1, n_runs)
+    return mem, sec
+
+
+def dummy_cost(n_dummies: int, fine_per_repetition: float, n_voxels: int) -> tuple[float, float]:
+    """(bytes, seconds) of a steady-state dummy train of ``n_dummies`` repetitions of ``fine_per_repetition``
+    fine samples each on ``n_voxels`` voxels (it holds every repetition until its end)."""
+    n = max(int(n_dummies), 0)
+    per = (
+        DUMMY_BYTES_PER_FINE * float(fine_per_repetition)
+        + DUMMY_BYTES_PER_REPETITION
+        + DUMMY_BYTES_PER_VOXEL * float(n_voxels)
+    )
+    sec = DUMMY_SECONDS_PER_FINE * float(fine_per_repetition) + DUMMY_SECONDS_PER_REPETITION
+    return n * per, n * sec
+
+
+def fine_per_repetition(ir) -> float:
+    """Fine samples of the average repetition a dummy train plays (the span from one excitation to the next)."""
+    n_exc = sum(1 for r in ir.rf if r.excites) or len(ir.rf) or 1
+    return ir.grad_mT_per_m.shape[1] / n_exc
+
+
+def check_simulation_cost(
+    what: str,
+    n_voxels: int,
+    n_samples: int,
+    n_phantoms: int = 1,
+    n_runs: int = 1,
+    n_dummies: int = 0,
+    fine_per_rep: float = 0.0,
+    dummies_option: str = "--dummies",
+) -> tuple[str, float]:
+    """Refuse (one line, with the estimate) a simulation that cannot fit this machine's memory; returns the
+    estimate as text for a note and its seconds.  The dummy train (``n_dummies`` repetitions of
+    ``fine_per_rep`` fine samples) runs before the simulation, once per phantom; its memory is freed after."""
+    mem, sec = simulation_cost(n_voxels, n_samples, n_phantoms, n_runs)
+    dmem, dsec = dummy_cost(n_dummies, fine_per_rep, n_voxels)
+    peak = max(mem, PROCESS_BYTES + dmem)
+    text = f"{n_phantoms} phantom(s) x {n_voxels} voxels x {n_samples} ADC samples"
+    if n_dummies > 0:
+        text += f", {n_dummies} dummies x {fine_per_rep:.0f} samples per repetition"
+    text += f": at least {gib(peak)} and ~{sec + dsec * max(1, n_phantoms):.3g} s of simulation (estimate)"
+    way_out = ""
+    if n_dummies > 0 and dmem > mem:
+        each = dmem / n_dummies
+        way_out = f"give fewer dummy repetitions ({dummies_option}; each ~{each / 2**20:.3g} MiB here)"
+    else:
+        way_out = "give a smaller phantom (brain:N) or fewer augmentations"
+    check_fits(f"{what}: {text}", peak, way_out=way_out)
+    return text, sec + dsec * max(1, n_phantoms)
+
+
+def optimize_cost(n_fine: int, n_adc: int, window: dict | None = None) -> tuple[float, float, str]:
+    """(bytes, seconds, what it is from) of an optimization's solve of ``n_fine`` fine samples and ``n_adc``
+    ADC samples.
+
+    ``window``: None (whole solve) or the windowed plan's sizes: ``{"n_windows", "max_free", "max_fine"}``
+    (windows, the most free variables of one window, the most fine samples of one window); the windowed
+    memory is the whole-sequence arrays plus the largest window's dense matrices, so it follows the plan's
+    window sizes and not the duration alone."""
+    n, a = float(n_fine), float(n_adc)
+    if window is None:
+        mem = PROCESS_BYTES + WHOLE_BYTES_PER_FINE * n + WHOLE_BYTES_PER_ADC * a
+        sec = RUN_SECONDS + WHOLE_SECONDS_PER_FINE * n + WHOLE_SECONDS_PER_ADC2 * a * a
+        return mem, sec, f"whole solve of {n_fine} fine and {n_adc} ADC samples"
+    mf = float(window["max_free"])
+    mem = PROCESS_BYTES + WINDOW_BYTES_PER_FINE * n + WINDOW_DENSE_MATRICES * 8.0 * mf * mf
+    sec = RUN_SECONDS + WINDOW_SECONDS_PER_FINE * n
+    return (
+        mem,
+        sec,
+        (
+            f"{window['n_windows']} windows of at most {int(mf)} free variables and {window['max_fine']} fine samples, "
+            f"{n_fine} fine samples"
+        ),
+    )
+
+
+def check_optimize_cost(
+    what: str, n_fine: int, n_adc: int, window: dict | None, sim: tuple[float, float] = (0.0, 0.0), notes=None
+) -> tuple[float, float]:
+    """Estimate an optimization from its sizes (``sim``: the image term's (bytes, seconds), if any); print one
+    line through ``notes`` for a long run (estimated time, peak memory, the machine's available memory) and
+    refuse (InputError, one line with the estimate) one that cannot fit the available memory.  Returns
+    (bytes, seconds)."""
+    mem, sec, src = optimize_cost(n_fine, n_adc, window)
+    mem, sec = mem + sim[0], sec + sim[1]
+    avail = available_memory_bytes()
+    line = (
+        f"estimate ({src}): ~{_duration(sec)} and {gib(mem)} peak memory; {gib(avail)} available on this machine "
+        "(rough: docs/cli.md, Cost estimates)"
+    )
+    way_out = (
+        "the windowed solve holds less (windowed: on in --config)"
+        if window is None
+        else "a shorter file, or fewer free variables per excitation period"
+    )
+    check_fits(f"{what}: {line}", mem, way_out=way_out)
+    if notes is not None and (sec >= LONG_RUN_SECONDS or window is not None):
+        notes(line)
+    return mem, sec
+
+
+def _duration(sec: float) -> str:
+    if sec < 120:
+        return f"{sec:.0f} s"
+    if sec < 7200:
+        return f"{sec / 60:.0f} min"
+    return f"{sec / 3600:.1f} h"
+
+
+__all__ = [
+    "check_fits",
+    "check_optimize_cost",
+    "check_simulation_cost",
+    "dummy_cost",
+    "fine_per_repetition",
+    "optimize_cost",
+    "simulation_cost",
+]

@@ -1,0 +1,132 @@
+"""Cost estimates before work (issue 35 point 4, issue 36 point 5): the dummy train's memory is in the
+simulation estimate, a long optimization prints its estimate, and what cannot fit the machine's memory is
+refused in one line before any work (dtoc.util.cost)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from cli_helpers import run_cli
+
+import dtoc.util.cost as cost
+from dtoc.errors import InputError
+from dtoc.seq.load import load_sequence
+
+REPO = Path(__file__).resolve().parents[1]
+GRE = REPO / "sequences" / "gre_small.seq"
+
+
+WORK = "the work started"
+
+
+class NoWork(Exception):
+    pass
+
+
+def _no_work(*_a, **_k):
+    raise NoWork(WORK)  # the CLI reports it as an internal error (exit 3) naming it
+
+
+def test_the_dummy_train_grows_the_estimate_with_dummies_samples_and_voxels():
+    ir = load_sequence(GRE)
+    fpr = cost.fine_per_repetition(ir)
+    assert fpr == pytest.approx(ir.grad_mT_per_m.shape[1] / 16)  # 16 excitations
+    m1, s1 = cost.dummy_cost(100, fpr, 1024)
+    m2, s2 = cost.dummy_cost(200, fpr, 1024)
+    assert m2 == pytest.approx(2 * m1) and s2 == pytest.approx(2 * s1)
+    assert cost.dummy_cost(100, 100 * fpr, 1024)[0] > 5 * m1  # a long repetition (an FID's) costs more
+    assert cost.dummy_cost(100, fpr, 4096)[0] > m1
+    assert cost.dummy_cost(0, fpr, 1024) == (0.0, 0.0)
+    # measured here: 200 dummies of gre_small at 32x32 grew the process by 275 MB; the estimate is within 2x
+    assert 0.5 * 275e6 < cost.dummy_cost(200, fpr, 1024)[0] < 2 * 275e6
+
+
+def test_a_normal_simulation_is_not_refused(monkeypatch):
+    monkeypatch.setattr(cost, "available_memory_bytes", lambda: 8 << 30)
+    ir = load_sequence(GRE)
+    text, sec = cost.check_simulation_cost(
+        "x", 32 * 32, ir.n_adc_samples, n_runs=2, n_dummies=300, fine_per_rep=cost.fine_per_repetition(ir)
+    )
+    assert "300 dummies" in text and sec > 0
+
+
+def test_a_dummy_train_beyond_memory_is_refused_without_simulating(capsys, tmp_path, monkeypatch):
+    import dtoc.sim.comparison as comparison
+    import dtoc.sim.pdg_dummies as pdg_dummies
+
+    monkeypatch.setattr(cost, "available_memory_bytes", lambda: 1 << 30)  # a 1 GiB machine
+    monkeypatch.setattr(pdg_dummies, "run_dummies", _no_work)
+    monkeypatch.setattr(comparison, "compare_ideal_realized", _no_work)
+    out = tmp_path / "s.json"
+    code, _, err = run_cli(capsys, "simulate", GRE, "--dummies", "2000", "--json", out, "-q")
+    lines = [x for x in err.splitlines() if x.startswith("dtoc: error")]
+    assert code == 2 and len(lines) == 1, err
+    assert "2000 dummies" in lines[0] and "estimate" in lines[0] and "fewer dummy repetitions (--dummies" in lines[0]
+    assert not out.exists()
+    # the same machine takes the default train (300 dummies of this GRE: ~0.5 GB): the work starts
+    code, _, err = run_cli(capsys, "simulate", GRE, "--json", out, "-q")
+    assert WORK in err and "needs about" not in err, err
+
+
+def test_an_optimize_whose_image_term_cannot_fit_is_refused_with_its_dummies(capsys, tmp_path, monkeypatch):
+    monkeypatch.setattr(cost, "available_memory_bytes", lambda: 1 << 30)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("n_dummies: 5000\n")
+    code, _, err = run_cli(
+        capsys, "optimize", GRE, "--ideal", "--config", cfg, "-o", tmp_path / "o.seq", "--allow-worse", "-q"
+    )
+    assert code == 2 and "5000 dummies" in err and "n_dummies in --config" in err, err
+    assert not (tmp_path / "o.seq").exists()
+
+
+@pytest.fixture(scope="module")
+def long_seq(tmp_path_factory):
+    """A 5 s MPRAGE-like file (5 shots of 1 s): windowed by default."""
+    from foreign.writers import mprage
+
+    p = tmp_path_factory.mktemp("long") / "mprage5.seq"
+    p.write_bytes(mprage(shots=5))
+    return p
+
+
+def _optimize_until_work(capsys, monkeypatch, argv):
+    import dtoc.optimize.run as run
+
+    monkeypatch.setattr(run, "quality", _no_work)  # the first evaluation of the base: the work starts there
+    code, _, err = run_cli(capsys, *argv)
+    return (None if WORK in err else code), err
+
+
+def test_a_long_file_gets_the_estimate_line(capsys, tmp_path, monkeypatch, long_seq):
+    monkeypatch.setattr(cost, "available_memory_bytes", lambda: 64 << 30)
+    argv = ["optimize", long_seq, "--ideal", "--gmax", "32", "--smax", "130", "-o", tmp_path / "o.seq", "-q"]
+    code, err = _optimize_until_work(capsys, monkeypatch, argv)
+    assert code is None, err  # reached the work
+    est = [x for x in err.splitlines() if "estimate (" in x]
+    assert len(est) == 1, err
+    # from the plan's window sizes: 161 windows (excitation periods), the largest window's free variables
+    assert "windows of at most" in est[0] and "peak memory" in est[0] and "64 GiB available" in est[0]
+
+
+def test_a_long_run_beyond_memory_is_refused_before_work(capsys, tmp_path, monkeypatch, long_seq):
+    monkeypatch.setattr(cost, "available_memory_bytes", lambda: 1 << 30)
+    out = tmp_path / "o.seq"
+    argv = ["optimize", long_seq, "--ideal", "--gmax", "32", "--smax", "130", "-o", out, "-q"]
+    code, err = _optimize_until_work(capsys, monkeypatch, argv)
+    lines = [x for x in err.splitlines() if x.startswith("dtoc: error")]
+    assert code == 2 and len(lines) == 1, err
+    assert "estimate (" in lines[0] and "GiB peak memory" in lines[0] and "refused" in lines[0]
+    assert not out.exists()
+
+
+def test_the_optimize_estimate_follows_the_window_sizes():
+    whole = cost.optimize_cost(200_000, 1024)
+    win = {"n_windows": 33, "max_free": 5700, "max_fine": 300_000}
+    small = cost.optimize_cost(200_000, 1024, {**win, "max_free": 1000})
+    big = cost.optimize_cost(200_000, 1024, win)
+    assert big[0] > small[0] + 1e9  # the largest window's dense matrices
+    assert cost.optimize_cost(2_000_000, 1024, win)[0] > big[0]  # the whole-sequence arrays
+    assert whole[2].startswith("whole solve") and "33 windows" in big[2]
+    with pytest.raises(InputError, match="refused; the windowed solve holds less"):
+        cost.check_optimize_cost("x", 10**9, 10**6, None)
