@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -257,40 +258,64 @@ def emit_signal(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -> torch
     return emit_signal_gemm(iv, A, K, mom, n, vox, graph, bounds_t, cfg, separable=method == "separable")
 
 
-def emit_signal_direct(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -> torch.Tensor:
-    """Exact evaluation, chunked over samples so that J x T_chunk x V <= cfg.chunk_elems."""
-    dev = A.device
-    rdt = vox.x.dtype
-    J = torch.as_tensor(iv.emit, device=dev)
-    lo, hi = iv.adc_start, iv.adc_stop
-    Kj = K.index_select(0, J)  # (J, 4) float64
-    mt = mom.I_adc[lo:hi] - mom.I_bound[n][None, :]  # (T, 4)
-    kt = Kj[:, None, :] + mt[None, :, :]  # (J, T, 4)
-    dtt = graph.adc_times_s[lo:hi] - bounds_t[n]
-    dtt_t = torch.as_tensor(dtt, dtype=torch.float64, device=dev)
-    tau = iv.tau_s[iv.emit][:, None] + dtt[None, :]  # (J, T) numpy
-    vf = voxel_factor(kt, vox)  # (J, T) complex
-    bD = _diffusion_b(Kj, mom, n, lo, hi, dtt_t).to(rdt) if vox.has_diffusion else None
-    Aj = A.index_select(0, J)  # (J, V)
-    AC = Aj[None] if vox.coil is None else vox.coil[:, None, :] * Aj[None]  # (C, J, V)
-    nJ, T = kt.shape[0], kt.shape[1]
+class ExactStates(NamedTuple):
+    """Per-state inputs of the exact evaluation (states of one or several intervals, T samples each).
+
+    Attributes:
+        kt: (J, T, 4) k at every sample (real dtype); tau: (J, T) dephasing time at every sample, s;
+        dt: (J, T) time since the interval start, s; bD: (J, T) diffusion b-integral (None: no diffusion);
+        A: (J, V) complex amplitudes; vf: (J, T) complex voxel factor.
+    """
+
+    kt: torch.Tensor
+    tau: torch.Tensor
+    dt: torch.Tensor
+    bD: torch.Tensor | None
+    A: torch.Tensor
+    vf: torch.Tensor
+
+
+def emit_signal_direct(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, states: ExactStates | None = None):
+    """Exact evaluation, chunked over samples so that J x T_chunk x V <= cfg.chunk_elems.
+
+    Per interval: (C, T) signal of the emitting states of ``iv`` (interval ``n``).  With ``states``
+    (the batched path's strongly dephased states of several intervals, :class:`ExactStates`; the other
+    arguments then unused): (J, C, T), the signal of every state."""
+    if states is None:
+        dev = A.device
+        rdt = vox.x.dtype
+        J = torch.as_tensor(iv.emit, device=dev)
+        lo, hi = iv.adc_start, iv.adc_stop
+        Kj = K.index_select(0, J)  # (J, 4) float64
+        mt = mom.I_adc[lo:hi] - mom.I_bound[n][None, :]  # (T, 4)
+        kt = Kj[:, None, :] + mt[None, :, :]  # (J, T, 4)
+        dtt = graph.adc_times_s[lo:hi] - bounds_t[n]
+        dtt_t = torch.as_tensor(dtt, dtype=torch.float64, device=dev)
+        tau = iv.tau_s[iv.emit][:, None] + dtt[None, :]  # (J, T) numpy
+        vf = voxel_factor(kt, vox)  # (J, T) complex
+        bD = _diffusion_b(Kj, mom, n, lo, hi, dtt_t).to(rdt) if vox.has_diffusion else None
+        dtr = torch.as_tensor(dtt, dtype=rdt, device=dev)[None, :].expand(kt.shape[0], -1)
+        st = ExactStates(kt.to(rdt), torch.as_tensor(tau, dtype=rdt, device=dev), dtr, bD, A.index_select(0, J), vf)
+        return _exact(st, vox, cfg).sum(0)
+    return _exact(states, vox, cfg)
+
+
+def _exact(st: ExactStates, vox: VoxelData, cfg) -> torch.Tensor:
+    """(J, C, T) exact signal of every state of ``st`` (see :func:`emit_signal_direct`)."""
+    AC = st.A[None] if vox.coil is None else vox.coil[:, None, :] * st.A[None]  # (C, J, V)
+    nJ, T = st.kt.shape[0], st.kt.shape[1]
     step = max(1, int(cfg.chunk_elems // max(1, nJ * vox.n)))
     out = []
-    ktr = kt.to(rdt)
-    tau_t = torch.as_tensor(tau, dtype=rdt, device=dev)
-    dtr = torch.as_tensor(dtt, dtype=rdt, device=dev)
     for t0 in range(0, T, step):
         sl = slice(t0, min(T, t0 + step))
-        kk = ktr[:, sl]
-        ta = tau_t[:, sl]
-        mag = -dtr[sl][None, :, None] * vox.r2[None, None, :] - ta.abs()[:, :, None] * vox.r2d[None, None, :]
-        if bD is not None:
-            mag = mag - bD[:, sl, None] * vox.d[None, None, :]
-        ph = -(vox.phase_of(kk) + ta[:, :, None] * vox.omega[None, None, :])
+        ta = st.tau[:, sl]
+        mag = -st.dt[:, sl, None] * vox.r2[None, None, :] - ta.abs()[:, :, None] * vox.r2d[None, None, :]
+        if st.bD is not None:
+            mag = mag - st.bD[:, sl, None] * vox.d[None, None, :]
+        ph = -(vox.phase_of(st.kt[:, sl]) + ta[:, :, None] * vox.omega[None, None, :])
         E = torch.exp(torch.complex(mag, ph))  # (J, t, V)
-        s = torch.einsum("jtv,cjv->cjt", E, AC)
-        out.append((s * vf[None, :, sl]).sum(1))
-    return torch.cat(out, dim=1)
+        out.append(torch.einsum("jtv,cjv->jct", E, AC) * st.vf[:, None, sl])
+    return torch.cat(out, dim=2)
 
 
 # ------------------------------------------------------------------------------------------------
