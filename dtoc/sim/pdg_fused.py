@@ -31,7 +31,6 @@ import numpy as np
 import torch
 
 from dtoc.sim.pdg_graph import CONJ
-from dtoc.sim.pdg_rfsplit import take_rows
 
 
 @dataclass
@@ -168,22 +167,36 @@ def scale_rows(graph, bounds_t: np.ndarray, tis, b_all: torch.Tensor | None) -> 
     return torch.cat([fac, rec], 0)
 
 
+def _edge_coefficients(plan: FusedPlan, CT: torch.Tensor) -> list[torch.Tensor]:
+    """Per step, the (E_n, U) complex coefficient of every edge: one gather for all steps."""
+    if not plan.crow:
+        return []
+    return list(torch.split(CT.index_select(0, torch.cat(plan.crow)), [c.shape[0] for c in plan.crow], 0))
+
+
 def _forward(plan: FusedPlan, A0: torch.Tensor, F: torch.Tensor, CT: torch.Tensor, n_steps: int):
-    """The buffer of all blocks (rows, U) complex (see the module docstring)."""
+    """The buffer of all blocks (rows, U) complex (see the module docstring).
+
+    Per step: the block scaled by its real factors in the real view (the same products as complex x
+    real), one gather of the parents' rows, the conjugating slice conjugated, the edge coefficients
+    multiplied, one scatter-add into the next block: nine dispatched operations."""
     R, U = int(plan.offs[-1]), A0.shape[1]
     buf = torch.zeros((R, U), dtype=A0.dtype, device=A0.device)
     buf[: A0.shape[0]] = A0
     buf.index_fill_(0, plan.one_rows, 1.0)
-    blocks = torch.split(buf, plan.sizes, 0)
-    blocks_r = torch.split(torch.view_as_real(buf).reshape(R, 2 * U), plan.sizes, 0)
-    Fs = torch.split(F, plan.sizes, 0)
+    buf_r = torch.view_as_real(buf)  # (R, U, 2)
+    blocks3 = torch.split(buf_r, plan.sizes, 0)
+    blocks2 = torch.split(buf_r.view(R, 2 * U), plan.sizes, 0)
+    F3 = torch.split(F[:, :, None], plan.sizes, 0)
+    W = _edge_coefficients(plan, CT)
     for n in range(n_steps):
-        G = take_rows(blocks[n] * Fs[n], plan.parent[n])
+        Gr = (blocks3[n] * F3[n]).view(-1, 2 * U).index_select(0, plan.parent[n])
+        G = torch.view_as_complex(Gr.view(-1, U, 2))
         a, b = plan.conj[n]
         if b > a:
             G[a:b].conj_physical_()
-        G.mul_(take_rows(CT, plan.crow[n]))
-        blocks_r[n + 1].index_add_(0, plan.child[n], torch.view_as_real(G).reshape(G.shape[0], 2 * U))
+        G.mul_(W[n])
+        blocks2[n + 1].index_add_(0, plan.child[n], Gr)
     return buf
 
 
@@ -203,29 +216,29 @@ class _FusedPropagate(torch.autograd.Function):
         plan, n_steps = ctx.plan, ctx.n_steps
         R, U = buf.shape
         lam = torch.zeros_like(buf)
-        torch.view_as_real(lam).reshape(R, 2 * U).index_add_(
-            0, plan.emit_rows, torch.view_as_real(gY.contiguous()).reshape(-1, 2 * U)
-        )
+        lam2 = torch.view_as_real(lam).view(R, 2 * U)
+        lam2.index_add_(0, plan.emit_rows, torch.view_as_real(gY.contiguous()).reshape(-1, 2 * U))
         lams = torch.split(lam, plan.sizes, 0)
-        blocks = torch.split(buf, plan.sizes, 0)
+        lams2 = torch.split(lam2, plan.sizes, 0)
         Fs = torch.split(F, plan.sizes, 0)
-        CTc = CT.conj().resolve_conj()
-        dF = []
+        Wc = _edge_coefficients(plan, CT.conj().resolve_conj())
+        gE_all = torch.zeros((int(plan.offs[n_steps]), U), dtype=buf.dtype, device=buf.device)
+        gEs = torch.split(gE_all, plan.sizes[:n_steps], 0)
+        gEs2 = torch.split(torch.view_as_real(gE_all).view(-1, 2 * U), plan.sizes[:n_steps], 0)
         for n in range(n_steps - 1, -1, -1):
-            h = take_rows(lams[n + 1], plan.child[n])
-            h.mul_(take_rows(CTc, plan.crow[n]))
+            hr = lams2[n + 1].index_select(0, plan.child[n])
+            h = torch.view_as_complex(hr.view(-1, U, 2))
+            h.mul_(Wc[n])
             a, b = plan.conj[n]
             if b > a:
                 h[a:b].conj_physical_()
-            gE = torch.zeros_like(blocks[n])
-            torch.view_as_real(gE).reshape(gE.shape[0], 2 * U).index_add_(
-                0, plan.parent[n], torch.view_as_real(h).reshape(h.shape[0], 2 * U)
-            )
-            dF.append((gE * blocks[n].conj()).real)
-            lams[n].add_(gE * Fs[n])
-        dF.reverse()
-        dF.append(torch.zeros((R - int(plan.offs[n_steps]), U), dtype=F.dtype, device=F.device))
-        return torch.cat(dF, 0), None, None, None, None
+            gEs2[n].index_add_(0, plan.parent[n], hr)
+            lams[n].addcmul_(gEs[n], Fs[n])
+        # dL/dF = Re(gE conj(B)) for all blocks at once (zero beyond the last step)
+        dF = torch.zeros_like(F)
+        nr = int(plan.offs[n_steps])
+        dF[:nr] = (gE_all * buf[:nr].conj()).real
+        return dF, None, None, None, None
 
 
 def propagate_fused(graph, plan: FusedPlan, A0: torch.Tensor, F: torch.Tensor, CT: torch.Tensor) -> list:

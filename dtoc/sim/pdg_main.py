@@ -462,7 +462,7 @@ def _tissue_classes(vox, cfg) -> TissueClasses:
 
 
 _BATCH_ELEMS = 2**21
-_MAX_BATCHES = 4  # at most this many signal batches per ADC sample count when all intervals are known up front
+_MAX_BATCHES = 3  # at most this many signal batches per ADC sample count when all intervals are known up front
 
 
 def _emitting_k(Ks, steps, graph: PDGGraph | None = None):
