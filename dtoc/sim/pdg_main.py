@@ -472,7 +472,7 @@ def _emitting_k(Ks, steps, graph: PDGGraph | None = None):
     if not Ks:
         return []
     emit_n = [n for n, st in enumerate(steps) if n < len(Ks) and st.emit is not None]
-    out = [None] * len(Ks)
+    out: list[torch.Tensor | None] = [None] * len(Ks)
     if not emit_n:
         return out
     offs = np.concatenate([[0], np.cumsum([k.shape[0] for k in Ks])])

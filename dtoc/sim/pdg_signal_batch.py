@@ -374,7 +374,7 @@ def _fused_products(b: _Batch, Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, p
         tl, shared = _time_factors(dtt, dtr, sgn, vox)
         tfs[sgn] = tl[0].T[:, None, :] if shared else torch.stack(tl, 0).permute(2, 0, 1)  # (V, 1|G, T)
     steps: list[PlanStep] = []
-    step_blocks: list[tuple] = []
+    step_blocks: list[np.ndarray] = []
     for c, signs, in_c in _class_rows(cls, far, orders, own_np):
         rows_c = torch.as_tensor(in_c, device=dev)
         oc = orders[in_c]
