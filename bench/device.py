@@ -238,6 +238,66 @@ def table(rows: list[dict], devices: list[str], quick: bool) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _gre_spec(name: str, n: int):
+    from dtoc.seq.spec import load_spec
+
+    return load_spec(REPO / "sequences" / name).model_copy(
+        update=dict(matrix=n, repetitions=n, dwell_us=3200.0 / n, te_ms=3.5)
+    )
+
+
+def op_counts(device: str, sizes=(16, 32, 64)) -> list[tuple[int, int, int]]:
+    """(TRs, operations of one dtoc.simulate of the paper GRE, operations of one full-loss iteration of the
+    Figure-5 GRE with the paper's eddy model) at matrix = repetitions = n (tests/test_sim_op_count.py)."""
+    import dtoc
+    from dtoc.optimize import loss as L
+    from dtoc.optimize import optimizer as O
+    from dtoc.optimize.config import OptimizeConfig
+    from dtoc.optimize.limits import EdgeProjector, Limits
+    from dtoc.optimize.run import free_edges, loop_imager, make_phantoms
+    from dtoc.optimize.twin import EdgeTwin
+    from dtoc.sim.imager import Imager
+
+    out = []
+    for n in sizes:
+        ir = dtoc.load_sequence(_gre_spec("gre_paper.yaml", n))
+        with _Count() as c:
+            dtoc.simulate(ir, device=device)
+        n_sim = c.n
+        ir = dtoc.load_sequence(_gre_spec("gre_paper_fig5.yaml", n))
+        cfg = OptimizeConfig(n_dummies=0)
+        lim = Limits(50.0, 500.0)
+        P = EdgeProjector(ir.edge_grad_mT_per_m, free_edges(ir), ir.raster_s, lim)
+        model = dtoc.load_model(model=REPO / "girf" / "paper_eddy_both.json")
+        tw = EdgeTwin(ir, model, P, device=device)
+        ctx = L.build_context(ir, lim, device=device)
+        im = loop_imager(Imager(ir, make_phantoms(ir, cfg), n_dummies=0, device=device), cfg)
+        x = torch.as_tensor(ir.edge_grad_mT_per_m, dtype=torch.float64, device=device).clone().requires_grad_(True)
+        w = O.full_weights(cfg)
+        O.evaluate(tw, im, ctx, w, x, 0)
+        with _Count() as c:
+            total, _, _ = O.evaluate(tw, im, ctx, w, x, 0)
+            total.backward()
+        out.append((n, n_sim, c.n))
+    return out
+
+
+def op_table(counts: list[tuple[int, int, int]]) -> str:
+    before = {16: 2769, 32: 5469, 64: 17021}  # main 989a85e, the same count (dtoc.simulate)
+    lines = [
+        "",
+        "Operation count (aten operations dispatched; paper GRE spec at matrix = repetitions = n, readout 3.2 ms, "
+        "TE 3.5 ms; iteration = one full-loss forward + loss + backward of the Figure-5 GRE, loop preset fast/float32, "
+        "paper eddy model):",
+        "",
+        "| TRs | dtoc.simulate before (989a85e) | dtoc.simulate now | per TR | optimizer iteration now | per TR |",
+        "|---|---|---|---|---|---|",
+    ]
+    for n, a, b in counts:
+        lines.append(f"| {n} | {before.get(n, '-')} | {a} | {a / n:.0f} | {b} | {b / n:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
 def write_section(text: str, quick: bool) -> None:
     from bench._report import write_section as _write
 
@@ -259,6 +319,8 @@ def main(argv: list[str] | None = None) -> int:
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     rows = run([s for s in a.jobs.split(",") if s] or None, a.quick, not a.no_count, devices)
     text = table(rows, devices + ([] if "cuda" in devices else ["cuda-absent"]), a.quick)
+    if not a.no_count:
+        text += op_table(op_counts("cpu"))
     print(text)
     if not a.no_write:
         write_section(text, a.quick)

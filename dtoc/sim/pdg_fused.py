@@ -46,8 +46,9 @@ class FusedPlan:
         conj: per step, the (start, stop) slice of its conjugating edges.
         frow: (sum of rows,) long tensor: row of ``[fac of all states; rec of all intervals]`` that
             scales each buffer row.
-        emit_rows: (J_tot,) long tensor: buffer rows of the emitting states, interval by interval.
-        emit_sizes: number of emitting states per interval (0 where none emits).
+
+    The emitting rows are not part of the plan (read from the graph on every call: a copied graph may
+    change them, :func:`emitting_rows`).
     """
 
     sizes: list[int]
@@ -58,8 +59,6 @@ class FusedPlan:
     crow: list[torch.Tensor]
     conj: list[tuple[int, int]]
     frow: torch.Tensor
-    emit_rows: torch.Tensor
-    emit_sizes: list[int]
 
 
 def _step_edges(iv, nxt, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
@@ -90,10 +89,21 @@ def _split_tensor(arrs: list[np.ndarray], device) -> list[torch.Tensor]:
     return list(torch.split(t, [a.size for a in arrs]))
 
 
-def fused_plan(graph, device, with_signal: bool) -> FusedPlan:
+def emitting_rows(graph, plan: FusedPlan, device) -> tuple[torch.Tensor, list[int]]:
+    """(J_tot,) buffer rows of the emitting states of all intervals (interval order) and their number per
+    interval (0 where none emits: no ADC sample in the interval)."""
+    rows, sizes = [], []
+    for n, iv in enumerate(graph.intervals):
+        e = iv.emit if (iv.emit.size and iv.adc_stop > iv.adc_start) else np.zeros(0, np.int64)
+        rows.append(plan.offs[n] + e)
+        sizes.append(int(e.size))
+    return torch.as_tensor(np.concatenate(rows).astype(np.int64), device=device), sizes
+
+
+def fused_plan(graph, device) -> FusedPlan:
     """The :class:`FusedPlan` of ``graph`` on ``device`` (built once, cached on the graph)."""
     cache = graph.__dict__.setdefault("_torch_cache", {})
-    key = ("fused", str(device), bool(with_signal))
+    key = ("fused", str(device))
     if key in cache:
         return cache[key]
     ivs = graph.intervals
@@ -104,11 +114,6 @@ def fused_plan(graph, device, with_signal: bool) -> FusedPlan:
     soff = np.concatenate([[0], np.cumsum(S)]).astype(np.int64)
     edges = [_step_edges(ivs[n], ivs[n + 1], n) for n in range(NI - 1)]
     frow = np.concatenate([np.concatenate([soff[n] + np.arange(S[n]), [soff[-1] + n]]) for n in range(NI)])
-    emit_rows, emit_sizes = [], []
-    for n, iv in enumerate(ivs):
-        e = iv.emit if (with_signal and iv.emit.size and iv.adc_stop > iv.adc_start) else np.zeros(0, np.int64)
-        emit_rows.append(offs[n] + e)
-        emit_sizes.append(int(e.size))
     plan = FusedPlan(
         sizes=sizes.tolist(),
         offs=offs,
@@ -118,8 +123,6 @@ def fused_plan(graph, device, with_signal: bool) -> FusedPlan:
         crow=_split_tensor([e[2] for e in edges], device),
         conj=[e[3] for e in edges],
         frow=torch.as_tensor(frow.astype(np.int64), device=device),
-        emit_rows=torch.as_tensor(np.concatenate(emit_rows).astype(np.int64), device=device),
-        emit_sizes=emit_sizes,
     )
     cache[key] = plan
     return plan
@@ -204,20 +207,20 @@ class _FusedPropagate(torch.autograd.Function):
     """Emitting rows (J_tot, U) of all intervals, differentiable w.r.t. the row scales F (see module doc)."""
 
     @staticmethod
-    def forward(ctx, F, A0, CT, plan, n_steps):
+    def forward(ctx, F, A0, CT, plan, n_steps, emit_rows):
         buf = _forward(plan, A0, F.detach(), CT, n_steps)
         ctx.plan, ctx.n_steps = plan, n_steps
-        ctx.save_for_backward(F, CT, buf)
-        return buf.index_select(0, plan.emit_rows)
+        ctx.save_for_backward(F, CT, buf, emit_rows)
+        return buf.index_select(0, emit_rows)
 
     @staticmethod
     def backward(ctx, gY):
-        F, CT, buf = ctx.saved_tensors
+        F, CT, buf, emit_rows = ctx.saved_tensors
         plan, n_steps = ctx.plan, ctx.n_steps
         R, U = buf.shape
         lam = torch.zeros_like(buf)
         lam2 = torch.view_as_real(lam).view(R, 2 * U)
-        lam2.index_add_(0, plan.emit_rows, torch.view_as_real(gY.contiguous()).reshape(-1, 2 * U))
+        lam2.index_add_(0, emit_rows, torch.view_as_real(gY.contiguous()).reshape(-1, 2 * U))
         lams = torch.split(lam, plan.sizes, 0)
         lams2 = torch.split(lam2, plan.sizes, 0)
         Fs = torch.split(F, plan.sizes, 0)
@@ -238,22 +241,23 @@ class _FusedPropagate(torch.autograd.Function):
         dF = torch.zeros_like(F)
         nr = int(plan.offs[n_steps])
         dF[:nr] = (gE_all * buf[:nr].conj()).real
-        return dF, None, None, None, None
+        return dF, None, None, None, None, None
 
 
 def propagate_fused(graph, plan: FusedPlan, A0: torch.Tensor, F: torch.Tensor, CT: torch.Tensor) -> list:
     """Emitting rows per interval (list aligned with the intervals, None where none emits); differentiable
     w.r.t. ``F`` (:func:`scale_rows`) when it requires a gradient and autograd is on."""
-    emitting = [n for n, j in enumerate(plan.emit_sizes) if j]
+    emit_rows, emit_sizes = emitting_rows(graph, plan, A0.device)
+    emitting = [n for n, j in enumerate(emit_sizes) if j]
     if not emitting:
         return [None] * len(plan.sizes)
     n_steps = max(emitting)  # nothing after the last emitting interval is observed
     if torch.is_grad_enabled() and F.requires_grad:
-        Y = _FusedPropagate.apply(F, A0, CT, plan, n_steps)
+        Y = _FusedPropagate.apply(F, A0, CT, plan, n_steps, emit_rows)
     else:
         with torch.no_grad():
-            Y = _forward(plan, A0, F, CT, n_steps).index_select(0, plan.emit_rows)
-    parts = torch.split(Y, [plan.emit_sizes[n] for n in emitting], 0)
+            Y = _forward(plan, A0, F, CT, n_steps).index_select(0, emit_rows)
+    parts = torch.split(Y, [emit_sizes[n] for n in emitting], 0)
     out: list = [None] * len(plan.sizes)
     for n, y in zip(emitting, parts):
         out[n] = y

@@ -368,7 +368,7 @@ def _main_loop_fused(p: MainPass, tis, A0: torch.Tensor, Ks: list, b_all, probe:
     """Signal pieces of the main pass by :mod:`dtoc.sim.pdg_fused` (a constant number of operations per
     interval, all intervals' emitting rows at once); the same values as the per-interval path."""
     graph, cfg = p.graph, p.cfg
-    plan = fused_plan(graph, A0.device, True)
+    plan = fused_plan(graph, A0.device)
     CT = coefficient_table(graph, p.ir, tis.b1, A0.dtype, rf_coefficients)
     F = scale_rows(graph, p.bounds_t, tis, b_all).index_select(0, plan.frow)
     Ys = propagate_fused(graph, plan, A0, F, CT)
@@ -431,7 +431,16 @@ class TissueClasses:
             ratio = torch.round(ratio / quantum) * quantum
         inv = None
         if compress and vox.n > 1:
-            key = torch.stack([vox.r1, vox.r2, vox.d, b1, ratio], 1).detach().cpu().numpy()
+            h = vox.host
+            if h and all(k in h for k in ("r1", "r2", "d", "b1", "pd", "mz0")):
+                # the same values on the host (numpy copies of the tensors): no device synchronisation
+                hb1, hratio = h["b1"], h["mz0"] / h["pd"]
+                if quantum > 0:
+                    hb1 = np.round(hb1 / quantum) * quantum
+                    hratio = np.round(hratio / quantum) * quantum
+                key = np.stack([h["r1"], h["r2"], h["d"], hb1, hratio], 1)
+            else:
+                key = torch.stack([vox.r1, vox.r2, vox.d, b1, ratio], 1).detach().cpu().numpy()
             uniq, first, inv_np = np.unique(key, axis=0, return_index=True, return_inverse=True)
             if uniq.shape[0] < vox.n:
                 sel = torch.as_tensor(first, device=dev)

@@ -57,6 +57,10 @@ class VoxelData:
     iz: np.ndarray | None = None
     # per-simulate cache of constant signal-kernel factors (see :func:`_time_factor`)
     cache: dict = field(default_factory=dict, repr=False)
+    # host (numpy) copies of r1, r2, d, b1, pd, mz0 with the tensors' values (same dtype), and the largest
+    # D: read on the host without a device synchronisation (tissue tuples, Taylor scaling)
+    host: dict = field(default_factory=dict, repr=False)
+    d_max: float = 0.0
 
     @property
     def n(self) -> int:
@@ -119,19 +123,27 @@ class VoxelData:
         flat = np.where(mask.ravel())[0]
         iz, iyx = np.divmod(flat, ny * nx)
         iy, ix = np.divmod(iyx, nx)
-        T = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64).ravel()[flat], dtype=dtype, device=device)  # noqa: E731
+        np_dt = np.float32 if dtype == torch.float32 else np.float64
+        host: dict = {}
+
+        def T(a, name: str | None = None) -> torch.Tensor:
+            v = np.asarray(a, dtype=np.float64).ravel()[flat].astype(np_dt)
+            if name is not None:
+                host[name] = v
+            return torch.as_tensor(v, device=device)
+
         with np.errstate(divide="ignore"):
             r1 = 1.0 / np.asarray(ph.t1_s, dtype=np.float64)
             r2 = 1.0 / np.asarray(ph.t2_s, dtype=np.float64)
             r2d = 1.0 / np.asarray(ph.t2dash_s, dtype=np.float64)
         xx, yy = ph.positions_m()
         if initial_mz is None:
-            mz0 = T(ph.pd)
+            mz0 = T(ph.pd, "mz0")
         else:
             m = initial_mz.detach().cpu().numpy() if isinstance(initial_mz, torch.Tensor) else np.asarray(initial_mz)
             if m.shape != ph.pd.shape:
                 raise InputError(f"simulate: initial_mz has shape {m.shape}, expected {ph.pd.shape}")
-            mz0 = T(m)
+            mz0 = T(m, "mz0")
         coil = None
         if ph.coil_sens is not None:
             cs = np.asarray(ph.coil_sens).reshape(ph.coil_sens.shape[0], -1)[:, flat]
@@ -146,14 +158,14 @@ class VoxelData:
             iy=iy,
             ix=ix,
             shape=(ny, nx),
-            pd=T(ph.pd),
+            pd=T(ph.pd, "pd"),
             mz0=mz0,
-            r1=T(r1),
-            r2=T(r2),
+            r1=T(r1, "r1"),
+            r2=T(r2, "r2"),
             r2d=T(r2d),
-            d=T(ph.d_m2_per_s),
+            d=T(ph.d_m2_per_s, "d"),
             omega=T(2 * np.pi * b0),
-            b1=T(ph.b1),
+            b1=T(ph.b1, "b1"),
             x=T(xx),
             y=T(yy),
             xg=torch.as_tensor(axes[0], dtype=dtype, device=device),
@@ -167,6 +179,8 @@ class VoxelData:
             z=None if zg is None else zg[torch.as_tensor(iz, device=device)],
             zg=zg,
             iz=None if zg is None else iz,
+            host=host,
+            d_max=float(host["d"].max()) if host["d"].size else 0.0,
         )
 
     def observe_mz(self, A, K, tau_s) -> torch.Tensor:
@@ -369,7 +383,7 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
         b = _diffusion_b(Kj, mom, n, lo, hi, dtt_t)  # (J, T) float64
         bm = b[:, T // 2 : T // 2 + 1]
         delta = b - bm
-        xs = float(vox.d.max()) * delta.detach().abs().amax(1).cpu().numpy() if T else np.zeros(len(iv.emit))
+        xs = vox.d_max * delta.detach().abs().amax(1).cpu().numpy() if T else np.zeros(len(iv.emit))
         far = xs > _DIFF_TAYLOR_MAX
         if far.any():
             # states whose in-window diffusion change is large (strongly dephased, e.g. spoiled
@@ -381,7 +395,7 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
         # per-state Taylor order: the term of order r is a matrix product over the states that need it
         orders = np.array([taylor_order(float(x), cfg.taylor_tol) for x in xs], dtype=np.int64)
         rows = [torch.as_tensor(np.where(orders >= r)[0], device=dev) for r in range(1, int(orders.max(initial=0)) + 1)]
-        dif = (bm[:, 0].to(rdt), delta.to(rdt), rows, max(float(vox.d.max()), 1e-300))
+        dif = (bm[:, 0].to(rdt), delta.to(rdt), rows, max(vox.d_max, 1e-300))
     # per-state voxel weights C_j(v) (without the T2' part, which depends on the kernel class)
     Aj = A.index_select(0, Jn)
     kj = Kj.to(rdt)

@@ -232,7 +232,7 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
     bm: Any = None
     ndl: Any = None
     bfull: Any = None
-    Dmax = max(float(vox.d.max()), 1e-300) if vox.has_diffusion else 1.0
+    Dmax = max(vox.d_max, 1e-300) if vox.has_diffusion else 1.0
     if vox.has_diffusion and T:
         dtt_t = torch.as_tensor(dtt, dtype=torch.float64, device=dev)
         u = Kj[:, :3] - mom.I_bound.index_select(0, nb)[:, :3].index_select(0, own)
@@ -357,7 +357,13 @@ def _far_exact(b: _Batch, vf, exact, far) -> torch.Tensor:
         A=Y.index_select(0, F),
         vf=vf.index_select(0, F),
     )
-    return _sig.emit_signal_direct(None, None, None, b.mom, None, b.vox, b.graph, b.bounds_t, b.cfg, states=st)
+    return _sig.emit_signal_direct(_FarView(fi), None, None, b.mom, None, b.vox, b.graph, b.bounds_t, b.cfg, st)
+
+
+class _FarView(NamedTuple):
+    """What the exact path reads of its interval argument when given :class:`ExactStates`: the states."""
+
+    emit: np.ndarray
 
 
 def _fused_products(b: _Batch, Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, Dmax):
