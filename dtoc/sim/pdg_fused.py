@@ -262,3 +262,14 @@ def propagate_fused(graph, plan: FusedPlan, A0: torch.Tensor, F: torch.Tensor, C
     for n, y in zip(emitting, parts):
         out[n] = y
     return out
+
+
+def final_amplitudes(graph, plan: FusedPlan, A0: torch.Tensor, F: torch.Tensor, CT: torch.Tensor) -> torch.Tensor:
+    """(S_last, U) amplitudes at the END of the last interval, its T1 recovery added to the equilibrium state
+    (the dummy trains' final state; no autograd), as :func:`dtoc.sim.pdg_evolve.propagate` with ``final_state``."""
+    NI = len(plan.sizes)
+    buf = _forward(plan, A0, F, CT, NI - 1)
+    o, S = int(plan.offs[NI - 1]), plan.sizes[NI - 1] - 1
+    A_end = buf[o : o + S] * F[o : o + S]
+    A_end[graph.intervals[-1].eq_index] += F[o + S].to(A_end.dtype)
+    return A_end

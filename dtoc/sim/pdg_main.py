@@ -17,7 +17,7 @@ from dtoc.errors import InputError
 from dtoc.seq.ir import SequenceIR
 from dtoc.sim.pdg_config import PDGConfig
 from dtoc.sim.pdg_evolve import make_steps, propagate, run_propagation
-from dtoc.sim.pdg_fused import coefficient_table, fused_plan, propagate_fused, scale_rows
+from dtoc.sim.pdg_fused import coefficient_table, final_amplitudes, fused_plan, propagate_fused, scale_rows
 from dtoc.sim.pdg_graph import CONJ, IntervalGraph, PDGGraph, build_graph
 from dtoc.sim.pdg_moments import Moments, compute_moments
 from dtoc.sim.pdg_rfsplit import rf_coefficients, rf_split
@@ -294,12 +294,17 @@ def _emit_view(iv: IntervalGraph) -> IntervalGraph:
     return sub
 
 
-def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | None = None):
-    """Main loop: k recursion (autograd, (S, 4) per interval), amplitudes by :mod:`dtoc.sim.pdg_evolve`
-    (one autograd node with a hand-written adjoint), then the signal of every emitting interval.
+def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | None = None, fused: bool | None = None):
+    """Main loop: k recursion (autograd, (S, 4) per interval), amplitudes by :mod:`dtoc.sim.pdg_fused`
+    (or :mod:`dtoc.sim.pdg_evolve`; one autograd node with a hand-written adjoint), then the signal of
+    every emitting interval.
 
     Returns ``(pieces, A, K)``: with ``final_state`` the final amplitudes (S, V) and k (S, 4) and no
     pieces; else the signal pieces ``[(first ADC index, (C, T) signal)]`` and None, None.
+
+    ``fused``: use the fused propagation (:mod:`dtoc.sim.pdg_fused`) where its buffers fit; None: the
+    default policy (always for the signal; for the final state of a dummy train only off the CPU, where
+    the streaming path's one-interval working set is faster).
     """
     ir, graph, vox, mom, bounds_t, cfg, dtype, device = (
         p.ir,
@@ -321,8 +326,18 @@ def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | N
     b_all = None
     if C is not None:  # all intervals at once: a handful of autograd nodes instead of ~15 per interval
         Ks, bs, K, b_all = _k_and_b_all(graph, C, mom, vox, bounds_t, final_state)
-        if not final_state and _fused_fits(graph, tis.n, cdtype, cfg):
+        fits = _fused_fits(graph, tis.n, cdtype, cfg) and fused is not False
+        if fits and not final_state:
             return _main_loop_fused(p, tis, A0, Ks, b_all, probe), None, None
+        if fits and (fused or torch.device(device).type != "cpu"):
+            # dummy trains on a GPU: a constant number of launches per interval.  On the CPU the streaming
+            # per-interval path stays (its working set is one interval; the fused buffers of a long strict
+            # train were 3x slower there: memory-bound)
+            with torch.no_grad():
+                plan = fused_plan(graph, A0.device)
+                CT = coefficient_table(graph, ir, tis.b1, cdtype, rf_coefficients)
+                F = scale_rows(graph, bounds_t, tis, b_all).index_select(0, plan.frow)
+                return [], tis.expand(final_amplitudes(graph, plan, A0, F, CT)), K
     steps, rec = make_steps(graph, ir, tis, bounds_t, cdtype, with_signal, rf_coefficients)
     if C is None:
         K = torch.zeros((iv0.n_states, 4), dtype=torch.float64, device=device)
