@@ -486,7 +486,7 @@ def _tissue_classes(vox, cfg) -> TissueClasses:
 
 
 _BATCH_ELEMS = 2**21
-_MAX_BATCHES = 3  # at most this many signal batches per ADC sample count when all intervals are known up front
+_GPU_BATCHES = 3  # off the CPU: at most this many signal batches per ADC sample count (PDGConfig.signal_batches)
 
 
 def _emitting_k(Ks, steps, graph: PDGGraph | None = None):
@@ -544,18 +544,20 @@ class _SignalBatcher:
 
     def plan_batches(self, emitting: list[tuple[int, int]], device) -> None:
         """With every interval's number of emitting rows known up front ((n, J) pairs): size the batches of
-        each sample count T so that there are at most ``_MAX_BATCHES`` of them (a constant number of
-        operations however long the sequence), never below the cache-friendly 2**21 elements on the CPU
-        nor above the kernel budget; on other devices (GPU) the budget itself (fewest launches)."""
+        each sample count T so that there are at most ``PDGConfig.signal_batches`` of them (a constant
+        number of operations however long the sequence; default 3 off the CPU, and on the CPU no limit:
+        cache-sized 2**21-element batches), never below 2**21 elements nor above the kernel budget."""
         vox = self.vox
         total: dict = {}
         for n, J in emitting:
             iv = self.graph.intervals[n]
             T = iv.adc_stop - iv.adc_start
             total[T] = total.get(T, 0) + vox.n_coils * vox.n * (T + J)
-        cpu = torch.device(device).type == "cpu"
+        n_max = self.cfg.signal_batches
+        if n_max is None:
+            n_max = 0 if torch.device(device).type == "cpu" else _GPU_BATCHES
         for T, tot in total.items():
-            want = -(-tot // _MAX_BATCHES) if cpu else self.budget
+            want = -(-tot // n_max) if n_max > 0 else self.batch_elems
             self.batch_for[T] = min(self.budget, max(self.batch_elems, want))
 
     def add(self, n: int, Y: torch.Tensor) -> None:

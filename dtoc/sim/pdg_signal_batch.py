@@ -487,29 +487,42 @@ def _pad_buckets(counts: np.ndarray, blk: np.ndarray) -> tuple[list, np.ndarray,
     return buckets, base[blk] + slot, lo
 
 
-def _bucket_kernels(K: torch.Tensor, kix: torch.Tensor, CT: int) -> torch.Tensor:
-    """(nb, V, CT) contiguous kernels of a bucket's blocks from the voxel-major (V, nK CT) complex kernels
-    (gathered through the real view: torch's complex gather along a non-leading dimension is slow on CPU)."""
+def _block_major(K: torch.Tensor, CT: int) -> torch.Tensor:
+    """(nK, V, CT) contiguous copy of the voxel-major (V, nK CT) complex kernels: one interval's kernel per
+    leading index, so a bucket's kernels are a row gather (or a slice) of it."""
     V = K.shape[0]
-    Kr = torch.view_as_real(K).view(V, -1, 2 * CT).index_select(1, kix)
-    return torch.view_as_complex(Kr.transpose(0, 1).contiguous().view(kix.shape[0], V, CT, 2))
+    Kr = torch.view_as_real(K).view(V, -1, 2 * CT).transpose(0, 1).contiguous()
+    return torch.view_as_complex(Kr.view(Kr.shape[0], V, CT, 2))
 
 
-def _slot_rows(st: PlanStep, C: torch.Tensor, DR: torch.Tensor) -> torch.Tensor:
-    """(npad, V) C[src] (D / Dmax)^r of every slot (padding rows exactly 0)."""
+def _bucket_kernels(Kbm: torch.Tensor, kix: torch.Tensor) -> torch.Tensor:
+    """(nb, V, CT) kernels of a bucket's blocks from the block-major kernels (no copy when they are all)."""
+    nK = Kbm.shape[0]
+    if kix.shape[0] == nK:  # every interval of this sign, in order (kix is sorted and distinct)
+        return Kbm
+    Kr = torch.view_as_real(Kbm).reshape(nK, -1).index_select(0, kix)
+    return torch.view_as_complex(Kr.view(kix.shape[0], Kbm.shape[1], Kbm.shape[2], 2))
+
+
+def _slot_rows(st: PlanStep, C: torch.Tensor, DR: torch.Tensor, zero_padding: bool) -> torch.Tensor:
+    """(npad, V) C[src] (D / Dmax)^r of every slot; padding rows exactly 0 with ``zero_padding`` (else left
+    as copies of a row: row-wise products never mix them into kept results)."""
     P = take_rows(C, st.src)
-    return P.mul_(DR.index_select(0, st.r))
+    if st.max_order > 0:
+        return P.mul_(DR.index_select(0, st.r))  # the zero row of DR for the padding
+    if zero_padding:
+        assert st.valid is not None  # set with the plan
+        return P.mul_(st.valid[:, None])
+    return P
 
 
-def _step_products(st: PlanStep, P: torch.Tensor, K: torch.Tensor, Co: int, T: int) -> torch.Tensor:
+def _step_products(st: PlanStep, P: torch.Tensor, Kbm: torch.Tensor, Co: int, T: int) -> torch.Tensor:
     """(npad, Co T) raw products P_slot @ K_interval: one batched matrix product per bucket of blocks."""
     CT = Co * T
     Z = torch.empty((st.npad, CT), dtype=P.dtype, device=P.device)
     for lo, nb, mx, kix in st.buckets:
         torch.bmm(
-            P[lo : lo + nb * mx].view(nb, mx, -1),
-            _bucket_kernels(K, kix, CT),
-            out=Z[lo : lo + nb * mx].view(nb, mx, CT),
+            P[lo : lo + nb * mx].view(nb, mx, -1), _bucket_kernels(Kbm, kix), out=Z[lo : lo + nb * mx].view(nb, mx, CT)
         )
     return Z
 
@@ -577,17 +590,21 @@ class _BatchedGemm(torch.autograd.Function):
         J = W.shape[0]
         out = torch.zeros((J, Co, T), dtype=W.dtype, device=W.device)
         raws = []
+        Kbm = {sg: _block_major(K, Co * T) for sg, K in Ks.items()}  # per-interval kernels, contiguous
         for st in plan.steps:
             C = take_rows(W, st.rows) * st.Pt
-            Z = _step_products(st, _slot_rows(st, C, plan.DR), Ks[st.sgn], Co, T)  # padding rows 0
+            Z = _step_products(st, _slot_rows(st, C, plan.DR, False), Kbm[st.sgn], Co, T)
             w = _step_weights(st, ndl, plan.fact)
             if st.max_order > 0:
                 raws.append(Z)
+            if st.max_order == 0:  # padding rows of Z are copies (not zero): weight them 0
+                assert st.valid is not None
+                w = st.valid[:, None] if w is None else w * st.valid[:, None]
             Gr = Z.view(-1, Co, T) if w is None else Z.view(-1, Co, T) * w[:, None, :]
             s_c = torch.zeros((st.rows.shape[0], Co, T), dtype=W.dtype, device=W.device)
             add_rows_(s_c, st.src, Gr)  # per row: order 0 first, then the higher orders (slot order)
             add_rows_(out, st.rows, s_c)
-        ctx.plan, ctx.Ks, ctx.GT = plan, Ks, (G, T)
+        ctx.plan, ctx.Ks, ctx.Kbm, ctx.GT = plan, Ks, Kbm, (G, T)
         ctx.save_for_backward(W, E, ndl, *raws)
         return out
 
@@ -595,7 +612,7 @@ class _BatchedGemm(torch.autograd.Function):
     def backward(ctx, gout):
         # conjugated cotangents throughout (gKc = conj(G_K), gWc = conj(G_W)): the products need no
         # conjugated copies of the (G, Co*T, V) kernels or the (J, V) weights
-        plan, Ks = ctx.plan, ctx.Ks
+        plan, Ks, Kbm = ctx.plan, ctx.Ks, ctx.Kbm
         W, E, ndl, *raws = ctx.saved_tensors
         vox = plan.vox
         Co = plan.Co
@@ -630,10 +647,10 @@ class _BatchedGemm(torch.autograd.Function):
                     gndl.index_add_(0, st.brow, (GZ * raw).real.sum(1) * dw)  # Re(conj(G) raw); order 0: dw = 0
             GZ.mul_((st.valid[:, None] if w is None else w * st.valid[:, None])[:, None, :])  # padding rows 0
             GZ = GZ.view(st.npad, Co * T)
-            Pd = _slot_rows(st, C, plan.DR)  # (npad, V), padding rows 0
+            Pd = _slot_rows(st, C, plan.DR, True)  # (npad, V), padding rows 0
             gCp = torch.empty_like(Pd)
             for lo, nb, mx, kix in st.buckets:
-                Kb = _bucket_kernels(K, kix, Co * T)  # (nb, V, Co T)
+                Kb = _bucket_kernels(Kbm[st.sgn], kix)  # (nb, V, Co T)
                 gz = GZ[lo : lo + nb * mx].view(nb, mx, Co * T)
                 torch.bmm(gz, Kb.transpose(1, 2), out=gCp[lo : lo + nb * mx].view(nb, mx, V))
                 if gKc is not None:
