@@ -256,10 +256,9 @@ def op_counts(device: str, sizes=(16, 32, 64)) -> list[tuple[int, int, int]]:
     from dtoc.optimize.limits import EdgeProjector, Limits
     from dtoc.optimize.run import free_edges, make_phantoms
     from dtoc.optimize.twin import EdgeTwin
+    from dtoc.sim import pdg
     from dtoc.sim.imager import Imager
     from dtoc.sim.pdg import PDGConfig
-
-    from dtoc.sim import pdg
     from dtoc.sim.phantom import phantom_for
 
     out = []
