@@ -26,7 +26,7 @@ tests/test_sim_perf_equivalence.py).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -132,6 +132,7 @@ class PlanStep:
     buckets: list
     max_order: int
     valid: torch.Tensor | None = None
+    blocks: list = field(default_factory=list)  # (first slot, rows, interval -> kernel row) per block (CPU path)
 
 
 @dataclass
@@ -145,6 +146,7 @@ class GemmPlan:
     steps: list[PlanStep]
     DR: torch.Tensor  # (R + 2, V) real: (D / Dmax)^r, r = 0..R, then a zero row (padding)
     fact: torch.Tensor  # (R + 2,) r!
+    per_block: bool = False  # products block by block (CPU) instead of batched per bucket
 
 
 class EmitItem(NamedTuple):
@@ -394,7 +396,7 @@ def _fused_products(b: _Batch, Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, p
         ivs_u, blk = np.unique(ow, return_inverse=True)
         blk = blk.reshape(-1)
         counts = np.bincount(blk, minlength=ivs_u.size)
-        buckets, pad, npad = _pad_buckets(counts, blk)
+        buckets, pad, npad, base = _pad_buckets(counts, blk)
         taylor = []
         for r in range(R + 1):
             o = own_np[in_c[pos_l[r]]]
@@ -431,6 +433,7 @@ def _fused_products(b: _Batch, Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, p
                     npad=npad,
                     buckets=[(lo, nb, mx, ivs_u[sel]) for lo, nb, mx, sel in buckets],
                     max_order=R,
+                    blocks=[(int(a), int(c_), int(g)) for a, c_, g in zip(base, counts, ivs_u)],
                 )
             )
             step_blocks.append(ivs_u)
@@ -454,7 +457,13 @@ def _fused_products(b: _Batch, Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, p
         st.buckets = [
             (lo, nb, mx, torch.as_tensor([row[int(g)] for g in gs], device=dev)) for lo, nb, mx, gs in st.buckets
         ]
-    plan = GemmPlan(vox=vox, Co=Co, tfs={sg: tfs[sg] for sg in used}, used=used, steps=steps, DR=DR, fact=fact)
+        st.blocks = [(a, c_, row[g]) for a, c_, g in st.blocks]
+    # the CPU with its default batching multiplies block by block (no padded flops: faster there); the GPU
+    # schedule (any other device, or PDGConfig.signal_batches set) one batched product per bucket
+    per_block = dev.type == "cpu" and getattr(b.cfg, "signal_batches", None) is None
+    plan = GemmPlan(
+        vox=vox, Co=Co, tfs={sg: tfs[sg] for sg in used}, used=used, steps=steps, DR=DR, fact=fact, per_block=per_block
+    )
     bm_r = empty if bm is None else bm.to(rdt)
     ndl_r = empty if ndl is None else ndl
     return _BatchedGemm.apply(
@@ -465,11 +474,11 @@ def _fused_products(b: _Batch, Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, p
 _PAD_GROWTH = 1.6  # blocks whose row counts differ by less than this factor share one batched product
 
 
-def _pad_buckets(counts: np.ndarray, blk: np.ndarray) -> tuple[list, np.ndarray, int]:
+def _pad_buckets(counts: np.ndarray, blk: np.ndarray) -> tuple[list, np.ndarray, int, np.ndarray]:
     """Padded layout of a step's rows: blocks (intervals) with row counts ``counts`` grouped into buckets of
     similar size (a bucket's blocks are padded to its largest: < 1.6x the rows plus rounding), each bucket
     one contiguous (nb, mx) region.  Returns [(first slot, nb, mx, block ids)], the slot of every row
-    (``blk``: its block, rows of a block in order) and the total number of slots."""
+    (``blk``: its block, rows of a block in order), the total number of slots and each block's first slot."""
     key = np.ceil(np.log(np.maximum(counts, 1)) / np.log(_PAD_GROWTH)).astype(np.int64)
     buckets = []
     base = np.zeros(counts.size, dtype=np.int64)  # first slot of every block
@@ -484,7 +493,7 @@ def _pad_buckets(counts: np.ndarray, blk: np.ndarray) -> tuple[list, np.ndarray,
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     slot = np.empty(blk.size, dtype=np.int64)
     slot[srt] = np.arange(blk.size) - np.repeat(starts, counts)
-    return buckets, base[blk] + slot, lo
+    return buckets, base[blk] + slot, lo, base
 
 
 def _block_major(K: torch.Tensor, CT: int) -> torch.Tensor:
@@ -516,9 +525,16 @@ def _slot_rows(st: PlanStep, C: torch.Tensor, DR: torch.Tensor, zero_padding: bo
     return P
 
 
-def _step_products(st: PlanStep, P: torch.Tensor, Kbm: torch.Tensor, Co: int, T: int) -> torch.Tensor:
-    """(npad, Co T) raw products P_slot @ K_interval: one batched matrix product per bucket of blocks."""
+def _step_products(st: PlanStep, P: torch.Tensor, Kbm, Co: int, T: int, K: torch.Tensor) -> torch.Tensor:
+    """(npad, Co T) raw products P_slot @ K_interval: one batched matrix product per bucket of blocks (on
+    the CPU, ``Kbm`` None: one product per block over its rows only, from the voxel-major kernels ``K``:
+    no padded flops, no kernel copy; faster there, more operations)."""
     CT = Co * T
+    if Kbm is None:
+        Z = torch.zeros((st.npad, CT), dtype=P.dtype, device=P.device)  # padding rows: exactly 0
+        for a, c_, k in st.blocks:
+            torch.mm(P[a : a + c_], K[:, k * CT : (k + 1) * CT], out=Z[a : a + c_])
+        return Z
     Z = torch.empty((st.npad, CT), dtype=P.dtype, device=P.device)
     for lo, nb, mx, kix in st.buckets:
         torch.bmm(
@@ -590,10 +606,11 @@ class _BatchedGemm(torch.autograd.Function):
         J = W.shape[0]
         out = torch.zeros((J, Co, T), dtype=W.dtype, device=W.device)
         raws = []
-        Kbm = {sg: _block_major(K, Co * T) for sg, K in Ks.items()}  # per-interval kernels, contiguous
+        # per-interval kernels, contiguous, for the batched products (GPU); the CPU multiplies block by block
+        Kbm = {} if plan.per_block else {sg: _block_major(K, Co * T) for sg, K in Ks.items()}
         for st in plan.steps:
             C = take_rows(W, st.rows) * st.Pt
-            Z = _step_products(st, _slot_rows(st, C, plan.DR, False), Kbm[st.sgn], Co, T)
+            Z = _step_products(st, _slot_rows(st, C, plan.DR, False), Kbm.get(st.sgn), Co, T, Ks[st.sgn])
             w = _step_weights(st, ndl, plan.fact)
             if st.max_order > 0:
                 raws.append(Z)
@@ -649,7 +666,15 @@ class _BatchedGemm(torch.autograd.Function):
             GZ = GZ.view(st.npad, Co * T)
             Pd = _slot_rows(st, C, plan.DR, True)  # (npad, V), padding rows 0
             gCp = torch.empty_like(Pd)
-            for lo, nb, mx, kix in st.buckets:
+            if st.sgn not in Kbm:  # CPU: block by block over the rows (padding rows of gCp: zeroed below)
+                gCp.zero_()
+                CT = Co * T
+                for a, c_, k in st.blocks:
+                    Kk = K[:, k * CT : (k + 1) * CT]
+                    torch.mm(GZ[a : a + c_], Kk.T, out=gCp[a : a + c_])
+                    if gKc is not None:
+                        gKc[:, k * CT : (k + 1) * CT].addmm_(Pd[a : a + c_].T, GZ[a : a + c_])
+            for lo, nb, mx, kix in st.buckets if st.sgn in Kbm else ():
                 Kb = _bucket_kernels(Kbm[st.sgn], kix)  # (nb, V, Co T)
                 gz = GZ[lo : lo + nb * mx].view(nb, mx, Co * T)
                 torch.bmm(gz, Kb.transpose(1, 2), out=gCp[lo : lo + nb * mx].view(nb, mx, V))
