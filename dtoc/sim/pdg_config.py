@@ -77,6 +77,11 @@ class PDGConfig:
             initial Mz (dummy cycles) no longer makes every voxel its own tuple.  An approximation:
             relative flip-angle error <= tissue_quantum / 2, initial-Mz error <= tissue_quantum / 2 x PD
             (docs/simulator.md quantifies the image error).  Default 0 (exact, no rounding).
+        signal_batches: with the fused propagation (all intervals' emitting rows known at once), form at
+            most this many signal batches per ADC sample count (each bounded by 4 x ``chunk_elems``): a
+            constant number of operations however long the sequence.  None (default): by device -- 3 on
+            a GPU (few large launches), and on the CPU cache-sized batches of ~2M elements, as many as
+            needed (larger batches were up to 2x slower there; docs/benchmarks.md).
     """
 
     min_magnitude: float = 1e-6
@@ -98,6 +103,7 @@ class PDGConfig:
     fused_signal_adjoint: bool = True
     calibrate_emission: bool = False
     tissue_quantum: float = 0.0
+    signal_batches: int | None = None
 
     @classmethod
     def fast(cls, **overrides) -> PDGConfig:
