@@ -268,7 +268,7 @@ def op_counts(device: str, sizes=(16, 32, 64)) -> list[tuple[int, int, int]]:
             dtoc.simulate(ir, device=device)
         n_sim = c.n
         ph = phantom_for(ir, None)
-        cfg1 = pdg.PDGConfig(signal_batches=3)
+        cfg1 = pdg.PDGConfig(schedule="batched")
         graph = pdg.build_graph(ir, cfg1, ph)
         with torch.no_grad():
             pdg.simulate(ir, ph, graph=graph, config=cfg1, device=device)
@@ -287,7 +287,7 @@ def op_counts(device: str, sizes=(16, 32, 64)) -> list[tuple[int, int, int]]:
             make_phantoms(ir, cfg),
             n_dummies=0,
             device=device,
-            config=PDGConfig.fast(signal_batches=3),
+            config=PDGConfig.fast(schedule="batched"),
             dtype=torch.float32,
         )
         x = torch.as_tensor(ir.edge_grad_mT_per_m, dtype=torch.float64, device=device).clone().requires_grad_(True)
@@ -307,7 +307,7 @@ def op_table(counts: list[tuple[int, int, int, int]]) -> str:
         "Operation count (aten operations dispatched, counted on the CPU; paper GRE spec at matrix = repetitions = n, "
         "readout 3.2 ms, TE 3.5 ms).  `dtoc.simulate`: the public call with the CPU defaults (cache-sized signal "
         "batches, as many as needed).  'one simulation, GPU batching': one realized `pdg.simulate` with "
-        "`PDGConfig(signal_batches=3)` (the default off the CPU), caches warm.  'iteration': one full-loss forward + "
+        "`PDGConfig(schedule='batched')` (the default off the CPU), caches warm.  'iteration': one full-loss forward + "
         "loss + backward of the Figure-5 GRE (fast preset, float32, GPU batching, paper eddy model).",
         "",
         "| TRs | dtoc.simulate before (989a85e) | dtoc.simulate now | one simulation, GPU batching | per TR | "

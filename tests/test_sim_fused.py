@@ -51,16 +51,16 @@ def test_signal_and_gradient_equal_the_per_interval_propagation():
 
 
 def test_batched_bucket_products_equal_the_per_block_products():
-    """The GPU schedule of the signal products (``PDGConfig.signal_batches`` set: padded blocks, one batched
-    product per bucket) equals the CPU's block-by-block products: signal 1e-12, gradient 1e-10 (float64;
-    B0, T2' and Taylor orders of the in-window diffusion present)."""
+    """The 'batched' schedule (the GPU's: fused propagation, padded blocks, one batched product per bucket),
+    selected on the CPU, equals the CPU's 'per_interval' schedule (block-by-block products): signal 1e-12,
+    gradient 1e-10 (float64; B0, T2' and Taylor orders of the in-window diffusion present)."""
     from dtoc.sim.pdg import simulate
 
     ir = small_gre(n_rep=6)
     ph = rich_phantom()
     ph.d_m2_per_s = ph.d_m2_per_s * 100.0
     res = []
-    for cfg in (PDGConfig(signal_batches=3), PDGConfig()):
+    for cfg in (PDGConfig(schedule="batched"), PDGConfig()):
         g = torch.as_tensor(ir.grad_mT_per_m).clone().requires_grad_(True)
         s = simulate(ir, ph, g, config=cfg)
         (s.real**2 + s.imag**2).sum().backward()

@@ -302,9 +302,9 @@ def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | N
     Returns ``(pieces, A, K)``: with ``final_state`` the final amplitudes (S, V) and k (S, 4) and no
     pieces; else the signal pieces ``[(first ADC index, (C, T) signal)]`` and None, None.
 
-    ``fused``: use the fused propagation (:mod:`dtoc.sim.pdg_fused`) where its buffers fit; None: the
-    default policy (always for the signal; for the final state of a dummy train only off the CPU, where
-    the streaming path's one-interval working set is faster).
+    ``fused``: use the fused propagation (:mod:`dtoc.sim.pdg_fused`) where its buffers fit; None: with
+    the 'batched' schedule (``PDGConfig.schedule``; by default off the CPU, where the per-interval path's
+    one-interval working set is faster).
     """
     ir, graph, vox, mom, bounds_t, cfg, dtype, device = (
         p.ir,
@@ -326,13 +326,13 @@ def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | N
     b_all = None
     if C is not None:  # all intervals at once: a handful of autograd nodes instead of ~15 per interval
         Ks, bs, K, b_all = _k_and_b_all(graph, C, mom, vox, bounds_t, final_state)
-        fits = _fused_fits(graph, tis.n, cdtype, cfg) and fused is not False
-        if fits and not final_state:
-            return _main_loop_fused(p, tis, A0, Ks, b_all, probe), None, None
-        if fits and (fused or torch.device(device).type != "cpu"):
-            # dummy trains on a GPU: a constant number of launches per interval.  On the CPU the streaming
-            # per-interval path stays (its working set is one interval; the fused buffers of a long strict
-            # train were 3x slower there: memory-bound)
+        use_fused = cfg.batched(device) if fused is None else fused
+        # the batched schedule (a GPU): a constant number of launches per interval.  On the CPU the
+        # per-interval path stays (its working set is one interval; the fused buffers were 1.15x slower on
+        # the paper GRE's fwd+bwd and 3x on a long strict dummy train there: memory-bound)
+        if use_fused and _fused_fits(graph, tis.n, cdtype, cfg):
+            if not final_state:
+                return _main_loop_fused(p, tis, A0, Ks, b_all, probe), None, None
             with torch.no_grad():
                 plan = fused_plan(graph, A0.device)
                 CT = coefficient_table(graph, ir, tis.b1, cdtype, rf_coefficients)
@@ -486,7 +486,9 @@ def _tissue_classes(vox, cfg) -> TissueClasses:
 
 
 _BATCH_ELEMS = 2**21
-_GPU_BATCHES = 3  # off the CPU: at most this many signal batches per ADC sample count (PDGConfig.signal_batches)
+_GPU_BATCHES = (
+    3  # the 'batched' schedule: at most this many signal batches per ADC sample count (PDGConfig.signal_batches)
+)
 
 
 def _emitting_k(Ks, steps, graph: PDGGraph | None = None):
@@ -544,18 +546,16 @@ class _SignalBatcher:
 
     def plan_batches(self, emitting: list[tuple[int, int]], device) -> None:
         """With every interval's number of emitting rows known up front ((n, J) pairs): size the batches of
-        each sample count T so that there are at most ``PDGConfig.signal_batches`` of them (a constant
-        number of operations however long the sequence; default 3 off the CPU, and on the CPU no limit:
-        cache-sized 2**21-element batches), never below 2**21 elements nor above the kernel budget."""
+        each sample count T so that there are at most ``PDGConfig.signal_batches`` of them with the 'batched'
+        schedule (a constant number of operations however long the sequence; default 3), else no limit
+        (cache-sized 2**21-element batches), never below 2**21 elements nor above the kernel budget."""
         vox = self.vox
         total: dict = {}
         for n, J in emitting:
             iv = self.graph.intervals[n]
             T = iv.adc_stop - iv.adc_start
             total[T] = total.get(T, 0) + vox.n_coils * vox.n * (T + J)
-        n_max = self.cfg.signal_batches
-        if n_max is None:
-            n_max = 0 if torch.device(device).type == "cpu" else _GPU_BATCHES
+        n_max = (self.cfg.signal_batches or _GPU_BATCHES) if self.cfg.batched(device) else 0
         for T, tot in total.items():
             want = -(-tot // n_max) if n_max > 0 else self.batch_elems
             self.batch_for[T] = min(self.budget, max(self.batch_elems, want))

@@ -90,49 +90,57 @@ class TaylorBlock:
         sizes: number of consecutive rows per interval block.
         ivs: interval (batch item) of each block.
         fact: r!.
-        mask: class-2 sign mask of the rows (None: all rows count; set on order 0 only).
+        mask: class-2 sign mask of the rows (None: all rows count; the batched schedule sets it on order 0 only).
+        pos_t, rows_t, dr, kix: the per-order schedule's (the CPU's) row bookkeeping: positions of the rows
+            within the step, the same rows as indices into the batch's emitting states, (V,) (D / Dmax)^r
+            (None for r = 0) and the kernel row of each block; None / empty in the batched schedule.
     """
 
     sizes: list[int]
     ivs: list[int]
     fact: float
     mask: torch.Tensor | None = None
+    pos_t: Any = None
+    rows_t: Any = None
+    dr: Any = None
+    kix: list[int] = field(default_factory=list)
 
 
 @dataclass
 class PlanStep:
     """The states of one kernel class and sign: their rows, T2'-per-tau factors and Taylor orders.
 
-    All orders of a step are evaluated together (``n_tot`` = sum over orders of their rows): the order-r
-    rows (``pos`` within the step, order ``r``) are scaled by (D / Dmax)^r, laid out in ``nb`` padded
-    blocks of ``mx`` rows, one per interval (``pad``: flat slot of each row; ``kix``: the interval's
-    kernel), multiplied by their kernels in one batched product, and weighted by ndl^r / r! (x mask).
+    Two schedules (``GemmPlan.per_block``).  Per order (the CPU's): order by order, the order-r rows
+    (``TaylorBlock.pos_t``) scaled by (D / Dmax)^r and multiplied block by block (one interval each) by
+    their kernels: no padding, no copies, many small operations.  Batched (off the CPU): all orders of a
+    step together, the order-r rows (``pos`` within the step, order ``r``) scaled by (D / Dmax)^r, laid out
+    in ``nb`` padded blocks of ``mx`` rows, one per interval, multiplied by their kernels in one batched
+    product per bucket, and weighted by ndl^r / r! (x mask): a constant number of operations.
 
     Attributes:
         rows: the step's rows (into the batch's emitting states); sgn: kernel sign; Pt: (rows, V) T2' x tau factors.
-        orders: per Taylor order, its blocks (descriptive: sizes, intervals, r!, mask).
-        src, brow, r: (npad,) per slot of the padded layout: its row in the step, its row in the batch
-            (for ndl and the cotangent) and its order (padding: the zero row of ``GemmPlan.DR``).
+        orders: per Taylor order, its blocks (with the per-order schedule's row bookkeeping).
+        max_order: highest Taylor order of the step.
+        src, brow, r: (npad,) per slot of the batched schedule's padded layout: its row in the step, its row
+            in the batch (for ndl and the cotangent) and its order (padding: the zero row of ``GemmPlan.DR``).
         mask: (npad, T) class-2 sign mask of every slot (None: all count); valid: (npad,) 1 / 0 (padding).
         npad: slots; buckets: (first slot, blocks nb, rows per block mx, kernel rows (nb,) long tensor) of
             each batched product: blocks (intervals) of similar size share one, so the padding stays below
             ~1.6x the rows (numpy interval ids until the kernels are known).
-        max_order: highest Taylor order of the step.
     """
 
     rows: torch.Tensor
     sgn: float
     Pt: torch.Tensor
     orders: list[TaylorBlock]
-    src: torch.Tensor
-    brow: torch.Tensor
-    r: Any
-    mask: torch.Tensor | None
-    npad: int
-    buckets: list
     max_order: int
+    src: Any = None
+    brow: Any = None
+    r: Any = None
+    mask: torch.Tensor | None = None
+    npad: int = 0
+    buckets: list = field(default_factory=list)
     valid: torch.Tensor | None = None
-    blocks: list = field(default_factory=list)  # (first slot, rows, interval -> kernel row) per block (CPU path)
 
 
 @dataclass
@@ -144,9 +152,9 @@ class GemmPlan:
     tfs: dict
     used: dict
     steps: list[PlanStep]
-    DR: torch.Tensor  # (R + 2, V) real: (D / Dmax)^r, r = 0..R, then a zero row (padding)
-    fact: torch.Tensor  # (R + 2,) r!
-    per_block: bool = False  # products block by block (CPU) instead of batched per bucket
+    per_block: bool  # the per-order schedule (CPU), else the batched one (see PlanStep)
+    DR: Any = None  # batched schedule: (R + 2, V) real: (D / Dmax)^r, r = 0..R, then a zero row (padding)
+    fact: Any = None  # batched schedule: (R + 2,) r!
 
 
 class EmitItem(NamedTuple):
@@ -369,7 +377,11 @@ class _FarView(NamedTuple):
 
 
 def _fused_products(b: _Batch, Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, plus, Dmax):
-    """(J, Co, T) products of the expanded states through :class:`_BatchedGemm` (same terms and order as the generic path)."""
+    """(J, Co, T) products of the expanded states through :class:`_BatchedGemm` (same terms and order as the generic path).
+
+    The 'per_interval' schedule (``PDGConfig.schedule``, the CPU's default) multiplies per order and block
+    (no padded flops, no copies; faster there), the 'batched' one (any other device) per bucket of similar
+    blocks, all orders at once (a constant number of operations; :class:`PlanStep`)."""
     own_np, vox, Co, rdt = b.own_np, b.vox, b.Co, b.rdt
     dev = Y.device
     empty = torch.zeros(0, dtype=rdt, device=dev)
@@ -381,89 +393,48 @@ def _fused_products(b: _Batch, Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, p
     for sgn in (1.0, -1.0) if vox.has_t2d else (1.0,):
         tl, shared = _time_factors(dtt, dtr, sgn, vox)
         tfs[sgn] = tl[0].T[:, None, :] if shared else torch.stack(tl, 0).permute(2, 0, 1)  # (V, 1|G, T)
+    per_block = not b.cfg.batched(dev)
+    dn = vox.d / Dmax
     steps: list[PlanStep] = []
-    step_blocks: list[np.ndarray] = []
+    step_blocks: list[np.ndarray] = []  # intervals of every step (kernels in use)
     for c, signs, in_c in _class_rows(cls, far, orders, own_np):
         rows_c = torch.as_tensor(in_c, device=dev)
-        oc = orders[in_c]
-        # every (order r, position) pair with orders[pos] >= r, ordered by r then position (the
-        # summation order of the per-order evaluation); blocks by interval for the batched product
-        R = int(oc.max(initial=0))
-        pos_l = [np.where(oc >= r)[0] for r in range(R + 1)]
-        pos = np.concatenate(pos_l)
-        rr_ = np.repeat(np.arange(R + 1), [q.size for q in pos_l])
-        ow = own_np[in_c[pos]]
-        ivs_u, blk = np.unique(ow, return_inverse=True)
-        blk = blk.reshape(-1)
-        counts = np.bincount(blk, minlength=ivs_u.size)
-        buckets, pad, npad, base = _pad_buckets(counts, blk)
-        taylor = []
-        for r in range(R + 1):
-            o = own_np[in_c[pos_l[r]]]
-            cuts = np.flatnonzero(np.diff(o)) + 1
-            st0 = np.concatenate([[0], cuts]).astype(np.int64)
-            en0 = np.concatenate([cuts, [o.size]]).astype(np.int64)
-            taylor.append(
-                TaylorBlock(sizes=(en0 - st0).tolist(), ivs=[int(o[q]) for q in st0], fact=float(math.factorial(r)))
-            )
         for sgn in signs:
             if not vox.has_t2d:
                 sgn = 1.0
             Pt = _tau_factor(utau_t, sgn, vox)
             Pt_rows = Pt.index_select(0, torch.as_tensor(tinv[in_c], device=dev))
-            src = np.zeros(npad, dtype=np.int64)  # step row of every slot (padding: row 0, scaled by 0)
-            src[pad] = pos
-            r_slot = np.full(npad, -1, dtype=np.int64)  # order of every slot (padding: -1 -> the zero row)
-            r_slot[pad] = rr_
-            mask = None
-            if c == 2:
-                m_np = plus[in_c] if sgn > 0 else ~plus[in_c]
-                taylor[0].mask = torch.as_tensor(m_np, device=dev).to(rdt)
-                mask = torch.as_tensor(m_np[src], device=dev).to(rdt)
-            steps.append(
-                PlanStep(
-                    rows=rows_c,
-                    sgn=sgn,
-                    Pt=Pt_rows,
-                    orders=taylor,
-                    src=torch.as_tensor(src, device=dev),
-                    brow=torch.as_tensor(in_c[src], device=dev),
-                    r=r_slot,  # numpy until the zero row's index is known
-                    mask=mask,
-                    npad=npad,
-                    buckets=[(lo, nb, mx, ivs_u[sel]) for lo, nb, mx, sel in buckets],
-                    max_order=R,
-                    blocks=[(int(a), int(c_), int(g)) for a, c_, g in zip(base, counts, ivs_u)],
-                )
-            )
-            step_blocks.append(ivs_u)
-    dn = vox.d / Dmax
-    Rmax = max((st.max_order for st in steps), default=0)
-    drs = [torch.ones_like(dn)]
-    for _ in range(Rmax):
-        drs.append(drs[-1] * dn)  # (D / Dmax)^r by repeated products, as the per-order evaluation
-    drs.append(torch.zeros_like(dn))  # row Rmax + 1: the padding slots
-    DR = torch.stack(drs, 0)
-    fact = torch.as_tensor([float(math.factorial(q)) for q in range(Rmax + 2)], dtype=rdt, device=dev)
-    for st in steps:
-        r_np = np.where(st.r < 0, Rmax + 1, st.r)
-        st.r = torch.as_tensor(r_np, device=dev)
-        st.valid = torch.as_tensor(r_np <= Rmax, device=dev).to(rdt)
-    # kernels only for the intervals with states of each sign; block -> kernel row
+            m_np = None if c != 2 else (plus[in_c] if sgn > 0 else ~plus[in_c])
+            if per_block:
+                st = _per_order_step(rows_c, sgn, Pt_rows, in_c, orders, own_np, m_np, dn, rdt)
+                step_blocks.append(np.unique(np.concatenate([rr.ivs for rr in st.orders])))
+            else:
+                st, ivs_u = _batched_step(rows_c, sgn, Pt_rows, in_c, orders, own_np, m_np, rdt)
+                step_blocks.append(ivs_u)
+            steps.append(st)
+    # kernels only for the intervals with states of each sign; block interval -> kernel row
     used = {sg: sorted({int(g) for st, ivu in zip(steps, step_blocks) if st.sgn == sg for g in ivu}) for sg in tfs}
     used = {sg: u for sg, u in used.items() if u}
+    plan = GemmPlan(vox=vox, Co=Co, tfs={sg: tfs[sg] for sg in used}, used=used, steps=steps, per_block=per_block)
     for st in steps:
         row = {g: i for i, g in enumerate(used[st.sgn])}
+        for rr in st.orders:
+            rr.kix = [row[g] for g in rr.ivs]
         st.buckets = [
             (lo, nb, mx, torch.as_tensor([row[int(g)] for g in gs], device=dev)) for lo, nb, mx, gs in st.buckets
         ]
-        st.blocks = [(a, c_, row[g]) for a, c_, g in st.blocks]
-    # the CPU with its default batching multiplies block by block (no padded flops: faster there); the GPU
-    # schedule (any other device, or PDGConfig.signal_batches set) one batched product per bucket
-    per_block = dev.type == "cpu" and getattr(b.cfg, "signal_batches", None) is None
-    plan = GemmPlan(
-        vox=vox, Co=Co, tfs={sg: tfs[sg] for sg in used}, used=used, steps=steps, DR=DR, fact=fact, per_block=per_block
-    )
+    if not per_block:
+        Rmax = max((st.max_order for st in steps), default=0)
+        drs = [torch.ones_like(dn)]
+        for _ in range(Rmax):
+            drs.append(drs[-1] * dn)  # (D / Dmax)^r by repeated products, as the per-order evaluation
+        drs.append(torch.zeros_like(dn))  # row Rmax + 1: the padding slots
+        plan.DR = torch.stack(drs, 0)
+        plan.fact = torch.as_tensor([float(math.factorial(q)) for q in range(Rmax + 2)], dtype=rdt, device=dev)
+        for st in steps:
+            r_np = np.where(st.r < 0, Rmax + 1, st.r)
+            st.r = torch.as_tensor(r_np, device=dev)
+            st.valid = torch.as_tensor(r_np <= Rmax, device=dev).to(rdt)
     bm_r = empty if bm is None else bm.to(rdt)
     ndl_r = empty if ndl is None else ndl
     return _BatchedGemm.apply(
@@ -471,14 +442,95 @@ def _fused_products(b: _Batch, Y, Kj, bm, mt, ndl, dtt, tau, cls, far, orders, p
     )
 
 
+def _order_blocks(ow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First position and size of every run of equal intervals in ``ow`` (the rows grouped by interval)."""
+    cuts = np.flatnonzero(np.diff(ow)) + 1
+    starts = np.concatenate([[0], cuts]).astype(np.int64)
+    ends = np.concatenate([cuts, [ow.size]]).astype(np.int64)
+    return starts, ends - starts
+
+
+def _per_order_step(rows_c, sgn, Pt_rows, in_c, orders, own_np, m_np, dn, rdt) -> PlanStep:
+    """A :class:`PlanStep` of the per-order schedule (the CPU's)."""
+    dev = rows_c.device
+    mask_c = None if m_np is None else torch.as_tensor(m_np, device=dev).to(rdt)
+    ords: list[TaylorBlock] = []
+    dr = None
+    for r in range(int(orders[in_c].max(initial=0)) + 1):
+        pos = np.where(orders[in_c] >= r)[0]
+        if not pos.size:
+            break
+        if r > 0:
+            dr = dn if dr is None else dr * dn
+        ow = own_np[in_c[pos]]
+        starts, sizes = _order_blocks(ow)
+        pos_t = torch.as_tensor(pos, device=dev)
+        ords.append(
+            TaylorBlock(
+                sizes=sizes.tolist(),
+                ivs=[int(ow[a]) for a in starts],
+                fact=float(np.prod(np.arange(1, r + 1))),
+                mask=None if mask_c is None else (mask_c if r == 0 else mask_c.index_select(0, pos_t)),
+                pos_t=pos_t,
+                rows_t=torch.as_tensor(in_c[pos], device=dev),
+                dr=dr,
+            )
+        )
+    return PlanStep(rows=rows_c, sgn=sgn, Pt=Pt_rows, orders=ords, max_order=len(ords) - 1)
+
+
+def _batched_step(rows_c, sgn, Pt_rows, in_c, orders, own_np, m_np, rdt) -> tuple[PlanStep, np.ndarray]:
+    """A :class:`PlanStep` of the batched schedule (off the CPU) and the intervals of its blocks."""
+    dev = rows_c.device
+    oc = orders[in_c]
+    # every (order r, position) pair with orders[pos] >= r, ordered by r then position (the
+    # summation order of the per-order evaluation); blocks by interval for the batched product
+    R = int(oc.max(initial=0))
+    pos_l = [np.where(oc >= r)[0] for r in range(R + 1)]
+    pos = np.concatenate(pos_l)
+    rr_ = np.repeat(np.arange(R + 1), [q.size for q in pos_l])
+    ow = own_np[in_c[pos]]
+    ivs_u, blk = np.unique(ow, return_inverse=True)
+    blk = blk.reshape(-1)
+    counts = np.bincount(blk, minlength=ivs_u.size)
+    buckets, pad, npad = _pad_buckets(counts, blk)
+    taylor = []
+    for r in range(R + 1):
+        o = own_np[in_c[pos_l[r]]]
+        starts, sizes = _order_blocks(o)
+        taylor.append(TaylorBlock(sizes=sizes.tolist(), ivs=[int(o[q]) for q in starts], fact=float(math.factorial(r))))
+    src = np.zeros(npad, dtype=np.int64)  # step row of every slot (padding: row 0, scaled by 0)
+    src[pad] = pos
+    r_slot = np.full(npad, -1, dtype=np.int64)  # order of every slot (padding: -1 -> the zero row)
+    r_slot[pad] = rr_
+    mask = None
+    if m_np is not None:
+        taylor[0].mask = torch.as_tensor(m_np, device=dev).to(rdt)
+        mask = torch.as_tensor(m_np[src], device=dev).to(rdt)
+    st = PlanStep(
+        rows=rows_c,
+        sgn=sgn,
+        Pt=Pt_rows,
+        orders=taylor,
+        max_order=R,
+        src=torch.as_tensor(src, device=dev),
+        brow=torch.as_tensor(in_c[src], device=dev),
+        r=r_slot,  # numpy until the zero row's index is known
+        mask=mask,
+        npad=npad,
+        buckets=[(lo, nb, mx, ivs_u[sel]) for lo, nb, mx, sel in buckets],
+    )
+    return st, ivs_u
+
+
 _PAD_GROWTH = 1.6  # blocks whose row counts differ by less than this factor share one batched product
 
 
-def _pad_buckets(counts: np.ndarray, blk: np.ndarray) -> tuple[list, np.ndarray, int, np.ndarray]:
+def _pad_buckets(counts: np.ndarray, blk: np.ndarray) -> tuple[list, np.ndarray, int]:
     """Padded layout of a step's rows: blocks (intervals) with row counts ``counts`` grouped into buckets of
     similar size (a bucket's blocks are padded to its largest: < 1.6x the rows plus rounding), each bucket
     one contiguous (nb, mx) region.  Returns [(first slot, nb, mx, block ids)], the slot of every row
-    (``blk``: its block, rows of a block in order), the total number of slots and each block's first slot."""
+    (``blk``: its block, rows of a block in order) and the total number of slots."""
     key = np.ceil(np.log(np.maximum(counts, 1)) / np.log(_PAD_GROWTH)).astype(np.int64)
     buckets = []
     base = np.zeros(counts.size, dtype=np.int64)  # first slot of every block
@@ -493,7 +545,7 @@ def _pad_buckets(counts: np.ndarray, blk: np.ndarray) -> tuple[list, np.ndarray,
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     slot = np.empty(blk.size, dtype=np.int64)
     slot[srt] = np.arange(blk.size) - np.repeat(starts, counts)
-    return buckets, base[blk] + slot, lo, base
+    return buckets, base[blk] + slot, lo
 
 
 def _block_major(K: torch.Tensor, CT: int) -> torch.Tensor:
@@ -525,16 +577,10 @@ def _slot_rows(st: PlanStep, C: torch.Tensor, DR: torch.Tensor, zero_padding: bo
     return P
 
 
-def _step_products(st: PlanStep, P: torch.Tensor, Kbm, Co: int, T: int, K: torch.Tensor) -> torch.Tensor:
-    """(npad, Co T) raw products P_slot @ K_interval: one batched matrix product per bucket of blocks (on
-    the CPU, ``Kbm`` None: one product per block over its rows only, from the voxel-major kernels ``K``:
-    no padded flops, no kernel copy; faster there, more operations)."""
+def _step_products(st: PlanStep, P: torch.Tensor, Kbm: torch.Tensor, Co: int, T: int) -> torch.Tensor:
+    """(npad, Co T) raw products P_slot @ K_interval of the batched schedule: one batched matrix product per
+    bucket of blocks."""
     CT = Co * T
-    if Kbm is None:
-        Z = torch.zeros((st.npad, CT), dtype=P.dtype, device=P.device)  # padding rows: exactly 0
-        for a, c_, k in st.blocks:
-            torch.mm(P[a : a + c_], K[:, k * CT : (k + 1) * CT], out=Z[a : a + c_])
-        return Z
     Z = torch.empty((st.npad, CT), dtype=P.dtype, device=P.device)
     for lo, nb, mx, kix in st.buckets:
         torch.bmm(
@@ -605,12 +651,16 @@ class _BatchedGemm(torch.autograd.Function):
             Ks[sgn] = K.reshape(K.shape[0], -1)
         J = W.shape[0]
         out = torch.zeros((J, Co, T), dtype=W.dtype, device=W.device)
-        raws = []
-        # per-interval kernels, contiguous, for the batched products (GPU); the CPU multiplies block by block
+        raws: list[torch.Tensor] = []
+        # per-interval kernels, contiguous, for the batched products (off the CPU); the CPU's per-order
+        # schedule multiplies block by block from the voxel-major kernels
         Kbm = {} if plan.per_block else {sg: _block_major(K, Co * T) for sg, K in Ks.items()}
         for st in plan.steps:
             C = take_rows(W, st.rows) * st.Pt
-            Z = _step_products(st, _slot_rows(st, C, plan.DR, False), Kbm.get(st.sgn), Co, T, Ks[st.sgn])
+            if plan.per_block:
+                add_rows_(out, st.rows, _orders_forward(st, C, Ks[st.sgn], ndl, Co, T, raws))
+                continue
+            Z = _step_products(st, _slot_rows(st, C, plan.DR, False), Kbm[st.sgn], Co, T)
             w = _step_weights(st, ndl, plan.fact)
             if st.max_order > 0:
                 raws.append(Z)
@@ -637,7 +687,7 @@ class _BatchedGemm(torch.autograd.Function):
         G, T = ctx.GT
         need_y, need_kx, need_ky, need_bm, need_mx, need_my, need_ndl = ctx.needs_input_grad[:7]
         need_k = need_mx or need_my
-        goutc = gout.conj().resolve_conj().contiguous()
+        goutc = gout.conj() if plan.per_block else gout.conj().resolve_conj().contiguous()
         gWc = torch.zeros_like(W)
         gKcs = {s: torch.zeros_like(K) for s, K in Ks.items()} if need_k else {}  # conj(G_K), voxel-major
         gndl = torch.zeros_like(ndl) if need_ndl else None
@@ -646,6 +696,10 @@ class _BatchedGemm(torch.autograd.Function):
             C = take_rows(W, st.rows) * st.Pt
             K = Ks[st.sgn]
             gKc = gKcs.get(st.sgn)
+            if plan.per_block:
+                gCc, ri = _orders_backward(st, C, K, gKc, goutc, ndl, gndl, raws, ri, Co, T)
+                add_rows_(gWc, st.rows, gCc * st.Pt)
+                continue
             GZ = take_rows(goutc, st.brow)  # (npad, Co, T) conj(G_out) of every slot
             w = _step_weights(st, ndl, plan.fact)
             if st.max_order > 0:
@@ -666,15 +720,7 @@ class _BatchedGemm(torch.autograd.Function):
             GZ = GZ.view(st.npad, Co * T)
             Pd = _slot_rows(st, C, plan.DR, True)  # (npad, V), padding rows 0
             gCp = torch.empty_like(Pd)
-            if st.sgn not in Kbm:  # CPU: block by block over the rows (padding rows of gCp: zeroed below)
-                gCp.zero_()
-                CT = Co * T
-                for a, c_, k in st.blocks:
-                    Kk = K[:, k * CT : (k + 1) * CT]
-                    torch.mm(GZ[a : a + c_], Kk.T, out=gCp[a : a + c_])
-                    if gKc is not None:
-                        gKc[:, k * CT : (k + 1) * CT].addmm_(Pd[a : a + c_].T, GZ[a : a + c_])
-            for lo, nb, mx, kix in st.buckets if st.sgn in Kbm else ():
+            for lo, nb, mx, kix in st.buckets:
                 Kb = _bucket_kernels(Kbm[st.sgn], kix)  # (nb, V, Co T)
                 gz = GZ[lo : lo + nb * mx].view(nb, mx, Co * T)
                 torch.bmm(gz, Kb.transpose(1, 2), out=gCp[lo : lo + nb * mx].view(nb, mx, V))
@@ -715,3 +761,64 @@ class _BatchedGemm(torch.autograd.Function):
             gmx = m[0].contiguous() if need_mx else None
             gmy = m[1].contiguous() if need_my else None
         return gY, gkx, gky, gbm, gmx, gmy, gndl, None
+
+
+def _orders_forward(st: PlanStep, C, K, ndl, Co: int, T: int, raws: list) -> torch.Tensor:
+    """(rows, Co, T) products of one step in the per-order schedule (the CPU's): order by order, block by
+    block (one interval each) from the voxel-major kernels ``K``; the raw products of orders >= 1 are
+    appended to ``raws`` (saved for the backward)."""
+    CT = Co * T
+    s_c: Any = None
+    for r, rr in enumerate(st.orders):
+        Cr = C if r == 0 else take_rows(C, rr.pos_t) * rr.dr[None, :]
+        blocks = torch.split(Cr, rr.sizes, 0)
+        Gr = torch.cat([blk @ K[:, g * CT : (g + 1) * CT] for blk, g in zip(blocks, rr.kix)], 0).reshape(-1, Co, T)
+        w = rr.mask
+        if r > 0:
+            raws.append(Gr)
+            wr = ndl.index_select(0, rr.rows_t) ** r / rr.fact
+            w = wr if w is None else w * wr
+        if w is not None:
+            Gr = Gr * w[:, None, :]
+        s_c = Gr if r == 0 else add_rows_(s_c, rr.pos_t, Gr)  # s_c: a fresh product, not saved
+    return s_c
+
+
+def _orders_backward(st: PlanStep, C, K, gKc, goutc, ndl, gndl, raws, ri: int, Co: int, T: int):
+    """The adjoint of :func:`_orders_forward`: (conj(G_C) of the step's rows, next raw index); accumulates
+    conj(G_K) into ``gKc`` and dL/dndl into ``gndl`` (where not None)."""
+    CT = Co * T
+    g_c = take_rows(goutc, st.rows)  # conj(G_out) of the step's rows
+    gCc = torch.empty_like(C)  # every row written by the order-0 products
+    for r, rr in enumerate(st.orders):
+        g_r = g_c if r == 0 else take_rows(g_c, rr.pos_t)
+        w = rr.mask
+        if r > 0:
+            raw = raws[ri]
+            ri += 1
+            nd = ndl.index_select(0, rr.rows_t)
+            if gndl is not None:
+                dw = (r * nd ** (r - 1)) / rr.fact
+                if w is not None:
+                    dw = dw * w
+                gndl.index_add_(0, rr.rows_t, (g_r * raw).real.sum(1) * dw)  # Re(conj(G) raw) = Re(G conj(raw))
+            wr = nd**r / rr.fact
+            w = wr if w is None else w * wr
+        if w is not None:
+            g_r = g_r * w[:, None, :]
+        gz = g_r.reshape(g_r.shape[0], CT)
+        Cr = C if r == 0 else take_rows(C, rr.pos_t) * rr.dr[None, :]
+        a = 0
+        parts = []
+        for n_b, g in zip(rr.sizes, rr.kix):
+            b = gz[a : a + n_b]
+            if r == 0:
+                torch.mm(b, K[:, g * CT : (g + 1) * CT].T, out=gCc[a : a + n_b])
+            else:
+                parts.append(b @ K[:, g * CT : (g + 1) * CT].T)
+            if gKc is not None:
+                gKc[:, g * CT : (g + 1) * CT].addmm_(Cr[a : a + n_b].T, b)
+            a += n_b
+        if r > 0:
+            add_rows_(gCc, rr.pos_t, torch.cat(parts, 0) * rr.dr[None, :])
+    return gCc, ri
