@@ -59,6 +59,8 @@ class FusedPlan:
     crow: list[torch.Tensor]
     conj: list[tuple[int, int]]
     frow: torch.Tensor
+    gparent: torch.Tensor | None = None
+    conj_sign: torch.Tensor | None = None
 
 
 def _step_edges(iv, nxt, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
@@ -124,6 +126,13 @@ def fused_plan(graph, device) -> FusedPlan:
         conj=[e[3] for e in edges],
         frow=torch.as_tensor(frow.astype(np.int64), device=device),
     )
+    # all steps' parent rows in the buffer, and -1 on the conjugating edges (:func:`_edge_scales`)
+    gpar = [offs[n] + e[0] for n, e in enumerate(edges)]
+    sign = [np.where((np.arange(e[0].size) >= e[3][0]) & (np.arange(e[0].size) < e[3][1]), -1.0, 1.0) for e in edges]
+    plan.gparent = torch.as_tensor(
+        np.concatenate(gpar).astype(np.int64) if gpar else np.zeros(0, np.int64), device=device
+    )
+    plan.conj_sign = torch.as_tensor(np.concatenate(sign) if sign else np.zeros(0), device=device)
     cache[key] = plan
     return plan
 
@@ -177,28 +186,38 @@ def _edge_coefficients(plan: FusedPlan, CT: torch.Tensor) -> list[torch.Tensor]:
     return list(torch.split(CT.index_select(0, torch.cat(plan.crow)), [c.shape[0] for c in plan.crow], 0))
 
 
+def _edge_scales(plan: FusedPlan, F: torch.Tensor, n_steps: int) -> list[torch.Tensor]:
+    """Per step, the (E_n, 2 U) real factor of every edge in the real view: its parent row's scale F,
+    negated on the imaginary half of the conjugating edges (so that x F, conjugated, is one product:
+    (xr F, xi (-F)) = conj(x F) exactly).  A handful of operations for all steps."""
+    if not n_steps:
+        return []
+    assert plan.gparent is not None and plan.conj_sign is not None  # set by fused_plan
+    U = F.shape[1]
+    sizes = [plan.parent[n].shape[0] for n in range(n_steps)]
+    E = sum(sizes)
+    FS = F.index_select(0, plan.gparent[:E])[:, :, None].repeat(1, 1, 2)  # (E, U, 2)
+    FS[:, :, 1].mul_(plan.conj_sign[:E, None])
+    return list(torch.split(FS.view(E, 2 * U), sizes, 0))
+
+
 def _forward(plan: FusedPlan, A0: torch.Tensor, F: torch.Tensor, CT: torch.Tensor, n_steps: int):
     """The buffer of all blocks (rows, U) complex (see the module docstring).
 
-    Per step: the block scaled by its real factors in the real view (the same products as complex x
-    real), one gather of the parents' rows, the conjugating slice conjugated, the edge coefficients
-    multiplied, one scatter-add into the next block: nine dispatched operations."""
+    Per step, in the real view: one gather of the parents' rows, one product with the edges' real scales
+    (:func:`_edge_scales`: the parent's F, the conjugation as a sign; the same products as scaling the
+    block and conjugating the slice), the edge coefficients multiplied, one scatter-add into the next
+    block: six dispatched operations (two of them views)."""
     R, U = int(plan.offs[-1]), A0.shape[1]
     buf = torch.zeros((R, U), dtype=A0.dtype, device=A0.device)
     buf[: A0.shape[0]] = A0
     buf.index_fill_(0, plan.one_rows, 1.0)
-    buf_r = torch.view_as_real(buf)  # (R, U, 2)
-    blocks3 = torch.split(buf_r, plan.sizes, 0)
-    blocks2 = torch.split(buf_r.view(R, 2 * U), plan.sizes, 0)
-    F3 = torch.split(F[:, :, None], plan.sizes, 0)
+    blocks2 = torch.split(torch.view_as_real(buf).view(R, 2 * U), plan.sizes, 0)
     W = _edge_coefficients(plan, CT)
+    FS = _edge_scales(plan, F, n_steps)
     for n in range(n_steps):
-        Gr = (blocks3[n] * F3[n]).view(-1, 2 * U).index_select(0, plan.parent[n])
-        G = torch.view_as_complex(Gr.view(-1, U, 2))
-        a, b = plan.conj[n]
-        if b > a:
-            G[a:b].conj_physical_()
-        G.mul_(W[n])
+        Gr = blocks2[n].index_select(0, plan.parent[n]).mul_(FS[n])
+        torch.view_as_complex(Gr.view(-1, U, 2)).mul_(W[n])
         blocks2[n + 1].index_add_(0, plan.child[n], Gr)
     return buf
 

@@ -55,7 +55,9 @@ def _time_factors(dtt: np.ndarray, dtr: torch.Tensor, sgn: float, vox) -> tuple[
     G = dtt.shape[0]
     rate = vox.r2 + (sgn * vox.r2d if vox.has_t2d else 0.0)
     keys = [_time_key(dtt[g], sgn if vox.has_t2d else 0.0) for g in range(G)]
-    tfs = [_time_factor(dtr[g], rate, vox, k) for g, k in enumerate(keys)]
+    # cached factors read without indexing dtr (no operation per interval when every key is cached)
+    tfs = [vox.cache.get(("tf", k)) for k in keys]
+    tfs = [tf if tf is not None else _time_factor(dtr[g], rate, vox, k) for g, (k, tf) in enumerate(zip(keys, tfs))]
     if any(t is None for t in tfs):  # cache full: compute per interval
         tfs = [_decay_phase(dtr[g], rate, vox.omega) for g in range(G)]
     return tfs, all(k == keys[0] for k in keys)
