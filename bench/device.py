@@ -23,6 +23,7 @@ import json
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -246,9 +247,25 @@ def _gre_spec(name: str, n: int):
     )
 
 
-def op_counts(device: str, sizes=(16, 32, 64)) -> list[tuple[int, int, int]]:
-    """(TRs, operations of one dtoc.simulate of the paper GRE, operations of one full-loss iteration of the
-    Figure-5 GRE with the paper's eddy model) at matrix = repetitions = n (tests/test_sim_op_count.py)."""
+@contextmanager
+def _gpu_schedule():
+    """The GPU's schedule (fused propagation, batched signal products) selected on any device: every
+    ``PDGConfig`` made inside takes it (what ``schedule='auto'`` does off the CPU)."""
+    from dtoc.sim.pdg_config import PDGConfig
+
+    old = PDGConfig.batched
+    PDGConfig.batched = lambda self, device: True
+    try:
+        yield
+    finally:
+        PDGConfig.batched = old
+
+
+def op_counts(device: str, sizes=(16, 32, 64)) -> list[tuple[int, int, int, int]]:
+    """(TRs, operations of one ``dtoc.simulate`` of the paper GRE without dummies with the CPU's schedule,
+    the same with the GPU's schedule, operations of one full-loss iteration (forward + backward) of the
+    Figure-5 GRE with the paper's eddy model and the GPU's schedule) at matrix = repetitions = n
+    (tests/test_sim_op_count.py)."""
     import dtoc
     from dtoc.optimize import loss as L
     from dtoc.optimize import optimizer as O
@@ -256,66 +273,54 @@ def op_counts(device: str, sizes=(16, 32, 64)) -> list[tuple[int, int, int]]:
     from dtoc.optimize.limits import EdgeProjector, Limits
     from dtoc.optimize.run import free_edges, make_phantoms
     from dtoc.optimize.twin import EdgeTwin
-    from dtoc.sim import pdg
     from dtoc.sim.imager import Imager
     from dtoc.sim.pdg import PDGConfig
-    from dtoc.sim.phantom import phantom_for
 
     out = []
     for n in sizes:
         ir = dtoc.load_sequence(_gre_spec("gre_paper.yaml", n))
         with _Count() as c:
-            dtoc.simulate(ir, device=device)
-        n_sim = c.n
-        ph = phantom_for(ir, None)
-        cfg1 = pdg.PDGConfig(schedule="batched")
-        graph = pdg.build_graph(ir, cfg1, ph)
-        with torch.no_grad():
-            pdg.simulate(ir, ph, graph=graph, config=cfg1, device=device)
+            dtoc.simulate(ir, n_dummies=0, device=device)
+        n_cpu = c.n
+        with _gpu_schedule():
             with _Count() as c:
-                pdg.simulate(ir, ph, torch.as_tensor(ir.grad_mT_per_m) * 1.02, graph=graph, config=cfg1, device=device)
-        n_one = c.n
-        ir = dtoc.load_sequence(_gre_spec("gre_paper_fig5.yaml", n))
-        cfg = OptimizeConfig(n_dummies=0)
-        lim = Limits(50.0, 500.0)
-        P = EdgeProjector(ir.edge_grad_mT_per_m, free_edges(ir), ir.raster_s, lim)
-        model = dtoc.load_model(model=REPO / "girf" / "paper_eddy_both.json")
-        tw = EdgeTwin(ir, model, P, device=device)
-        ctx = L.build_context(ir, lim, device=device)
-        im = Imager(
-            ir,
-            make_phantoms(ir, cfg),
-            n_dummies=0,
-            device=device,
-            config=PDGConfig.fast(schedule="batched"),
-            dtype=torch.float32,
-        )
-        x = torch.as_tensor(ir.edge_grad_mT_per_m, dtype=torch.float64, device=device).clone().requires_grad_(True)
-        w = O.full_weights(cfg)
-        O.evaluate(tw, im, ctx, w, x, 0)
-        with _Count() as c:
-            total, _, _ = O.evaluate(tw, im, ctx, w, x, 0)
-            total.backward()
-        out.append((n, n_sim, n_one, c.n))
+                dtoc.simulate(ir, n_dummies=0, device=device)
+            n_gpu = c.n
+            ir = dtoc.load_sequence(_gre_spec("gre_paper_fig5.yaml", n))
+            cfg = OptimizeConfig(n_dummies=0)
+            lim = Limits(50.0, 500.0)
+            P = EdgeProjector(ir.edge_grad_mT_per_m, free_edges(ir), ir.raster_s, lim)
+            model = dtoc.load_model(model=REPO / "girf" / "paper_eddy_both.json")
+            tw = EdgeTwin(ir, model, P, device=device)
+            ctx = L.build_context(ir, lim, device=device)
+            im = Imager(
+                ir, make_phantoms(ir, cfg), n_dummies=0, device=device, config=PDGConfig.fast(), dtype=torch.float32
+            )
+            x = torch.as_tensor(ir.edge_grad_mT_per_m, dtype=torch.float64, device=device).clone().requires_grad_(True)
+            w = O.full_weights(cfg)
+            O.evaluate(tw, im, ctx, w, x, 0)  # caches warm outside the count
+            with _Count() as c:
+                total, _, _ = O.evaluate(tw, im, ctx, w, x, 0)
+                total.backward()
+        out.append((n, n_cpu, n_gpu, c.n))
     return out
 
 
 def op_table(counts: list[tuple[int, int, int, int]]) -> str:
-    before = {16: 2769, 32: 5469, 64: 17021}  # main 989a85e, the same count (dtoc.simulate)
     lines = [
         "",
-        "Operation count (aten operations dispatched, counted on the CPU; paper GRE spec at matrix = repetitions = n, "
-        "readout 3.2 ms, TE 3.5 ms).  `dtoc.simulate`: the public call with the CPU defaults (cache-sized signal "
-        "batches, as many as needed).  'one simulation, GPU batching': one realized `pdg.simulate` with "
-        "`PDGConfig(schedule='batched')` (the default off the CPU), caches warm.  'iteration': one full-loss forward + "
-        "loss + backward of the Figure-5 GRE (fast preset, float32, GPU batching, paper eddy model).",
+        "Operation count (aten operations dispatched, counted on the CPU under a TorchDispatchMode; paper GRE spec "
+        "at matrix = repetitions = n, readout 3.2 ms, TE 3.5 ms; no dummy cycles).  'CPU schedule': the public "
+        "`dtoc.simulate` with the CPU's default ('per_interval'); 'GPU schedule': the same call with the schedule "
+        "that `PDGConfig(schedule='auto')` takes off the CPU ('batched'), selected explicitly.  'iteration': one "
+        "full-loss forward + loss + backward of the Figure-5 GRE (fast preset, float32, GPU schedule, paper eddy "
+        "model).  Issue 33's bound: at 64 TRs at most 3x the count at 16 and at most 50 per TR.",
         "",
-        "| TRs | dtoc.simulate before (989a85e) | dtoc.simulate now | one simulation, GPU batching | per TR | "
-        "iteration | per TR |",
-        "|---|---|---|---|---|---|---|",
+        "| TRs | dtoc.simulate, CPU schedule | dtoc.simulate, GPU schedule | per TR | iteration, GPU schedule | per TR |",
+        "|---|---|---|---|---|---|",
     ]
-    for n, a, one, b in counts:
-        lines.append(f"| {n} | {before.get(n, '-')} | {a} | {one} | {one / n:.0f} | {b} | {b / n:.0f} |")
+    for n, a, g, b in counts:
+        lines.append(f"| {n} | {a} | {g} | {g / n:.0f} | {b} | {b / n:.0f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -335,8 +340,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--no-count", action="store_true", help="skip the operation count (one run per job and device)")
     ap.add_argument("--no-write", action="store_true", help="print only; do not update docs/benchmarks.md")
+    ap.add_argument("--ops-only", action="store_true", help="only the operation-count table (printed, not written)")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
+    if a.ops_only:
+        print(op_table(op_counts("cpu")))
+        return 0
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     rows = run([s for s in a.jobs.split(",") if s] or None, a.quick, not a.no_count, devices)
     text = table(rows, devices + ([] if "cuda" in devices else ["cuda-absent"]), a.quick)
