@@ -21,6 +21,7 @@ Amplitude and slew are zero whenever the hard-limit projection is active; they r
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +39,8 @@ class LossContext:
         k0_rad_per_m: (3, N_adc) target k-space.
         dk_rad_per_m: (3,) k-space step per axis (axes with infinite dk, e.g. slice, are ignored).
         rf_mask: (M,) bool fine samples inside RF pulses.
+        rf_index: (n,) long indices of the True samples of ``rf_mask`` (built on the host: the RF term
+            gathers them without a device synchronisation; None: taken from ``rf_mask``).
         g0_fine_mT_per_m: (3, M) base demanded waveform.
         g_ref_mT_per_m: normalisation of gradient terms (base peak |g|).
         gmax_mT_per_m / smax_T_per_m_per_s: limits for the soft terms.
@@ -56,6 +59,7 @@ class LossContext:
     sample_weight: torch.Tensor | None = None
     t_moment_s: np.ndarray | None = None
     k0_moment_rad_per_m: torch.Tensor | None = None
+    rf_index: torch.Tensor | None = None
 
 
 def rf_mask_fine(ir) -> np.ndarray:
@@ -94,6 +98,7 @@ def build_context(ir, limits, dtype=torch.float64, device="cpu") -> LossContext:
         k0_rad_per_m=k0,
         dk_rad_per_m=dk_t,
         rf_mask=torch.as_tensor(rf_mask_fine(ir), device=device),
+        rf_index=torch.as_tensor(np.flatnonzero(rf_mask_fine(ir)), device=device),
         g0_fine_mT_per_m=g0,
         g_ref_mT_per_m=gref,
         gmax_mT_per_m=limits.gmax_mT_per_m,
@@ -136,9 +141,10 @@ def slew_term(g: torch.Tensor, ctx: LossContext) -> torch.Tensor:
 
 
 def rf_term(G: torch.Tensor, ctx: LossContext) -> torch.Tensor:
-    if not bool(ctx.rf_mask.any()):
+    idx = ctx.rf_index if ctx.rf_index is not None else torch.nonzero(ctx.rf_mask)[:, 0]
+    if not idx.numel():  # a host-side shape: no device synchronisation
         return G.new_zeros(())
-    d = (G - ctx.g0_fine_mT_per_m)[:, ctx.rf_mask]
+    d = (G - ctx.g0_fine_mT_per_m).index_select(1, idx)
     return (d**2).sum(0).mean() / ctx.g_ref_mT_per_m**2
 
 
@@ -157,7 +163,7 @@ def total_loss(
     targets: list[torch.Tensor] | None = None,
     include_reg: bool = False,
     k_moment: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, dict[str, float]]:
+) -> tuple[torch.Tensor, Mapping[str, float]]:
     """Weighted sum of the terms and their weighted values (floats, for the history).
 
     Args:
@@ -181,4 +187,33 @@ def total_loss(
     if include_reg and weights.reg > 0:
         terms["reg"] = weights.reg * reg_term(g, ctx)
     total = torch.stack(list(terms.values())).sum() if terms else g.new_zeros(())
-    return total, {k_: float(v.detach()) for k_, v in terms.items()}
+    return total, TermValues(terms)
+
+
+class TermValues(Mapping[str, float]):
+    """The weighted term values of :func:`total_loss` as floats, read from the device in ONE transfer on
+    first access (after the iteration's forward and backward are queued), not one synchronisation per
+    term inside the forward.  The same values as ``float(term)``."""
+
+    def __init__(self, terms: dict[str, torch.Tensor]):
+        self._terms = terms
+        self._vals: dict[str, float] | None = None
+
+    def _values(self) -> dict[str, float]:
+        if self._vals is None:
+            keys = list(self._terms)
+            vals = torch.stack([v.detach() for v in self._terms.values()]).tolist() if keys else []
+            self._vals = dict(zip(keys, vals))
+        return self._vals
+
+    def __getitem__(self, key: str) -> float:
+        return self._values()[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._terms)
+
+    def __len__(self) -> int:
+        return len(self._terms)
+
+    def __repr__(self) -> str:
+        return repr(self._values())

@@ -21,7 +21,7 @@ Everything is seeded and deterministic for fixed ``threads``.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -67,7 +67,7 @@ class StageState:
 # linear warm start
 # ---------------------------------------------------------------------------------------------------
 def linear_objective(twin, ctx, weights):
-    def f(x: torch.Tensor) -> tuple[torch.Tensor, dict]:
+    def f(x: torch.Tensor) -> tuple[torch.Tensor, Mapping[str, float]]:
         r = twin.forward_edges(x)
         w = weights.model_copy(update={"image": 0.0, "amplitude": 0.0, "slew": 0.0})
         return L.total_loss(

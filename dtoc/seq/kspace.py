@@ -88,16 +88,19 @@ def kspace_at(g_mT_per_m, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_use
     tc = np.array([e[0] for e in events], dtype=np.float64)
     i_rf = pwl_integral_at(g, dt, tc, cumulative=C)  # (..., 3, E)
     # k right after event j: k_j; k(t) = gamma*(I(t) - I(t_j)) + k_j for t in [t_j, t_{j+1}).
-    k_after = []
-    k_prev = None  # k just before the current event
-    for j, (_, use) in enumerate(events):
-        if j == 0:
-            k_before = GAMMA_RAD_PER_S_PER_MT * i_rf[..., 0]
-        else:
-            k_before = GAMMA_RAD_PER_S_PER_MT * (i_rf[..., j] - i_rf[..., j - 1]) + k_prev
-        k_prev = -k_before if use == "refocusing" else torch.zeros_like(k_before)
-        k_after.append(k_prev)
-    k_after_t = torch.stack(k_after, dim=-1)  # (..., 3, E)
+    if all(u != "refocusing" for _, u in events):
+        k_after_t = torch.zeros_like(i_rf)  # every event excites: k restarts at 0 (no loop over the events)
+    else:
+        k_after = []
+        k_prev = None  # k just before the current event
+        for j, (_, use) in enumerate(events):
+            if j == 0:
+                k_before = GAMMA_RAD_PER_S_PER_MT * i_rf[..., 0]
+            else:
+                k_before = GAMMA_RAD_PER_S_PER_MT * (i_rf[..., j] - i_rf[..., j - 1]) + k_prev
+            k_prev = -k_before if use == "refocusing" else torch.zeros_like(k_before)
+            k_after.append(k_prev)
+        k_after_t = torch.stack(k_after, dim=-1)  # (..., 3, E)
     seg = np.searchsorted(tc, t, side="right") - 1  # -1: before first event
     out = GAMMA_RAD_PER_S_PER_MT * integ
     after = seg >= 0

@@ -90,10 +90,21 @@ class Imager:
             b0_uT=b0_uT,
             graph=self.graph,
             config=self.config,
-            initial_mz=self.mz0[idx],
+            initial_mz=self._mz0_host(idx),
             dtype=self.dtype,
             device=self.device,
         )
+
+    def _mz0_host(self, idx: int):
+        """The steady-state Mz of phantom ``idx`` as a host array, copied from the device once (each
+        simulate call then reads it without a device synchronisation); None: equilibrium."""
+        mz = self.mz0[idx]
+        if not isinstance(mz, torch.Tensor):
+            return mz
+        cache = self.__dict__.setdefault("_mz0_np", {})
+        if idx not in cache or cache[idx][0] is not mz:
+            cache[idx] = (mz, mz.detach().cpu().numpy())
+        return cache[idx][1]
 
     def image(self, signal: torch.Tensor, keep_mask=None, grid: recon.CartesianGrid | None = None) -> torch.Tensor:
         """Image by plain iFFT onto the target grid (keep_mask: (N_adc,) bool, False = discarded;

@@ -77,6 +77,16 @@ class PDGConfig:
             initial Mz (dummy cycles) no longer makes every voxel its own tuple.  An approximation:
             relative flip-angle error <= tissue_quantum / 2, initial-Mz error <= tissue_quantum / 2 x PD
             (docs/simulator.md quantifies the image error).  Default 0 (exact, no rounding).
+        schedule: how the main pass is dispatched.  'per_interval': the amplitudes interval by interval
+            (:mod:`dtoc.sim.pdg_evolve`), cache-sized signal batches of ~2M elements, their matrix products
+            block by block (no padding); many small operations, the fastest on a CPU.  'batched': the
+            fused propagation (:mod:`dtoc.sim.pdg_fused`, a constant number of operations per RF
+            interval), at most ``signal_batches`` signal batches per ADC sample count and one batched
+            matrix product per bucket of similar blocks: few large operations, for a GPU.  'auto'
+            (default): 'per_interval' on the CPU, 'batched' on any other device.  The same values up to
+            rounding (tests/test_sim_fused.py); docs/simulator.md ("Schedules").
+        signal_batches: with the 'batched' schedule, at most this many signal batches per ADC sample
+            count (each bounded by 4 x ``chunk_elems``); None (default): 3.
     """
 
     min_magnitude: float = 1e-6
@@ -98,6 +108,18 @@ class PDGConfig:
     fused_signal_adjoint: bool = True
     calibrate_emission: bool = False
     tissue_quantum: float = 0.0
+    schedule: str = "auto"
+    signal_batches: int | None = None
+
+    def batched(self, device) -> bool:
+        """Whether the main pass on ``device`` takes the 'batched' schedule (see ``schedule``)."""
+        if self.schedule not in ("auto", "batched", "per_interval"):
+            raise ValueError(f"PDGConfig.schedule must be 'auto', 'batched' or 'per_interval', not {self.schedule!r}")
+        if self.schedule == "auto":
+            import torch
+
+            return torch.device(device).type != "cpu"
+        return self.schedule == "batched"
 
     @classmethod
     def fast(cls, **overrides) -> PDGConfig:

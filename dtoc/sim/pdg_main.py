@@ -17,6 +17,7 @@ from dtoc.errors import InputError
 from dtoc.seq.ir import SequenceIR
 from dtoc.sim.pdg_config import PDGConfig
 from dtoc.sim.pdg_evolve import make_steps, propagate, run_propagation
+from dtoc.sim.pdg_fused import coefficient_table, final_amplitudes, fused_plan, propagate_fused, scale_rows
 from dtoc.sim.pdg_graph import CONJ, IntervalGraph, PDGGraph, build_graph
 from dtoc.sim.pdg_moments import Moments, compute_moments
 from dtoc.sim.pdg_rfsplit import rf_coefficients, rf_split
@@ -237,9 +238,10 @@ def _k_path_matrix(graph: PDGGraph):
 
 def _k_and_b_all(
     graph: PDGGraph, C, mom: Moments, vox: VoxelData, bounds_t: np.ndarray, final_state: bool
-) -> tuple[list, list, torch.Tensor | None]:
+) -> tuple[list, list, torch.Tensor | None, torch.Tensor | None]:
     """Vectorised k recursion: start-of-interval k (list of (S_n, 4)), diffusion b-integrals (list, None where
-    unused) and, with ``final_state``, the k at the end of the last interval; same values as :func:`_k_and_b`."""
+    unused), with ``final_state`` the k at the end of the last interval, and the b-integrals of all states
+    concatenated (None without diffusion); same values as :func:`_k_and_b`."""
     ivs = graph.intervals
     NI = len(ivs)
     dev = mom.I_bound.device
@@ -252,7 +254,7 @@ def _k_and_b_all(
         tr = torch.as_tensor(~ivs[-1].is_z, device=dev)
         K_fin = Ks[-1] + tr[:, None].to(dM.dtype) * dM[-1][None, :]
     if not vox.has_diffusion:
-        return Ks, [None] * NI, K_fin
+        return Ks, [None] * NI, K_fin, None
     assert mom.J1_bound is not None and mom.J2_bound is not None  # computed when the phantom diffuses
     own = torch.as_tensor(np.repeat(np.arange(NI), sizes), device=dev)
     tr_all = torch.as_tensor(np.concatenate([~iv.is_z for iv in ivs]), device=dev)
@@ -265,10 +267,11 @@ def _k_and_b_all(
         dt,
         tr_all,
     )
-    bs: list[torch.Tensor | None] = list(torch.split(b.to(vox.r1.dtype), sizes, 0))
+    b_r = b.to(vox.r1.dtype)
+    bs: list[torch.Tensor | None] = list(torch.split(b_r, sizes, 0))
     if not final_state:
         bs[-1] = None
-    return Ks, bs, K_fin
+    return Ks, bs, K_fin, b_r
 
 
 def _next_k(nxt: IntervalGraph, K_end: torch.Tensor) -> torch.Tensor:
@@ -291,12 +294,17 @@ def _emit_view(iv: IntervalGraph) -> IntervalGraph:
     return sub
 
 
-def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | None = None):
-    """Main loop: k recursion (autograd, (S, 4) per interval), amplitudes by :mod:`dtoc.sim.pdg_evolve`
-    (one autograd node with a hand-written adjoint), then the signal of every emitting interval.
+def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | None = None, fused: bool | None = None):
+    """Main loop: k recursion (autograd, (S, 4) per interval), amplitudes by :mod:`dtoc.sim.pdg_fused`
+    (or :mod:`dtoc.sim.pdg_evolve`; one autograd node with a hand-written adjoint), then the signal of
+    every emitting interval.
 
     Returns ``(pieces, A, K)``: with ``final_state`` the final amplitudes (S, V) and k (S, 4) and no
     pieces; else the signal pieces ``[(first ADC index, (C, T) signal)]`` and None, None.
+
+    ``fused``: use the fused propagation (:mod:`dtoc.sim.pdg_fused`) where its buffers fit; None: with
+    the 'batched' schedule (``PDGConfig.schedule``; by default off the CPU, where the per-interval path's
+    one-interval working set is faster).
     """
     ir, graph, vox, mom, bounds_t, cfg, dtype, device = (
         p.ir,
@@ -310,15 +318,28 @@ def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | N
     )
     cdtype = complex_dtype(dtype)
     tis = _tissue_classes(vox, cfg)
-    steps, rec = make_steps(graph, ir, tis, bounds_t, cdtype, with_signal, rf_coefficients)
     NI = len(graph.intervals)
     iv0 = graph.intervals[0]
     A0 = torch.zeros((iv0.n_states, tis.n), dtype=cdtype, device=device)
     A0[iv0.eq_index] = tis.mz0.to(cdtype)
     C = _k_path_matrix(graph)
+    b_all = None
     if C is not None:  # all intervals at once: a handful of autograd nodes instead of ~15 per interval
-        Ks, bs, K = _k_and_b_all(graph, C, mom, vox, bounds_t, final_state)
-    else:
+        Ks, bs, K, b_all = _k_and_b_all(graph, C, mom, vox, bounds_t, final_state)
+        use_fused = cfg.batched(device) if fused is None else fused
+        # the batched schedule (a GPU): a constant number of launches per interval.  On the CPU the
+        # per-interval path stays (its working set is one interval; the fused buffers were 1.15x slower on
+        # the paper GRE's fwd+bwd and 3x on a long strict dummy train there: memory-bound)
+        if use_fused and _fused_fits(graph, tis.n, cdtype, cfg):
+            if not final_state:
+                return _main_loop_fused(p, tis, A0, Ks, b_all, probe), None, None
+            with torch.no_grad():
+                plan = fused_plan(graph, A0.device)
+                CT = coefficient_table(graph, ir, tis.b1, cdtype, rf_coefficients)
+                F = scale_rows(graph, bounds_t, tis, b_all).index_select(0, plan.frow)
+                return [], tis.expand(final_amplitudes(graph, plan, A0, F, CT)), K
+    steps, rec = make_steps(graph, ir, tis, bounds_t, cdtype, with_signal, rf_coefficients)
+    if C is None:
         K = torch.zeros((iv0.n_states, 4), dtype=torch.float64, device=device)
         Ks, bs = [], []
         for n, iv in enumerate(graph.intervals):
@@ -349,6 +370,56 @@ def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | N
     return batcher.finish(), None, None
 
 
+def _fused_fits(graph: PDGGraph, U: int, cdtype: torch.dtype, cfg: PDGConfig) -> bool:
+    """Whether the fused propagation's buffers fit ``cfg.checkpoint_bytes``: the doubled amplitudes of all
+    intervals (2 S x U complex), with autograd also their adjoint and the real row scales and their
+    gradient (about 3 such buffers; the per-interval path keeps ~1 and can recompute instead)."""
+    per = 16 if cdtype == torch.complex128 else 8
+    n_buf = 3 if torch.is_grad_enabled() else 1
+    return n_buf * per * U * 2 * graph.n_states_total <= cfg.checkpoint_bytes
+
+
+def _main_loop_fused(p: MainPass, tis, A0: torch.Tensor, Ks: list, b_all, probe: dict | None) -> list:
+    """Signal pieces of the main pass by :mod:`dtoc.sim.pdg_fused` (a constant number of operations per
+    interval, all intervals' emitting rows at once); the same values as the per-interval path."""
+    graph, cfg = p.graph, p.cfg
+    plan = fused_plan(graph, A0.device)
+    CT = coefficient_table(graph, p.ir, tis.b1, A0.dtype, rf_coefficients)
+    F = scale_rows(graph, p.bounds_t, tis, b_all).index_select(0, plan.frow)
+    Ys = propagate_fused(graph, plan, A0, F, CT)
+    emit_t = _split_rows(graph, [n for n, y in enumerate(Ys) if y is not None], A0.device)
+    steps = [_EmitStep(e) for e in emit_t]
+    batcher = _SignalBatcher(
+        graph, steps, _emitting_k(Ks, steps, graph), p.mom, p.vox, p.bounds_t, cfg, tis.expand, probe
+    )
+    batcher.plan_batches([(n, int(Y.shape[0])) for n, Y in enumerate(Ys) if Y is not None], A0.device)
+    for n, Y in enumerate(Ys):
+        if Y is not None:
+            batcher.add(n, Y)
+    return batcher.finish()
+
+
+def _split_rows(graph: PDGGraph, emitting: list[int], device) -> list:
+    """Per interval, its emitting rows as a long tensor on ``device`` (None where none is listed): one
+    transfer for all intervals."""
+    out: list = [None] * len(graph.intervals)
+    if not emitting:
+        return out
+    arrs = [graph.intervals[n].emit for n in emitting]
+    for n, t in zip(
+        emitting, torch.split(torch.as_tensor(np.concatenate(arrs), device=device), [a.size for a in arrs])
+    ):
+        out[n] = t
+    return out
+
+
+@dataclass(frozen=True)
+class _EmitStep:
+    """The emitting rows of one interval (what :func:`_emitting_k` reads of a step)."""
+
+    emit: torch.Tensor | None
+
+
 class TissueClasses:
     """The voxels' distinct (T1, T2, D, B1, initial Mz / PD) tuples: the amplitudes depend on nothing else.
 
@@ -375,7 +446,16 @@ class TissueClasses:
             ratio = torch.round(ratio / quantum) * quantum
         inv = None
         if compress and vox.n > 1:
-            key = torch.stack([vox.r1, vox.r2, vox.d, b1, ratio], 1).detach().cpu().numpy()
+            h = vox.host
+            if h and all(k in h for k in ("r1", "r2", "d", "b1", "pd", "mz0")):
+                # the same values on the host (numpy copies of the tensors): no device synchronisation
+                hb1, hratio = h["b1"], h["mz0"] / h["pd"]
+                if quantum > 0:
+                    hb1 = np.round(hb1 / quantum) * quantum
+                    hratio = np.round(hratio / quantum) * quantum
+                key = np.stack([h["r1"], h["r2"], h["d"], hb1, hratio], 1)
+            else:
+                key = torch.stack([vox.r1, vox.r2, vox.d, b1, ratio], 1).detach().cpu().numpy()
             uniq, first, inv_np = np.unique(key, axis=0, return_index=True, return_inverse=True)
             if uniq.shape[0] < vox.n:
                 sel = torch.as_tensor(first, device=dev)
@@ -406,19 +486,29 @@ def _tissue_classes(vox, cfg) -> TissueClasses:
 
 
 _BATCH_ELEMS = 2**21
+_GPU_BATCHES = (
+    3  # the 'batched' schedule: at most this many signal batches per ADC sample count (PDGConfig.signal_batches)
+)
 
 
-def _emitting_k(Ks, steps):
+def _emitting_k(Ks, steps, graph: PDGGraph | None = None):
     """k of the emitting states of every interval (list, None where none emits): one gather from the
-    concatenated k of all intervals (one autograd node instead of one per interval)."""
+    concatenated k of all intervals (one autograd node instead of one per interval; the row indices
+    from the graph in numpy when ``graph`` is given, one transfer)."""
     if not Ks:
         return []
     emit_n = [n for n, st in enumerate(steps) if n < len(Ks) and st.emit is not None]
-    out = [None] * len(Ks)
+    out: list[torch.Tensor | None] = [None] * len(Ks)
     if not emit_n:
         return out
     offs = np.concatenate([[0], np.cumsum([k.shape[0] for k in Ks])])
-    idx = torch.cat([steps[n].emit + int(offs[n]) for n in emit_n])
+    if graph is not None:
+        idx = torch.as_tensor(
+            np.concatenate([graph.intervals[n].emit + int(offs[n]) for n in emit_n]).astype(np.int64),
+            device=Ks[0].device,
+        )
+    else:
+        idx = torch.cat([steps[n].emit + int(offs[n]) for n in emit_n])
     K_emit = torch.cat(Ks, 0).index_select(0, idx)
     for n, Kj in zip(emit_n, torch.split(K_emit, [int(steps[n].emit.numel()) for n in emit_n], 0)):
         out[n] = Kj
@@ -450,8 +540,25 @@ class _SignalBatcher:
         # batches of ~2M complex elements: large enough to amortise the per-operation overhead, small
         # enough to stay cache-friendly (16M-element batches were 1.8x slower on the 64x64 GRE)
         self.batch_elems = min(self.budget, _BATCH_ELEMS)
+        self.batch_for: dict = {}  # T -> batch size (elements) from plan_batches
         self.pieces: list = []
         self.pending: dict = {}  # T -> (items, used)
+
+    def plan_batches(self, emitting: list[tuple[int, int]], device) -> None:
+        """With every interval's number of emitting rows known up front ((n, J) pairs): size the batches of
+        each sample count T so that there are at most ``PDGConfig.signal_batches`` of them with the 'batched'
+        schedule (a constant number of operations however long the sequence; default 3), else no limit
+        (cache-sized 2**21-element batches), never below 2**21 elements nor above the kernel budget."""
+        vox = self.vox
+        total: dict = {}
+        for n, J in emitting:
+            iv = self.graph.intervals[n]
+            T = iv.adc_stop - iv.adc_start
+            total[T] = total.get(T, 0) + vox.n_coils * vox.n * (T + J)
+        n_max = (self.cfg.signal_batches or _GPU_BATCHES) if self.cfg.batched(device) else 0
+        for T, tot in total.items():
+            want = -(-tot // n_max) if n_max > 0 else self.batch_elems
+            self.batch_for[T] = min(self.budget, max(self.batch_elems, want))
 
     def add(self, n: int, Y: torch.Tensor) -> None:
         iv, vox, cfg = self.graph.intervals[n], self.vox, self.cfg
@@ -469,7 +576,7 @@ class _SignalBatcher:
             return
         cost = vox.n_coils * vox.n * (T + Y.shape[0])
         items, used = self.pending.get(T, ([], 0))
-        if items and used + cost > self.batch_elems:
+        if items and used + cost > self.batch_for.get(T, self.batch_elems):
             self._flush(items)
             items, used = [], 0
         items.append(EmitItem(n, _emit_view(iv), Y, Kj))  # Y per tissue tuple: expanded to voxels once per batch
@@ -510,9 +617,9 @@ def run_main_pass(
     graph = p.graph
     pieces, _, _ = main_loop(p, True, False)
     sig = torch.zeros((p.vox.n_coils, N), dtype=cdtype, device=device)
-    for start, s in pieces:
-        idx = torch.arange(start, start + s.shape[1], device=device)
-        sig = sig.index_add(1, idx, s)
+    if pieces:  # one scatter for all pieces (ADC indices from numpy, one transfer)
+        idx = np.concatenate([np.arange(start, start + s.shape[1]) for start, s in pieces])
+        sig = sig.index_add(1, torch.as_tensor(idx, device=device), torch.cat([s for _, s in pieces], 1))
     if N:
         ph = torch.as_tensor(np.exp(-1j * graph.adc_phase_rad), dtype=cdtype, device=device)
         sig = sig * ph[None, :]

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -56,6 +57,10 @@ class VoxelData:
     iz: np.ndarray | None = None
     # per-simulate cache of constant signal-kernel factors (see :func:`_time_factor`)
     cache: dict = field(default_factory=dict, repr=False)
+    # host (numpy) copies of r1, r2, d, b1, pd, mz0 with the tensors' values (same dtype), and the largest
+    # D: read on the host without a device synchronisation (tissue tuples, Taylor scaling)
+    host: dict = field(default_factory=dict, repr=False)
+    d_max: float = 0.0
 
     @property
     def n(self) -> int:
@@ -118,19 +123,27 @@ class VoxelData:
         flat = np.where(mask.ravel())[0]
         iz, iyx = np.divmod(flat, ny * nx)
         iy, ix = np.divmod(iyx, nx)
-        T = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64).ravel()[flat], dtype=dtype, device=device)  # noqa: E731
+        np_dt = np.float32 if dtype == torch.float32 else np.float64
+        host: dict = {}
+
+        def T(a, name: str | None = None) -> torch.Tensor:
+            v = np.asarray(a, dtype=np.float64).ravel()[flat].astype(np_dt)
+            if name is not None:
+                host[name] = v
+            return torch.as_tensor(v, device=device)
+
         with np.errstate(divide="ignore"):
             r1 = 1.0 / np.asarray(ph.t1_s, dtype=np.float64)
             r2 = 1.0 / np.asarray(ph.t2_s, dtype=np.float64)
             r2d = 1.0 / np.asarray(ph.t2dash_s, dtype=np.float64)
         xx, yy = ph.positions_m()
         if initial_mz is None:
-            mz0 = T(ph.pd)
+            mz0 = T(ph.pd, "mz0")
         else:
             m = initial_mz.detach().cpu().numpy() if isinstance(initial_mz, torch.Tensor) else np.asarray(initial_mz)
             if m.shape != ph.pd.shape:
                 raise InputError(f"simulate: initial_mz has shape {m.shape}, expected {ph.pd.shape}")
-            mz0 = T(m)
+            mz0 = T(m, "mz0")
         coil = None
         if ph.coil_sens is not None:
             cs = np.asarray(ph.coil_sens).reshape(ph.coil_sens.shape[0], -1)[:, flat]
@@ -145,14 +158,14 @@ class VoxelData:
             iy=iy,
             ix=ix,
             shape=(ny, nx),
-            pd=T(ph.pd),
+            pd=T(ph.pd, "pd"),
             mz0=mz0,
-            r1=T(r1),
-            r2=T(r2),
+            r1=T(r1, "r1"),
+            r2=T(r2, "r2"),
             r2d=T(r2d),
-            d=T(ph.d_m2_per_s),
+            d=T(ph.d_m2_per_s, "d"),
             omega=T(2 * np.pi * b0),
-            b1=T(ph.b1),
+            b1=T(ph.b1, "b1"),
             x=T(xx),
             y=T(yy),
             xg=torch.as_tensor(axes[0], dtype=dtype, device=device),
@@ -166,6 +179,8 @@ class VoxelData:
             z=None if zg is None else zg[torch.as_tensor(iz, device=device)],
             zg=zg,
             iz=None if zg is None else iz,
+            host=host,
+            d_max=float(host["d"].max()) if host["d"].size else 0.0,
         )
 
     def observe_mz(self, A, K, tau_s) -> torch.Tensor:
@@ -257,40 +272,64 @@ def emit_signal(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -> torch
     return emit_signal_gemm(iv, A, K, mom, n, vox, graph, bounds_t, cfg, separable=method == "separable")
 
 
-def emit_signal_direct(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg) -> torch.Tensor:
-    """Exact evaluation, chunked over samples so that J x T_chunk x V <= cfg.chunk_elems."""
-    dev = A.device
-    rdt = vox.x.dtype
-    J = torch.as_tensor(iv.emit, device=dev)
-    lo, hi = iv.adc_start, iv.adc_stop
-    Kj = K.index_select(0, J)  # (J, 4) float64
-    mt = mom.I_adc[lo:hi] - mom.I_bound[n][None, :]  # (T, 4)
-    kt = Kj[:, None, :] + mt[None, :, :]  # (J, T, 4)
-    dtt = graph.adc_times_s[lo:hi] - bounds_t[n]
-    dtt_t = torch.as_tensor(dtt, dtype=torch.float64, device=dev)
-    tau = iv.tau_s[iv.emit][:, None] + dtt[None, :]  # (J, T) numpy
-    vf = voxel_factor(kt, vox)  # (J, T) complex
-    bD = _diffusion_b(Kj, mom, n, lo, hi, dtt_t).to(rdt) if vox.has_diffusion else None
-    Aj = A.index_select(0, J)  # (J, V)
-    AC = Aj[None] if vox.coil is None else vox.coil[:, None, :] * Aj[None]  # (C, J, V)
-    nJ, T = kt.shape[0], kt.shape[1]
+class ExactStates(NamedTuple):
+    """Per-state inputs of the exact evaluation (states of one or several intervals, T samples each).
+
+    Attributes:
+        kt: (J, T, 4) k at every sample (real dtype); tau: (J, T) dephasing time at every sample, s;
+        dt: (J, T) time since the interval start, s; bD: (J, T) diffusion b-integral (None: no diffusion);
+        A: (J, V) complex amplitudes; vf: (J, T) complex voxel factor.
+    """
+
+    kt: torch.Tensor
+    tau: torch.Tensor
+    dt: torch.Tensor
+    bD: torch.Tensor | None
+    A: torch.Tensor
+    vf: torch.Tensor
+
+
+def emit_signal_direct(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, states: ExactStates | None = None):
+    """Exact evaluation, chunked over samples so that J x T_chunk x V <= cfg.chunk_elems.
+
+    Per interval: (C, T) signal of the emitting states of ``iv`` (interval ``n``).  With ``states``
+    (the batched path's strongly dephased states of several intervals, :class:`ExactStates`; the other
+    arguments then unused): (J, C, T), the signal of every state."""
+    if states is None:
+        dev = A.device
+        rdt = vox.x.dtype
+        J = torch.as_tensor(iv.emit, device=dev)
+        lo, hi = iv.adc_start, iv.adc_stop
+        Kj = K.index_select(0, J)  # (J, 4) float64
+        mt = mom.I_adc[lo:hi] - mom.I_bound[n][None, :]  # (T, 4)
+        kt = Kj[:, None, :] + mt[None, :, :]  # (J, T, 4)
+        dtt = graph.adc_times_s[lo:hi] - bounds_t[n]
+        dtt_t = torch.as_tensor(dtt, dtype=torch.float64, device=dev)
+        tau = iv.tau_s[iv.emit][:, None] + dtt[None, :]  # (J, T) numpy
+        vf = voxel_factor(kt, vox)  # (J, T) complex
+        bD = _diffusion_b(Kj, mom, n, lo, hi, dtt_t).to(rdt) if vox.has_diffusion else None
+        dtr = torch.as_tensor(dtt, dtype=rdt, device=dev)[None, :].expand(kt.shape[0], -1)
+        st = ExactStates(kt.to(rdt), torch.as_tensor(tau, dtype=rdt, device=dev), dtr, bD, A.index_select(0, J), vf)
+        return _exact(st, vox, cfg).sum(0)
+    return _exact(states, vox, cfg)
+
+
+def _exact(st: ExactStates, vox: VoxelData, cfg) -> torch.Tensor:
+    """(J, C, T) exact signal of every state of ``st`` (see :func:`emit_signal_direct`)."""
+    AC = st.A[None] if vox.coil is None else vox.coil[:, None, :] * st.A[None]  # (C, J, V)
+    nJ, T = st.kt.shape[0], st.kt.shape[1]
     step = max(1, int(cfg.chunk_elems // max(1, nJ * vox.n)))
     out = []
-    ktr = kt.to(rdt)
-    tau_t = torch.as_tensor(tau, dtype=rdt, device=dev)
-    dtr = torch.as_tensor(dtt, dtype=rdt, device=dev)
     for t0 in range(0, T, step):
         sl = slice(t0, min(T, t0 + step))
-        kk = ktr[:, sl]
-        ta = tau_t[:, sl]
-        mag = -dtr[sl][None, :, None] * vox.r2[None, None, :] - ta.abs()[:, :, None] * vox.r2d[None, None, :]
-        if bD is not None:
-            mag = mag - bD[:, sl, None] * vox.d[None, None, :]
-        ph = -(vox.phase_of(kk) + ta[:, :, None] * vox.omega[None, None, :])
+        ta = st.tau[:, sl]
+        mag = -st.dt[:, sl, None] * vox.r2[None, None, :] - ta.abs()[:, :, None] * vox.r2d[None, None, :]
+        if st.bD is not None:
+            mag = mag - st.bD[:, sl, None] * vox.d[None, None, :]
+        ph = -(vox.phase_of(st.kt[:, sl]) + ta[:, :, None] * vox.omega[None, None, :])
         E = torch.exp(torch.complex(mag, ph))  # (J, t, V)
-        s = torch.einsum("jtv,cjv->cjt", E, AC)
-        out.append((s * vf[None, :, sl]).sum(1))
-    return torch.cat(out, dim=1)
+        out.append(torch.einsum("jtv,cjv->jct", E, AC) * st.vf[:, None, sl])
+    return torch.cat(out, dim=2)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -344,7 +383,7 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
         b = _diffusion_b(Kj, mom, n, lo, hi, dtt_t)  # (J, T) float64
         bm = b[:, T // 2 : T // 2 + 1]
         delta = b - bm
-        xs = float(vox.d.max()) * delta.detach().abs().amax(1).cpu().numpy() if T else np.zeros(len(iv.emit))
+        xs = vox.d_max * delta.detach().abs().amax(1).cpu().numpy() if T else np.zeros(len(iv.emit))
         far = xs > _DIFF_TAYLOR_MAX
         if far.any():
             # states whose in-window diffusion change is large (strongly dephased, e.g. spoiled
@@ -356,7 +395,7 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
         # per-state Taylor order: the term of order r is a matrix product over the states that need it
         orders = np.array([taylor_order(float(x), cfg.taylor_tol) for x in xs], dtype=np.int64)
         rows = [torch.as_tensor(np.where(orders >= r)[0], device=dev) for r in range(1, int(orders.max(initial=0)) + 1)]
-        dif = (bm[:, 0].to(rdt), delta.to(rdt), rows, max(float(vox.d.max()), 1e-300))
+        dif = (bm[:, 0].to(rdt), delta.to(rdt), rows, max(vox.d_max, 1e-300))
     # per-state voxel weights C_j(v) (without the T2' part, which depends on the kernel class)
     Aj = A.index_select(0, Jn)
     kj = Kj.to(rdt)
