@@ -97,3 +97,38 @@ def test_a_nonlinear_chain_keeps_the_iterative_path_with_the_same_rule():
     assert err < 0.5 * base and rep.achieved_max_dk == pytest.approx(float(err))
     if rep.stop_reason == "tolerance":
         assert err <= 0.01
+
+
+def test_fallback_stops_when_it_cannot_reach_the_solution_at_hand():
+    """The CG + FISTA fallback's 'no-gain' rule: a box-limited least-squares problem (targets beyond gmax on a
+    third of the edges, ill-conditioned weights) whose FISTA descent is slow; given a solution at hand with an
+    objective it cannot reach (half the constrained optimum's, which the box gives exactly), it stops at its first
+    check, reason 'no-gain' (41 evaluations), where without one it runs to its own convergence rule (141); a
+    target above its start changes nothing."""
+    from dtoc.optimize import solver as SV
+
+    rng = np.random.default_rng(1)
+    n = 400
+    e0 = np.zeros((3, n))
+    free = np.zeros((3, n), dtype=bool)
+    free[0, 1:-1] = True
+    P = EdgeProjector(e0, free, 1e-5, Limits(10.0, 1e6))  # slew never binds: the set is the box |x| <= gmax
+    tgt = torch.as_tensor(np.where(rng.random(n) < 1 / 3, 30.0, rng.uniform(-5, 5, n)))
+    w = torch.as_tensor(np.logspace(-3, 0, n))
+    ft = torch.as_tensor(free)
+
+    def f(x):
+        loss = (w * (x[0] - tgt) ** 2).sum()
+        return loss, {"k": float(loss.detach())}
+
+    x0 = torch.zeros((3, n), dtype=torch.float64)
+    opt = float(f(torch.as_tensor(P.project(np.where(free, tgt.numpy()[None], 0.0))))[0])  # box: clip is optimal
+    runs = {}
+    for name, ftg in (("none", None), ("unreachable", opt - 0.5 * abs(opt)), ("above", 1e12)):
+        rep = SV.SolveReport(method="cg-fista")
+        x = O.constrained_least_squares(f, x0, P, ft, 400, None, None, 0.0, report=rep, rel_tol=0.0, f_target=ftg)
+        runs[name] = (rep, float(f(x)[0]))
+    assert runs["above"][0].evaluations == runs["none"][0].evaluations and runs["above"][1] == runs["none"][1]
+    rep, fx = runs["unreachable"]
+    assert rep.stop_reason == "no-gain" and rep.evaluations < runs["none"][0].evaluations
+    assert fx >= opt * (1 - 1e-9)  # nothing below the constrained optimum was given up

@@ -265,3 +265,81 @@ def test_rf_mask_by_bisection_equals_the_comparison():
     got = rf_mask_fine(ir)
     assert len(ir.rf) > 20 and want.sum() > 100
     assert np.array_equal(got, want)
+
+
+def _idle_gre_ir(reps: int, idle_edges: int = 8000):
+    """``reps`` identical spoiled-GRE periods on a 0.1 ms raster (RF 2 ms, prewinder, 16-sample readout, spoiler),
+    each followed by an idle delay of ``idle_edges`` rasters (0.8 s): a long sequence whose whole-sequence arrays
+    are large and whose windows and period structures are small."""
+    from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
+    from dtoc.seq.ir import ADCEvent, RFEvent, SequenceIR, edges_to_fine
+
+    r_s, n, per = 1e-4, 16, 100 + idle_edges
+    gr = 2 * np.pi / 0.032 / (GAMMA_RAD_PER_S_PER_MT * r_s)
+    e = np.zeros((3, per * reps + 1))
+    rf, adc, edges_s = [], [], []
+    for r in range(reps):
+        o = r * per
+        e[0, o + 21 : o + 25] = -(n // 2 + 1) * gr / 4.0
+        e[0, o + 25 : o + 26 + n] = gr
+        e[0, o + 26 + n : o + 36 + n] = 17.6
+        e[1, o + 21 : o + 25] = 2 * gr / 4.0
+        e[1, o + 26 + n : o + 30 + n] = -2 * gr / 4.0
+        rf.append(RFEvent(3 * r, o * r_s, o * r_s + 1e-3, 2e-3, np.deg2rad(15), 0.0, 0.0, "excitation"))
+        adc.append(ADCEvent(block=3 * r + 1, t_start_s=o * r_s + 2.5e-3, num_samples=n, dwell_s=r_s))
+        edges_s += [o * r_s, o * r_s + 2e-3, (o + 100) * r_s]
+    edges_s.append(per * reps * r_s)
+    free = np.zeros((3, 2 * e.shape[1] - 1), bool)
+    fe = (np.arange(e.shape[1]) % per) >= 20
+    fe[-1] = False
+    free[:2, ::2] = fe
+    return SequenceIR(
+        raster_s=r_s, grad_mT_per_m=edges_to_fine(e), block_edges_s=np.array(edges_s), rf=rf, adc=adc,
+        free_mask=free, fov_m=(0.032, 0.032, 0.032), matrix=(n, n), kind="gre", readout_axis=0, phase_axis=1,
+    )  # fmt: skip
+
+
+def _solve_peak_bytes(reps: int) -> tuple[int, int, object]:
+    """(tracemalloc peak of the windowed solve beyond what existed before it, bytes of its result, the IR) of
+    :func:`_idle_gre_ir` (numpy allocations; the solve's torch work is per window)."""
+    import tracemalloc
+
+    from dtoc.hardware.effects import Lti
+    from dtoc.optimize import loss as L
+    from dtoc.optimize.config import load_config
+    from dtoc.optimize.run import free_edges, limits_and_sources
+    from dtoc.optimize.windowed import windowed_warm_start
+
+    ir = _idle_gre_ir(reps)
+    taps = -0.05 * np.exp(-np.arange(40) / 8.0)[None].repeat(3, 0)  # an eddy-like 2 ms tail, applied by FFT
+    hw = HardwareModel([Lti(taps, 5e-5), Delay(4e-6)]).frozen()
+    cfg = load_config(ir.kind, None).model_copy(update={"gmax_mT_per_m": 32, "smax_T_per_m_per_s": 130})
+    lim, _ = limits_and_sources(ir, cfg)
+    free = free_edges(ir)
+    ctx = L.build_context(ir, lim)
+    c, a = memory_s(hw)
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        before = tracemalloc.get_traced_memory()[0]
+        e, st = windowed_warm_start(ir, hw, lim, free, cfg.weights, ctx, horizon_s=c, lookahead_s=a)
+        peak = tracemalloc.get_traced_memory()[1] - before
+    finally:
+        tracemalloc.stop()
+    assert st.windows == reps and st.structures <= 4
+    return peak, e.nbytes, ir
+
+
+def test_windowed_solve_memory_does_not_grow_with_the_duration():
+    """A 4x longer sequence (12 identical 0.81 s periods against 3, the same period structures) is solved within
+    1.2x the peak memory of the solve, its result (the (3, N+1) edges, 24 bytes per raster step) left out: the
+    solve holds one window, the per-structure matrices and the recent solutions, not a copy of the whole waveform
+    (the played waveform is 48 bytes per raster step, 0.39 MB a period here; the solve that kept one: 1.26x)."""
+    _solve_peak_bytes(1)  # first-call allocations (lazy imports, caches) out of the comparison
+    p1, r1, ir1 = _solve_peak_bytes(3)
+    p4, r4, ir4 = _solve_peak_bytes(12)
+    assert ir4.duration_s == pytest.approx(4 * ir1.duration_s, rel=1e-9)
+    assert r4 > 3.9 * r1
+    extra1, extra4 = p1 - r1, p4 - r4
+    assert extra1 > 0
+    assert extra4 <= 1.2 * extra1, (extra1, extra4)

@@ -141,6 +141,7 @@ def constrained_least_squares(
     rel_tol: float = 1e-7,
     k_stop: Callable[[torch.Tensor], bool] | None = None,
     report=None,
+    f_target: float | None = None,
 ) -> torch.Tensor:
     """The warm start's algorithm on any quadratic objective ``f`` of edge samples within the limits of ``P``.
 
@@ -155,6 +156,9 @@ def constrained_least_squares(
         free: (3, N+1) bool tensor of the variables.
         k_stop: ``x -> bool``, checked on the projected iterate every 20 FISTA iterations: stop when True
             (the solver's k-space tolerance); ``report``: a :class:`~dtoc.optimize.solver.SolveReport` to fill.
+        f_target: the objective of a solution already at hand (the active-set rounds'): FISTA stops (reason
+            ``no-gain``) at a check where, at its descent over the last 20 iterations, the rest of the budget would
+            not bring it down to ``f_target`` (a result above it is not kept).
     Returns:
         (3, N+1) projected edge samples, mT/m.
     """
@@ -231,6 +235,10 @@ def constrained_least_squares(
                         if report is not None:
                             report.stop_reason = "converged"
                         break
+                    if f_target is not None and fy > f_target and (f_prev - fy) * (n_fista - j) / 20 < fy - f_target:
+                        if report is not None:
+                            report.stop_reason = "no-gain"
+                        break
                     f_prev = fy
                     if k_stop is not None and k_stop(P.project(x_prev, n_iter=60)):
                         report.stop_reason = "tolerance"
@@ -295,8 +303,9 @@ def solve_warm_start(
             sub = SV.SolveReport(method="cg-fista")
             x2 = constrained_least_squares(
                 f, x0, twin.projector, twin.free_t, left, None, progress, 0.5,
-                k_stop=lambda z: bool(k_error(z).max() <= k_tol_dk), report=sub,
+                k_stop=lambda z: bool(k_error(z).max() <= k_tol_dk), report=sub, f_target=float(f(x)[0].detach()),
             )  # fmt: skip
+            rep.fallback_stop = sub.stop_reason
             rep.evaluations += sub.evaluations
             rep.method = "pcg-active-set+cg-fista"
             if float(f(x2)[0].detach()) < float(f(x)[0].detach()):
@@ -307,7 +316,8 @@ def solve_warm_start(
                     x, err, rep.unconstrained_errors, k_tol_dk, twin.projector, adc_sample_times_s(twin.ir),
                     rep.unconstrained_converged,
                 )  # fmt: skip
-                rep.stop_reason = "tolerance" if sub.stop_reason == "tolerance" else sub.stop_reason
+                # its 'no-gain' stop came after a last 20-iteration descent too slow to matter: 'converged'
+                rep.stop_reason = {"no-gain": "converged"}.get(sub.stop_reason, sub.stop_reason)
     else:
         rep = SV.SolveReport(method="cg-fista", k_tol_dk=k_tol_dk)
         x = constrained_least_squares(

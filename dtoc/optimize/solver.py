@@ -127,6 +127,7 @@ class SolveReport:
     history: list = field(default_factory=list)
     unconstrained_errors: np.ndarray | None = None  # (N_adc,) dk, at the unconstrained solve
     unconstrained_converged: bool = False
+    fallback_stop: str | None = None  # the CG + FISTA fallback's own stop reason (None: it did not run)
 
     def as_dict(self) -> dict:
         return {
@@ -140,6 +141,7 @@ class SolveReport:
             "unconstrained_max_dk": self.unconstrained_max_dk,
             "unconstrained_within_limits": self.within_limits_unconstrained,
             "unreachable": None if self.unreachable is None else self.unreachable.as_dict(),
+            "fallback_stop_reason": self.fallback_stop,
         }
 
     def line(self) -> str:

@@ -52,6 +52,9 @@ from dtoc.seq.kspace import kspace_at
 DENSE_MAX = 6000
 #: solutions of the most recent distinct window problems kept for identical later windows
 SOLVES_KEPT = 32
+#: the per-structure matrices kept, bytes (least recently used dropped beyond it; a structure needs up to ~4 dense
+#: n_free^2 float64 matrices: 1.15 GB at DENSE_MAX)
+STRUCTURES_KEPT_BYTES = 3_000_000_000
 #: edges farther than this from any non-zero base gradient or ADC sample are held at the base value, s
 PAD_S = 2e-3
 
@@ -152,28 +155,42 @@ def plan_windows(ir: SequenceIR, horizon_s: float, lookahead_s: float) -> list[W
 
 
 def active_edges(ir: SequenceIR, pad_s: float) -> np.ndarray:
-    """(N+1,) bool: raster edges within ``pad_s`` of a non-zero base gradient (any axis) or an ADC sample."""
-    e = ir.edge_grad_mT_per_m
-    busy = np.any(e != 0, axis=0)
+    """(N+1,) bool: raster edges within ``pad_s`` of a non-zero base gradient (any axis) or an ADC sample.
+    Memory: the result and one (3, N+1) bool temporary (the busy runs are dilated run by run, no index arrays)."""
+    busy = np.any(ir.edge_grad_mT_per_m != 0, axis=0)
     n = busy.size
     for a in ir.adc:
         i0 = int(np.floor(a.t_start_s / ir.raster_s))
         i1 = int(np.ceil((a.t_start_s + a.num_samples * a.dwell_s) / ir.raster_s))
         busy[max(i0, 0) : min(i1, n - 1) + 1] = True
     pad = int(math.ceil(pad_s / ir.raster_s))
-    c = np.concatenate([[0], np.cumsum(busy)])
-    lo = np.clip(np.arange(n) - pad, 0, n)
-    hi = np.clip(np.arange(n) + pad + 1, 0, n)
-    return (c[hi] - c[lo]) > 0
+    out = np.zeros(n, dtype=bool)
+    for s, e in _runs(busy):  # [s, e) of busy edges, merged once dilated
+        out[max(s - pad, 0) : min(e + pad, n)] = True
+    return out
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Runs ``[start, end)`` of True in a 1-D bool array (one int8 difference, indices per run only)."""
+    if mask.size == 0:
+        return []
+    d = np.diff(mask.view(np.int8))
+    starts = np.flatnonzero(d == 1) + 1
+    ends = np.flatnonzero(d == -1) + 1
+    if mask[0]:
+        starts = np.r_[0, starts]
+    if mask[-1]:
+        ends = np.r_[ends, mask.size]
+    return list(zip(starts.tolist(), ends.tolist()))
 
 
 def period_free_counts(ir: SequenceIR, free: np.ndarray, pad_s: float = PAD_S) -> np.ndarray:
-    """Free variables of every excitation period (core) in windowed mode (cheap: no window is built)."""
-    f = (free & active_edges(ir, pad_s)[None, :]).sum(axis=0)
-    c = np.concatenate([[0], np.cumsum(f)])
+    """Free variables of every excitation period (core) in windowed mode (cheap: no window is built, no
+    whole-sequence temporary beyond one bool mask)."""
+    act = active_edges(ir, pad_s)
     edges = ir.block_edges_s
     e = np.round(edges[period_starts(ir) + [len(edges) - 1]] / ir.raster_s).astype(int)
-    return c[e[1:]] - c[e[:-1]]
+    return np.array([np.count_nonzero(free[:, a:b] & act[None, a:b]) for a, b in zip(e[:-1], e[1:])], dtype=np.int64)
 
 
 class _Scales:
@@ -242,10 +259,11 @@ def windowed_warm_start(
     m0_full = np.zeros((3, len(ir.rf)))
     if m0_ctx is not None:
         m0_full[:, 1:] = m0_ctx.cpu().numpy()
-    free = free & active_edges(ir, pad_s)[None, :]
-    edges = np.array(ir.edge_grad_mT_per_m, dtype=np.float64)  # committed as we go
-    played = base_fine.copy()
-    cache: dict[str, dict] = {}
+    act = active_edges(ir, pad_s)  # (N+1,) bool; free edges outside it are held
+    # the only whole-sequence array of the solve: the edges, committed as we go (the played waveform of a window is
+    # rebuilt from them and the base: :func:`_played_window`)
+    edges = np.array(ir.edge_grad_mT_per_m, dtype=np.float64)
+    cache = _StructureCache(STRUCTURES_KEPT_BYTES)
     # solve key -> the change of the window's edges; the last SOLVES_KEPT only (memory)
     solved: OrderedDict[str, np.ndarray] = OrderedDict()
     tt = {"setup": 0.0, "jacobian": 0.0, "residual": 0.0, "solve": 0.0}
@@ -257,7 +275,7 @@ def windowed_warm_start(
         e0, e1 = m0 // 2, m1 // 2
         ec0, ec1 = int(round(be[w.core[0]] / ir.raster_s)), int(round(be[w.core[1]] / ir.raster_s))
         fr = np.zeros((3, e1 - e0 + 1), dtype=bool)
-        fr[:, ec0 - e0 : ec1 - e0] = free[:, ec0:ec1]
+        fr[:, ec0 - e0 : ec1 - e0] = free[:, ec0:ec1] & act[None, ec0:ec1]
         n_free = int(fr.sum())
         st.max_free = max(st.max_free, n_free)
         if n_free == 0:
@@ -266,7 +284,7 @@ def windowed_warm_start(
             raise ValueError(f"excitation period {wi} has {n_free} free variables (> {DENSE_MAX})")
         tsub = be[w.sub[0]]
         x_sub = edges[:, e0 : e1 + 1].copy()
-        fine_sub = played[:, m0 : m1 + 1].copy()
+        fine_sub = _played_window(edges, base_fine, free, act, e0, e1, ec0)
         fmask = fine_free_mask(fr)
         # the limits bind the core's edges and their fixed neighbours only: project there
         rs = slice(max(ec0 - e0 - 1, 0), min(ec1 - e0 + 2, fr.shape[1]))
@@ -316,7 +334,7 @@ def windowed_warm_start(
         if c is None:
             t0 = time.time()
             c = _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, device)
-            cache[key] = c
+            cache.put(key, c)
             tt["jacobian"] += time.time() - t0
         t0 = time.time()
         r0n = r0.cpu().numpy()
@@ -332,7 +350,6 @@ def windowed_warm_start(
                 st.reused += 1
                 tt["solve"] += time.time() - t0
                 edges[:, e0 : e1 + 1] = x_p
-                played[:, m0 : m1 + 1] = edges_to_played(x_p, fine_sub, fmask)
                 if progress is not None:
                     progress("windows", wi + 1, len(windows), float((r0**2).sum()))
                 continue
@@ -354,13 +371,66 @@ def windowed_warm_start(
         if len(solved) > SOLVES_KEPT:
             solved.popitem(last=False)
         edges[:, e0 : e1 + 1] = x_p
-        played[:, m0 : m1 + 1] = edges_to_played(x_p, fine_sub, fmask)
         if progress is not None:
             progress("windows", wi + 1, len(windows), float((r0**2).sum()))
-    st.structures = len(cache)
+    st.structures = cache.distinct
     tt["total"] = time.time() - t_all
     st.times_s = tt
     return edges, st
+
+
+def _played_window(
+    edges: np.ndarray, base_fine: np.ndarray, free: np.ndarray, act: np.ndarray, e0: int, e1: int, ec0: int
+) -> np.ndarray:
+    """(3, 2 (e1 - e0) + 1) the waveform played on the window's raster edges ``[e0, e1]`` so far: the fine samples
+    that follow the committed free edges (those before the core's first edge ``ec0``; the windows run in time
+    order) interpolate the edges, the rest are the base's -- what a whole-sequence copy updated window by window
+    would hold, built from the edges and the base alone (O(window) memory)."""
+    fr = free[:, e0 : e1 + 1] & act[None, e0 : e1 + 1]
+    fr[:, max(ec0 - e0, 0) :] = False
+    return edges_to_played(edges[:, e0 : e1 + 1], base_fine[:, 2 * e0 : 2 * e1 + 1], fine_free_mask(fr))
+
+
+class _StructureCache:
+    """Per-structure Jacobians and factors, least recently used dropped beyond ``max_bytes`` (at least the one in
+    use is kept): a sequence of many distinct period timings stays bounded; a dropped structure that comes back is
+    built again (its ADMM warm start then starts afresh)."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = max_bytes
+        self.items: OrderedDict[str, dict] = OrderedDict()
+        self.seen: set[str] = set()
+
+    @property
+    def distinct(self) -> int:
+        return len(self.seen)
+
+    def get(self, key: str) -> dict | None:
+        c = self.items.get(key)
+        if c is not None:
+            self.items.move_to_end(key)
+        return c
+
+    def put(self, key: str, c: dict) -> None:
+        self.items[key] = c
+        self.seen.add(key)
+        while len(self.items) > 1 and sum(_nbytes(v) for v in self.items.values()) > self.max_bytes:
+            self.items.popitem(last=False)
+
+
+def _nbytes(c: dict) -> int:
+    """Bytes of a structure's arrays (dense and sparse, the ADMM's included)."""
+    n = 0
+    for v in c.values():
+        if isinstance(v, np.ndarray):
+            n += v.nbytes
+        elif sp.issparse(v):
+            n += v.data.nbytes + getattr(v, "indices", v.data).nbytes + getattr(v, "indptr", v.data).nbytes
+        elif isinstance(v, dict):
+            n += _nbytes(v)
+        elif isinstance(v, tuple):
+            n += sum(x.nbytes for x in v if isinstance(x, np.ndarray))
+    return n
 
 
 def window_residual(hardware, dtf, fmask_t, fine_t, g0_t, t_adc, k0_t, t_mom, mom0_t, rf_c, rf_u, rfm, sc, sk_t, sm_t):
