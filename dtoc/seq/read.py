@@ -22,7 +22,12 @@ Default ``free_mask`` (what an optimizer may change), documented in docs/sequenc
   excitation pulse) unless ``free_slice_axis=True``;
 * never on an axis that carries no gradient at all in the sequence (e.g. z of a non-selective 2D GRE)
   unless ``free_unused_axes=True``: the paper optimizes the axes the base sequence uses;
-* never the first and last sample of the sequence (gradients start and end at zero).
+* never the first and last sample of the sequence (gradients start and end at zero);
+* never a block boundary that the two blocks do not play as one edge: next to a zero-duration block (labels
+  only: the interpreter sees its axes without gradient there), or between blocks of different rotations
+  (1.5.1 rotation extension: one played value there is two different logical values).  Such a boundary keeps
+  the base's value, so the output is continuous exactly where the base is (a free value there made jumps of
+  7-37 Hz/m in the written JEMRIS EPI and in a rotation-extension file).
 """
 
 from __future__ import annotations
@@ -39,7 +44,7 @@ from dtoc.errors import InputError
 from dtoc.seq.ir import ADCEvent, RFEvent, SequenceIR
 from dtoc.seq.pulseq import quiet
 from dtoc.seq.seqtext import parse_seq_text, verify_signature
-from dtoc.seq.versions import reader_text, version_str
+from dtoc.seq.versions import quaternion_matrix, reader_text, version_str
 
 _TIME_TOL = 1e-9  # s: times closer than this to a grid point are on it
 
@@ -377,6 +382,23 @@ def slice_axes(ir: SequenceIR, tol_mT_per_m: float = 1e-6) -> list[int]:
     return sorted(out)
 
 
+def held_boundaries(ir: SequenceIR) -> list[int]:
+    """Fine indices of the block boundaries that are not one played edge (module doc): next to a zero-duration
+    block, or between two blocks whose rotations (1.5.1 extension) differ."""
+    m_edges = np.round(np.asarray(ir.block_edges_s) / ir.dt_fine_s).astype(np.int64)
+    rot = {int(b): quaternion_matrix(q) for b, q in (ir.meta.get("rotations") or {}).items()}
+    if not rot:  # (from_pypulseq: the reader's matrices, before read_seq records the quaternions)
+        rot = {int(b): np.asarray(r) for b, r in (getattr(ir.source, "dtoc_rotations", None) or {}).items()}
+    eye = np.eye(3)
+    out = set()
+    for b in range(len(m_edges) - 1):
+        if m_edges[b + 1] == m_edges[b]:  # a zero-duration block: both its edges (one fine index)
+            out.add(int(m_edges[b]))
+        elif b > 0 and not np.allclose(rot.get(b - 1, eye), rot.get(b, eye), atol=1e-12):
+            out.add(int(m_edges[b]))
+    return sorted(out)
+
+
 def default_free_mask(
     ir: SequenceIR, *, free_slice_axis: bool = False, free_unused_axes: bool = False, rf_guard: str = "block"
 ) -> np.ndarray:
@@ -398,6 +420,8 @@ def default_free_mask(
         lo = int(np.floor(ir.block_edges_s[b] / dtf + 1e-6))
         hi = int(np.ceil(ir.block_edges_s[b + 1] / dtf - 1e-6))
         mask[:, max(lo, 0) : min(hi, n - 1) + 1] = False
+    for m in held_boundaries(ir):
+        mask[:, m] = False
     if not free_slice_axis:
         for a in slice_axes(ir):
             mask[a, :] = False
