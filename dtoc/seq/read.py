@@ -389,13 +389,16 @@ def held_boundaries(ir: SequenceIR) -> list[int]:
     rot = {int(b): quaternion_matrix(q) for b, q in (ir.meta.get("rotations") or {}).items()}
     if not rot:  # (from_pypulseq: the reader's matrices, before read_seq records the quaternions)
         rot = {int(b): np.asarray(r) for b, r in (getattr(ir.source, "dtoc_rotations", None) or {}).items()}
-    eye = np.eye(3)
-    out = set()
-    for b in range(len(m_edges) - 1):
-        if m_edges[b + 1] == m_edges[b]:  # a zero-duration block: both its edges (one fine index)
-            out.add(int(m_edges[b]))
-        elif b > 0 and not np.allclose(rot.get(b - 1, eye), rot.get(b, eye), atol=1e-12):
-            out.add(int(m_edges[b]))
+    nb = len(m_edges) - 1
+    zero = np.flatnonzero(m_edges[1:] == m_edges[:-1])  # zero-duration blocks: both edges are one fine index
+    out = {int(m_edges[b]) for b in zero}
+    if rot:
+        mats = np.broadcast_to(np.eye(3), (nb, 3, 3)).copy()
+        for b, r in rot.items():
+            if 0 <= b < nb:
+                mats[b] = r
+        differ = np.abs(mats[1:] - mats[:-1]).max(axis=(1, 2)) > 1e-12  # boundary b + 1 between b and b + 1
+        out |= {int(m_edges[b + 1]) for b in np.flatnonzero(differ)}
     return sorted(out)
 
 
