@@ -397,12 +397,14 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: s
         "and NRMSE (built-in phantom; 'k-space only' where optimize ran without an image term: no image grid, or a "
         "long file solved window by window) before -> after from its manifest; *time*: "
         "all steps together; *peak*: the largest resident set of any step; *RF use*: the uses dtoc took, with the "
-        "reader's note on how. A file dtoc's reader refuses is refused by every command with the same line: "
+        "reader's note on how; *commit*: the code the row ran on. A file dtoc's reader refuses is refused by "
+        "every command with the same line: "
         "predict, simulate and optimize are then not run.",
         "",
         "| source | file | writer | version | kind | size (kB) | limits (mT/m, T/m/s) | check | predict k (dk) "
-        "| simulate NRMSE (%) | result | k before -> after (dk) | NRMSE before -> after (%) | time (s) | peak (MB) | RF use |",
-        "|" + "---|" * 16,
+        "| simulate NRMSE (%) | result | k before -> after (dk) | NRMSE before -> after (%) | time (s) | peak (MB) | RF use "
+        "| commit |",
+        "|" + "---|" * 17,
     ]
     lines = []
     for r in rows:
@@ -434,7 +436,8 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: s
         lines.append(
             f"| {src} | {Path(r['file']).name} | {_cell(_writer_short(r['writer_line']))} | {r['version']} | "
             f"{p.get('kind') or '-'} | {r['size_kb']:.0f} | {lim_s} | {_cell(r.get('check', '-'))[:140]} | {pred} | {sim} | "
-            f"{_cell(r['result'])[:220]} | {kba} | {nba} | {r['time_s']:.0f} | {r['peak_mb']:.0f} | {_rf_use(r)} |"
+            f"{_cell(r['result'])[:220]} | {kba} | {nba} | {r['time_s']:.0f} | {r['peak_mb']:.0f} | {_rf_use(r)} | "
+            f"{r.get('commit') or commit} |"
         )
     return "\n".join(head + lines) + "\n" + END + "\n"
 
