@@ -33,6 +33,7 @@ Default ``free_mask`` (what an optimizer may change), documented in docs/sequenc
 from __future__ import annotations
 
 import contextlib
+import copy
 import os
 import tempfile
 from pathlib import Path
@@ -41,7 +42,7 @@ import numpy as np
 
 from dtoc.constants import AXES, mT_per_m_from_hz_per_m
 from dtoc.errors import InputError
-from dtoc.seq.ir import ADCEvent, RFEvent, SequenceIR
+from dtoc.seq.ir import ADCEvent, RFEvent, SequenceIR, interp_fine
 from dtoc.seq.pulseq import quiet
 from dtoc.seq.seqtext import parse_seq_text, verify_signature
 from dtoc.seq.versions import quaternion_matrix, reader_text, version_str
@@ -177,6 +178,32 @@ def grad_vertices(grad, raster_s: float) -> tuple[np.ndarray, np.ndarray]:
     return t + grad.delay, v
 
 
+@contextlib.contextmanager
+def _shared_rf_decoding(seq, cache: dict):
+    """While reading blocks: pypulseq's RF decoding (``rf_from_lib_data``: the magnitude and phase shapes
+    expanded and multiplied, 2 million complex samples for a 2 s CEST pulse at 1 us) done once per
+    (amplitude, shapes, use) and shared by the events that differ only in delay, centre, frequency and phase
+    offsets (a CEST protocol's 34 saturation pulses: one decoding, not 34).  The shared arrays are only read;
+    ``cache`` lives as long as the caller's reading (never on the sequence, which writers deep-copy)."""
+    orig = type(seq).rf_from_lib_data
+
+    def shared(lib_data, use: str = ""):
+        if len(lib_data) < 10:  # (not the 1.5 library layout dtoc reads through: pypulseq's own way)
+            return orig(seq, lib_data, use)
+        key = (float(lib_data[0]), int(lib_data[1]), int(lib_data[2]), int(lib_data[3]), use)
+        if key not in cache:
+            cache[key] = orig(seq, lib_data, use)
+        rf = copy.copy(cache[key])
+        rf.center, rf.delay, rf.freq_ppm, rf.phase_ppm, rf.freq_offset, rf.phase_offset = lib_data[4:10]
+        return rf
+
+    seq.rf_from_lib_data = shared
+    try:
+        yield
+    finally:
+        del seq.rf_from_lib_data
+
+
 def from_pypulseq(
     seq,
     *,
@@ -219,8 +246,10 @@ def from_pypulseq(
     off_grid: list[str] = []
     rf_blocks: list[int] = []
     soft: list[int] = []  # blocks holding a soft delay (their duration is set on the scanner)
+    areas: dict[int, float] = {}  # id(signal) -> its area (the RF decoding is shared, _shared_rf_decoding)
+    decoded: dict = {}
     for b, key in enumerate(keys):
-        with quiet():
+        with quiet(), _shared_rf_decoding(seq, decoded):
             blk = seq.get_block(key)
         if getattr(blk, "soft_delay", None) is not None:
             soft.append(b)
@@ -252,12 +281,14 @@ def from_pypulseq(
         if getattr(blk, "rf", None) is not None:
             rf = blk.rf
             rf_blocks.append(b)
-            t_rf = np.asarray(rf.t, dtype=np.float64)
-            sig = np.asarray(rf.signal)
-            if len(t_rf) > 1 and rf.shape_dur > 0 and not np.allclose(np.diff(t_rf), seq.rf_raster_time):
-                area = np.trapezoid(sig, t_rf)
-            else:
-                area = np.sum(sig) * seq.rf_raster_time
+            if id(rf.signal) not in areas:
+                t_rf = np.asarray(rf.t, dtype=np.float64)
+                sig = np.asarray(rf.signal)
+                if len(t_rf) > 1 and rf.shape_dur > 0 and not np.allclose(np.diff(t_rf), seq.rf_raster_time):
+                    areas[id(rf.signal)] = np.trapezoid(sig, t_rf)
+                else:
+                    areas[id(rf.signal)] = np.sum(sig) * seq.rf_raster_time
+            area = areas[id(rf.signal)]
             rf_events.append(
                 RFEvent(
                     block=b,
@@ -283,15 +314,10 @@ def from_pypulseq(
                 )
             )
     # gradient at RF centres (slice selection)
-    t_fine = np.arange(n_fine) * dtf
+    at_c = interp_fine(g, np.array([r.t_center_s for r in rf_events], dtype=np.float64), dtf)
     rf_events = [
-        RFEvent(
-            **{
-                **r.__dict__,
-                "grad_at_center_mT_per_m": tuple(float(np.interp(r.t_center_s, t_fine, g[a])) for a in range(3)),
-            }
-        )
-        for r in rf_events
+        RFEvent(**{**r.__dict__, "grad_at_center_mT_per_m": tuple(float(at_c[a, i]) for a in range(3))})
+        for i, r in enumerate(rf_events)
     ]
     defs = _plain_definitions(seq.definitions)
     ir = SequenceIR(
@@ -365,7 +391,8 @@ def _apply_metadata(ir: SequenceIR) -> None:
     if ir.readout_axis is None and ir.adc:
         # guess: the axis with the largest mean |g| over all ADC samples
         t = ir.adc_times_s
-        gm = np.array([np.abs(np.interp(t, ir.t_fine_s, ir.grad_mT_per_m[a])).mean() for a in range(3)])
+        at = ir.grad_at(t)
+        gm = np.array([np.abs(at[a]).mean() for a in range(3)])  # (per axis: the sums' order of np.interp's rows)
         if gm.max() > 0:
             ir.readout_axis = int(np.argmax(gm))
             ir.meta["axes_guessed"] = True
