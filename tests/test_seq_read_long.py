@@ -79,3 +79,24 @@ def test_interp_fine_is_np_interp_on_the_fine_axis():
         t = np.concatenate([rng.random(500) * (n - 1) * dtf, np.arange(n) * dtf, [-1e-6, (n - 1) * dtf + 1e-6]])
         ref = np.array([np.interp(t, np.arange(n) * dtf, g[a]) for a in range(3)])
         assert np.array_equal(interp_fine(g, t, dtf), ref)
+
+
+def test_fov_definition_in_millimetres_is_read_as_such(tmp_path):
+    """A FOV definition over 2 m (Pulseq MATLAB demos of 2018-2020 and JEMRIS wrote millimetres) is read as mm,
+    with a note saying it is assumed: the same image grid as the file stating metres (a radial file: 2 pi /
+    FOV from the definition), not a 31002 x 31002 grid refused for memory."""
+    from foreign.writers import _sign, _unsigned, radial
+
+    from dtoc.seq.load import load_sequence
+
+    base = _unsigned(radial(n=16, spokes=8))
+    grids = {}
+    for name, fov in (("m", b"FOV 0.22 0.22 0.005"), ("mm", b"FOV 220 220 5")):
+        p = tmp_path / f"r_{name}.seq"
+        p.write_bytes(_sign(base.replace(b"[DEFINITIONS]\n", b"[DEFINITIONS]\n" + fov + b"\n", 1)))
+        ir = load_sequence(p)
+        grids[name] = (ir.fov_m, ir.matrix)
+        said = [n for n in ir.meta.get("notes", []) if "read as millimetres" in n]
+        assert bool(said) == (name == "mm")
+    assert np.allclose(grids["m"][0], grids["mm"][0], rtol=1e-12) and grids["m"][1] == grids["mm"][1]
+    assert grids["m"][1] is not None and max(grids["m"][1]) < 64

@@ -366,6 +366,10 @@ def _axis_index(v) -> int | None:
     return None
 
 
+#: a FOV definition above this (any axis), m, is taken as millimetres (:func:`_apply_metadata`)
+FOV_MAX_M = 2.0
+
+
 def _apply_metadata(ir: SequenceIR) -> None:
     """fov_m, matrix, kind and axes from the definitions written by dtoc's builder (or guessed)."""
     d = ir.definitions
@@ -375,6 +379,14 @@ def _apply_metadata(ir: SequenceIR) -> None:
         ir.fov_m = (float(f[0]), float(f[1]), float(f[2]))
     elif isinstance(fov, float):
         ir.fov_m = (fov, fov, 0.0)
+    if ir.fov_m is not None and max(ir.fov_m) > FOV_MAX_M:
+        # the specification's FOV is in metres; Pulseq MATLAB demos of 2018-2020 and JEMRIS wrote millimetres
+        stated = " ".join(f"{x:g}" for x in ir.fov_m)
+        ir.fov_m = tuple(x * 1e-3 for x in ir.fov_m)  # type: ignore[assignment]
+        ir.meta.setdefault("notes", []).append(
+            f"FOV definition {stated}: read as millimetres (assumed: over {FOV_MAX_M:g} m is no scanner's field "
+            "of view in metres, the specification's unit; Pulseq MATLAB demos of 2018-2020 and JEMRIS wrote mm)"
+        )
     mat = d.get("MatrixSize")
     if isinstance(mat, list):
         ir.matrix = tuple(int(round(x)) for x in mat if x)
