@@ -368,7 +368,8 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: s
     commits = (
         f"commit {commit}"
         if len(by_commit) == 1
-        else "commits " + ", ".join(f"{c} ({n} rows)" for c, n in sorted(by_commit.items(), key=lambda x: -x[1]))
+        else "commits "
+        + ", ".join(f"{c} ({n} row{'s' if n > 1 else ''})" for c, n in sorted(by_commit.items(), key=lambda x: -x[1]))
     )
     writers = sorted({_writer_short(r["writer_line"]) for r in rows})
     head = [
