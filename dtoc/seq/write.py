@@ -543,8 +543,9 @@ def _representative_free_edges(ir: SequenceIR) -> np.ndarray:
 
 def _block_kind(src, ev, memo: dict) -> tuple:
     """A block's events up to amplitudes and phases: RF shapes and delay; per axis a trapezoid (delayed or not:
-    it starts and ends at 0, its ramps are written as any vertex list), or an arbitrary gradient's shapes, delay and whether it starts/ends at 0; ADC samples, dwell and delay; the
-    extension list as it is."""
+    it starts and ends at 0, its ramps are written as any vertex list), or an arbitrary gradient's shapes, delay
+    and whether it starts/ends at 0; ADC samples, dwell and delay; the extension list's types (a label's value
+    is not the writer's business; a trigger is kept as it is)."""
 
     def lib_kind(name: str, i: int):
         if not i:
@@ -568,8 +569,27 @@ def _block_kind(src, ev, memo: dict) -> tuple:
         lib_kind("rf_library", e[1]),
         *(lib_kind("grad_library", i) for i in e[2:5]),
         lib_kind("adc_library", e[5]),
-        *e[6:],
+        *(_extension_kinds(src, i, memo) for i in e[6:]),
     )
+
+
+def _extension_kinds(src, ext_id: int, memo: dict) -> tuple:
+    """The types of a block's extension list (labels: their type, not their values; other extensions: the
+    event itself)."""
+    if not ext_id:
+        return ()
+    key = ("ext", ext_id)
+    if key not in memo:
+        lib = src.extensions_library.data
+        names = dict(zip(getattr(src, "extension_numeric_idx", []), getattr(src, "extension_string_idx", [])))
+        out, seen, i = [], set(), ext_id
+        while i and i in lib and i not in seen:
+            seen.add(i)
+            t, ref, nxt = (int(x) for x in lib[i][:3])
+            out.append(names.get(t, t) if names.get(t) in ("LABELSET", "LABELINC") else (names.get(t, t), ref))
+            i = nxt
+        memo[key] = tuple(out)
+    return memo[key]
 
 
 def write_seq(ir: SequenceIR, path: str | Path, force: bool = False, version=None) -> Path:
