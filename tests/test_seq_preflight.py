@@ -72,3 +72,19 @@ def test_a_writer_defect_is_refused_with_the_whole_base(tmp_path, monkeypatch):
     with pytest.raises(InputError, match=r"^the base cannot be written as Pulseq format 1\.5\.0: .*block 7 axis x$"):
         W.preflight_write(ir)
     assert len(calls) == 2 and calls[0] < calls[1] == len(ir.block_edges_s) - 1  # the sub-sequence, then the base
+
+
+def test_zero_duration_last_block(tmp_path):
+    """A file ending with a zero-duration block (Pulseq MATLAB's epi_rs ends with a label-only block): the
+    pre-flight's block selection handles it (an IndexError was an internal error at 'dtoc optimize')."""
+    from test_seq_versions import _with_empty_block
+
+    data = gre(n=64)
+    ir0 = _read(tmp_path, "g.seq", data)
+    nb = len(ir0.block_edges_s) - 1
+    ir = _read(tmp_path, "z.seq", _with_empty_block(data, nb))
+    assert len(ir.block_edges_s) - 1 == nb + 1 and ir.block_edges_s[-1] == ir.block_edges_s[-2]
+    rep = W._representative_free_edges(ir)
+    blocks = W.preflight_blocks(ir, rep)
+    assert blocks is not None and len(blocks) < nb // 4
+    assert W.preflight_write(ir) == (1, 5, 0)

@@ -461,8 +461,9 @@ def preflight_blocks(ir: SequenceIR, rep: np.ndarray) -> list[int] | None:
     inferred = np.array([any(int(x) in untimed for x in ev[2:5]) for ev in src.block_events.values()], dtype=bool)
     quiet_edge = ~np.any(eg[:, edges] != 0, axis=0)  # (nb + 1,): boundary b (start of block b)
     quiet_edge[1:-1] |= ~(inferred[:-1] | inferred[1:])
-    has = np.logical_or.reduceat(np.any(rep, axis=0)[:-1], edges[:-1]) if edges[-1] > 0 else np.zeros(nb, bool)
-    has &= edges[1:] > edges[:-1]  # (reduceat of an empty block reads the next block's first element)
+    anyrep = np.any(rep, axis=0)  # (N + 1,)
+    has = np.logical_or.reduceat(anyrep, np.minimum(edges[:-1], len(anyrep) - 1))
+    has &= edges[1:] > edges[:-1]  # (reduceat of an empty block -- a last one too -- reads the next element)
     keep = np.zeros(nb, dtype=bool)
     for b in np.flatnonzero(has):
         lo, hi = max(int(b) - 1, 0), min(int(b) + 1, nb - 1)
