@@ -361,7 +361,11 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: s
     steps = ("read", "check", "predict", "simulate", "result")
     n_int = sum(any("internal error" in str(r.get(k, "")) for k in steps) for r in rows)
     n_int_opt = sum("internal error" in r["result"] for r in rows)
-    n_to = sum(r["result"].startswith(("timed out", "stopped at the bench's memory cap")) for r in rows)
+    n_to = sum(
+        r["result"].startswith(("timed out", "stopped at the bench's memory cap"))
+        or bool(re.match(r"exit -\d", r["result"]))
+        for r in rows
+    )  # (exit -N: killed by signal N, e.g. the kernel's OOM killer before the bench had a memory cap)
     by_commit: dict[str, int] = {}
     for r in rows:
         by_commit[r.get("commit") or commit] = by_commit.get(r.get("commit") or commit, 0) + 1
@@ -384,8 +388,8 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: s
         "machine is shared: a step over it is killed, 'stopped at the bench's memory cap').",
         "",
         f"{len(rows)} files from {len(writers)} writers ({', '.join(writers)}): **{n_opt} optimized**, "
-        f"{len(rows) - n_opt - n_to - n_int_opt} refused with one line, {n_to} timed out or stopped at the memory "
-        f"cap, {n_int_opt} internal errors "
+        f"{len(rows) - n_opt - n_to - n_int_opt} refused with one line, {n_to} timed out, stopped at the memory "
+        f"cap or killed by a signal ('exit -9'), {n_int_opt} internal errors "
         f"of optimize ({n_int} files with an internal error in any step). "
         "The files are not committed (public repositories' example and test outputs; the source column names "
         "the folder, the notes below the repositories).",
