@@ -6,8 +6,9 @@ Run: ``python -m bench.public_corpus DIR [DIR ...] --girf H.npz [--budget-optimi
 pypulseq and Pulseq test/demo outputs, MRzero, JEMRIS, a CEST library, field-camera groups); nothing of it is
 committed.  An optional ``INDEX.tsv`` in DIR (columns path, source_repo, commit, ...) names each file's origin.
 
-Each file, each step in its own subprocess with a wall-clock budget (a step over budget is killed and its row
-says "timed out after N s"; peak memory is the step's own maximum resident set, from ``wait4``):
+Each file, each step in its own subprocess with a wall-clock budget and a resident-memory cap (a step over
+either is killed and its row says "timed out after N s" or "stopped at the bench's memory cap"; peak memory
+is the step's own maximum resident set, from ``wait4``):
 
 1. read: dtoc's reader (``dtoc.seq.load``) -> kind, ADC samples, duration, peak gradient and slew, the reader's
    notes (RF use taken or detected); its one-line refusal is the row's result when it cannot read the file;
@@ -42,6 +43,8 @@ REPO = Path(__file__).resolve().parents[1]
 DOC = REPO / "docs" / "foreign.md"
 BEGIN, END = "<!-- public-corpus:begin -->", "<!-- public-corpus:end -->"
 ASSUMED_GMAX, ASSUMED_SMAX = 40.0, 170.0
+#: resident memory at which the bench stops a step (the machine is shared; --mem-cap-gb sets it), MB
+MEM_CAP_MB = 8 * 1024.0
 
 
 def _probe(path: str) -> None:
@@ -88,20 +91,43 @@ def _probe(path: str) -> None:
     )
 
 
-def run_step(argv: list[str], budget_s: float, env: dict) -> dict:
-    """Run one subprocess within ``budget_s``: {rc, out, err, wall_s, peak_mb, timed_out}."""
+def _group_rss_mb(pgid: int) -> float:
+    """Resident memory of every process of session/group ``pgid`` (Linux /proc), MB."""
+    total = 0
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            if int(fields[2]) == pgid:  # (state ppid pgrp ...): pgrp
+                total += int(fields[21]) * os.sysconf("SC_PAGE_SIZE")  # rss in pages
+        except (OSError, ValueError, IndexError):
+            continue
+    return total / 2**20
+
+
+def run_step(argv: list[str], budget_s: float, env: dict, mem_cap_mb: float | None = None) -> dict:
+    """Run one subprocess within ``budget_s`` and, where given, ``mem_cap_mb`` of resident memory (the machine is
+    shared: a step over it is killed before the kernel's OOM killer picks a neighbour):
+    {rc, out, err, wall_s, peak_mb, timed_out, mem_capped}."""
     t0 = time.perf_counter()
+    mem_cap_mb = MEM_CAP_MB if mem_cap_mb is None else mem_cap_mb
     with tempfile.TemporaryFile() as fo, tempfile.TemporaryFile() as fe:
         p = subprocess.Popen(argv, stdout=fo, stderr=fe, env=env, cwd=REPO, start_new_session=True)
-        timed_out, ru, status = False, None, 0
+        timed_out, capped, ru, status, n = False, False, None, 0, 0
         while True:
             pid, status, ru = os.wait4(p.pid, os.WNOHANG)
             if pid:
                 break
-            if time.perf_counter() - t0 > budget_s:
+            over = time.perf_counter() - t0 > budget_s
+            n += 1
+            if not over and mem_cap_mb and n % 5 == 0 and _group_rss_mb(p.pid) > mem_cap_mb:
+                capped = over = True
+            if over:
                 os.killpg(p.pid, signal.SIGKILL)
                 _, status, ru = os.wait4(p.pid, 0)
-                timed_out = True
+                timed_out = not capped
                 break
             time.sleep(0.1)
         p.returncode = os.waitstatus_to_exitcode(status)
@@ -115,7 +141,17 @@ def run_step(argv: list[str], budget_s: float, env: dict) -> dict:
         "wall_s": time.perf_counter() - t0,
         "peak_mb": ru.ru_maxrss / 1024.0 if ru is not None else None,
         "timed_out": timed_out,
+        "mem_capped": capped,
     }
+
+
+def _stopped(r: dict, budget_s: float) -> str | None:
+    """The row's words for a step the bench stopped (over its time budget or its memory cap), else None."""
+    if r.get("mem_capped"):
+        return f"stopped at the bench's memory cap ({MEM_CAP_MB / 1024:.0f} GB resident) after {r['wall_s']:.0f} s"
+    if r.get("timed_out"):
+        return f"timed out after {budget_s:.0f} s"
+    return None
 
 
 def _last_line(text: str, seq: Path | None = None) -> str:
@@ -219,8 +255,8 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
 
     r = step("read", [sys.executable, "-m", "bench.public_corpus", "--probe", str(seq)], budgets["read"])
     probe = _json_of(r["out"].strip().splitlines()[-1]) if r["out"].strip() else None
-    if r["timed_out"]:
-        row["read"] = f"timed out after {budgets['read']:.0f} s"
+    if _stopped(r, budgets["read"]):
+        row["read"] = _stopped(r, budgets["read"])
     elif probe is None:
         row["read"] = "internal error: " + _last_line(r["err"], seq)
     elif not probe["ok"]:
@@ -233,22 +269,23 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
     # check (reads the text itself: runs whatever the reader said)
     r = step("check", _dtoc("check", seq, "--gmax", g, "--smax", s, "--json", "-"), budgets["other"])
     res = _json_of(r["out"])
-    if r["timed_out"]:
-        row["check"] = f"timed out after {budgets['other']:.0f} s"
+    if _stopped(r, budgets["other"]):
+        row["check"] = _stopped(r, budgets["other"])
     elif res is not None and "violations" in res:
         rules = sorted({v.get("rule", "?") for v in res["violations"]})
         row["check"] = "ok" if not res["violations"] else f"{len(res['violations'])} violations: " + ", ".join(rules)
     else:
         row["check"] = _failure(r["rc"]) + _last_line(r["err"], seq)
     if row["read"] != "ok":
-        row["result"] = ("refused: " if "timed out" not in row["read"] else "") + row["read"]
+        stopped = "timed out" in row["read"] or "memory cap" in row["read"]
+        row["result"] = ("refused: " if not stopped else "") + row["read"]
         row["time_s"], row["peak_mb"] = total, peak
         return row
     # predict
     r = step("predict", _dtoc("predict", seq, "--girf", girf, "--json", "-"), budgets["other"])
     res = _json_of(r["out"])
-    if r["timed_out"]:
-        row["predict"] = f"timed out after {budgets['other']:.0f} s"
+    if _stopped(r, budgets["other"]):
+        row["predict"] = _stopped(r, budgets["other"])
     elif res is not None:
         kd = [v.get("max_dk") for v in (res.get("k_error") or {}).values() if v.get("max_dk") is not None]
         row["predict"] = "ok"
@@ -258,8 +295,8 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
     # simulate
     r = step("simulate", _dtoc("simulate", seq, "--girf", girf, "--json", "-", "-q"), budgets["other"])
     res = _json_of(r["out"])
-    if r["timed_out"]:
-        row["simulate"] = f"timed out after {budgets['other']:.0f} s"
+    if _stopped(r, budgets["other"]):
+        row["simulate"] = _stopped(r, budgets["other"])
     elif res is not None:
         row["simulate"] = "ok"
         row["simulate_nrmse_pct"] = res.get("nrmse_percent")
@@ -270,9 +307,9 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
     out, man = work / (seq.stem + "_opt.seq"), work / (seq.stem + "_opt.json")
     argv = _dtoc("optimize", seq, "--girf", girf, "--gmax", g, "--smax", s, "-o", out, "--json", man, "-q", "--force")
     r = step("optimize", argv, budgets["optimize"])
-    if r["timed_out"]:
+    if _stopped(r, budgets["optimize"]):
         est = [ln for ln in r["err"].splitlines() if "estimat" in ln.lower()]
-        row["result"] = f"timed out after {budgets['optimize']:.0f} s" + (f" ({est[-1].strip()})" if est else "")
+        row["result"] = _stopped(r, budgets["optimize"]) + (f" ({est[-1].strip()})" if est else "")
     elif r["rc"] in (0, 1) and man.exists():  # 1: written, but the output fails a check (docs/cli.md)
         m = json.loads(man.read_text())
         failed = (m.get("output") or {}).get("check_failed")
@@ -324,20 +361,35 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: s
     steps = ("read", "check", "predict", "simulate", "result")
     n_int = sum(any("internal error" in str(r.get(k, "")) for k in steps) for r in rows)
     n_int_opt = sum("internal error" in r["result"] for r in rows)
-    n_to = sum(r["result"].startswith("timed out") for r in rows)
+    n_to = sum(
+        r["result"].startswith(("timed out", "stopped at the bench's memory cap"))
+        or bool(re.match(r"exit -\d", r["result"]))
+        for r in rows
+    )  # (exit -N: killed by signal N, e.g. the kernel's OOM killer before the bench had a memory cap)
+    by_commit: dict[str, int] = {}
+    for r in rows:
+        by_commit[r.get("commit") or commit] = by_commit.get(r.get("commit") or commit, 0) + 1
+    commits = (
+        f"commit {commit}"
+        if len(by_commit) == 1
+        else "commits "
+        + ", ".join(f"{c} ({n} row{'s' if n > 1 else ''})" for c, n in sorted(by_commit.items(), key=lambda x: -x[1]))
+    )
     writers = sorted({_writer_short(r["writer_line"]) for r in rows})
     head = [
         BEGIN,
         "## Public corpus: files other people's software wrote",
         "",
         f"Written by `python -m bench.public_corpus DIR --girf ...`; run {when or f'{dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M} UTC'} "
-        f"on commit {commit}, {cpu}, {os.cpu_count()} cores (shared with other jobs: times are noisy), "
+        f"on {commits}, {cpu}, {os.cpu_count()} cores (shared with other jobs: times are noisy), "
         f"Python {platform.python_version()}. GIRF: {girf_name}. Budgets per file: read {budgets['read']:.0f} s, "
         f"check / predict / simulate {budgets['other']:.0f} s each, optimize {budgets['optimize']:.0f} s "
-        "(a step over its budget is killed: 'timed out').",
+        f"(a step over its budget is killed: 'timed out'), and {MEM_CAP_MB / 1024:.0f} GB resident per step (the "
+        "machine is shared: a step over it is killed, 'stopped at the bench's memory cap').",
         "",
         f"{len(rows)} files from {len(writers)} writers ({', '.join(writers)}): **{n_opt} optimized**, "
-        f"{len(rows) - n_opt - n_to - n_int_opt} refused with one line, {n_to} timed out, {n_int_opt} internal errors "
+        f"{len(rows) - n_opt - n_to - n_int_opt} refused with one line, {n_to} timed out, stopped at the memory "
+        f"cap or killed by a signal ('exit -9'), {n_int_opt} internal errors "
         f"of optimize ({n_int} files with an internal error in any step). "
         "The files are not committed (public repositories' example and test outputs; the source column names "
         "the folder, the notes below the repositories).",
@@ -350,12 +402,14 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: s
         "and NRMSE (built-in phantom; 'k-space only' where optimize ran without an image term: no image grid, or a "
         "long file solved window by window) before -> after from its manifest; *time*: "
         "all steps together; *peak*: the largest resident set of any step; *RF use*: the uses dtoc took, with the "
-        "reader's note on how. A file dtoc's reader refuses is refused by every command with the same line: "
+        "reader's note on how; *commit*: the code the row ran on. A file dtoc's reader refuses is refused by "
+        "every command with the same line: "
         "predict, simulate and optimize are then not run.",
         "",
         "| source | file | writer | version | kind | size (kB) | limits (mT/m, T/m/s) | check | predict k (dk) "
-        "| simulate NRMSE (%) | result | k before -> after (dk) | NRMSE before -> after (%) | time (s) | peak (MB) | RF use |",
-        "|" + "---|" * 16,
+        "| simulate NRMSE (%) | result | k before -> after (dk) | NRMSE before -> after (%) | time (s) | peak (MB) | RF use "
+        "| commit |",
+        "|" + "---|" * 17,
     ]
     lines = []
     for r in rows:
@@ -387,7 +441,8 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: s
         lines.append(
             f"| {src} | {Path(r['file']).name} | {_cell(_writer_short(r['writer_line']))} | {r['version']} | "
             f"{p.get('kind') or '-'} | {r['size_kb']:.0f} | {lim_s} | {_cell(r.get('check', '-'))[:140]} | {pred} | {sim} | "
-            f"{_cell(r['result'])[:220]} | {kba} | {nba} | {r['time_s']:.0f} | {r['peak_mb']:.0f} | {_rf_use(r)} |"
+            f"{_cell(r['result'])[:220]} | {kba} | {nba} | {r['time_s']:.0f} | {r['peak_mb']:.0f} | {_rf_use(r)} | "
+            f"{r.get('commit') or commit} |"
         )
     return "\n".join(head + lines) + "\n" + END + "\n"
 
@@ -412,6 +467,7 @@ def main() -> None:
     ap.add_argument("--girf", type=Path, required=True, help="GIRF .npz (dtoc girf import ...)")
     ap.add_argument("--budget-optimize", type=float, default=120.0, help="optimize wall-clock budget per file, s")
     ap.add_argument("--budget", type=float, default=60.0, help="check / predict / simulate budget per file, s")
+    ap.add_argument("--mem-cap-gb", type=float, default=MEM_CAP_MB / 1024, help="resident memory that stops a step, GB")
     ap.add_argument("--only", nargs="*", default=None, help="substrings of the paths to run")
     ap.add_argument("--rows", type=Path, default=None, help="also write the rows as JSON lines here")
     ap.add_argument("--no-write", action="store_true", help="print the table, leave docs/foreign.md alone")
@@ -421,6 +477,7 @@ def main() -> None:
     ap.add_argument("--girf-label", default=None, help="how the table names the GIRF (default: its file name)")
     a = ap.parse_args()
     budgets = {"read": a.budget, "other": a.budget, "optimize": a.budget_optimize}
+    globals()["MEM_CAP_MB"] = 1024 * a.mem_cap_gb  # (run_step's default, render's header)
     if a.render is not None:
         rows = [json.loads(ln) for ln in a.render.read_text().splitlines() if ln.strip()]
         _finish(rows, a, budgets, a.commit or "?")
@@ -436,6 +493,7 @@ def main() -> None:
         for f in files:
             row = run_file(f, a.girf.resolve(), budgets, Path(td), env)
             row["source_repo"] = (idx.get(str(f)) or {}).get("source_repo")
+            row["commit"] = commit.strip() or "?"
             rows.append(row)
             print(json.dumps({k: v for k, v in row.items() if k != "probe"}), flush=True)
             if a.rows is not None:

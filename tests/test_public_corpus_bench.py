@@ -39,3 +39,17 @@ def test_a_folder_of_files_gives_one_row_each_optimized_or_refused(tmp_path):
     # the rendered section: one table row per file between the markers
     table = p.stdout[p.stdout.index("<!-- public-corpus:begin -->") :]
     assert table.count("| mine | ") == 2 and "1 optimized" in table.replace("*", "")
+
+
+def test_a_step_over_the_memory_cap_is_stopped_and_said_so():
+    """The machine is shared: a step whose resident memory passes the cap is killed by the bench (not by the
+    kernel's OOM killer, which may pick a neighbour), and its row says so; a step under the cap runs."""
+    from bench.public_corpus import _stopped, run_step
+
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    grow = "import time; b = bytearray(400 * 2**20); b[::4096] = b'x' * len(b[::4096]); time.sleep(30)"
+    r = run_step([sys.executable, "-c", grow], 60.0, env, mem_cap_mb=150.0)
+    assert r["mem_capped"] and not r["timed_out"] and r["wall_s"] < 25
+    assert _stopped(r, 60.0).startswith("stopped at the bench's memory cap")
+    r = run_step([sys.executable, "-c", "print(1)"], 60.0, env, mem_cap_mb=150.0)
+    assert not r["mem_capped"] and r["rc"] == 0 and _stopped(r, 60.0) is None

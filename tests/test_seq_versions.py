@@ -292,7 +292,7 @@ def test_zero_duration_block_between_gradients_is_written(tmp_path):
     assert len(ir.block_edges_s) == len(ir0.block_edges_s) + 1
     assert preflight_write(ir) == (1, 5, 0)
     e = ir.edge_grad_mT_per_m.copy()
-    e[ir.free_mask[:, ::2]] += 0.05  # mT/m: the boundary samples move too
+    e[ir.free_mask[:, ::2]] += 0.05  # mT/m: the other boundary samples move too (the empty block's is held)
     new = ir.with_grad(edges_to_fine(e))
     back = read_seq(_write(tmp_path / "c.seq", seq_bytes_of(new)))
     assert np.abs(back.grad_mT_per_m - new.grad_mT_per_m).max() < 1e-5 * np.abs(new.grad_mT_per_m).max()

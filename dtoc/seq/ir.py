@@ -243,10 +243,35 @@ class SequenceIR:
         new.meta = dict(self.meta)
         return new
 
+    def grad_at(self, t_s, grad_mT_per_m: np.ndarray | None = None) -> np.ndarray:
+        """(3, len(t)) the demanded gradient at times ``t_s`` (linear between fine samples, as ``np.interp`` on
+        :attr:`t_fine_s`, held at the ends), without building the fine time axis (long files: 37M samples)."""
+        g = self.grad_mT_per_m if grad_mT_per_m is None else grad_mT_per_m
+        return interp_fine(g, np.atleast_1d(np.asarray(t_s, dtype=np.float64)), self.dt_fine_s)
+
     def block_of_fine_index(self, m: np.ndarray) -> np.ndarray:
         """Block index of fine-grid samples (a boundary sample belongs to the block it starts)."""
         t = np.asarray(m) * self.dt_fine_s
         return np.clip(np.searchsorted(self.block_edges_s, t + 1e-12, side="right") - 1, 0, len(self.block_edges_s) - 2)
+
+
+def interp_fine(g: np.ndarray, t_s: np.ndarray, dt_fine_s: float) -> np.ndarray:
+    """(..., len(t)) samples ``g`` (..., M) of the fine grid ``m * dt_fine_s`` at times ``t_s``: the numbers
+    ``np.interp(t, np.arange(M) * dt_fine_s, g)`` gives (its interval search, slope and exact-node rule, held at
+    the ends), without building the fine time axis."""
+    n = g.shape[-1]
+    t = np.asarray(t_s, dtype=np.float64)
+    if n == 1:
+        return np.repeat(g[..., :1], len(t), axis=-1)
+    j = np.clip(np.floor(t / dt_fine_s).astype(np.int64), 0, n - 2)
+    j = np.where((j > 0) & (j * dt_fine_s > t), j - 1, j)  # xp[j] <= t < xp[j + 1], as a binary search finds
+    j = np.where((j < n - 2) & ((j + 1) * dt_fine_s <= t), j + 1, j)
+    x0, x1 = j * dt_fine_s, (j + 1) * dt_fine_s
+    y0, y1 = g[..., j], g[..., j + 1]
+    out = (y1 - y0) / (x1 - x0) * (t - x0) + y0
+    out = np.where(t == x0, y0, out)
+    out = np.where(t <= 0.0, g[..., :1], out)
+    return np.where(t >= (n - 1) * dt_fine_s, g[..., -1:], out)
 
 
 def edges_to_fine(edge_grad):

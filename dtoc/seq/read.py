@@ -22,12 +22,18 @@ Default ``free_mask`` (what an optimizer may change), documented in docs/sequenc
   excitation pulse) unless ``free_slice_axis=True``;
 * never on an axis that carries no gradient at all in the sequence (e.g. z of a non-selective 2D GRE)
   unless ``free_unused_axes=True``: the paper optimizes the axes the base sequence uses;
-* never the first and last sample of the sequence (gradients start and end at zero).
+* never the first and last sample of the sequence (gradients start and end at zero);
+* never a block boundary that the two blocks do not play as one edge: next to a zero-duration block (labels
+  only: the interpreter sees its axes without gradient there), or between blocks of different rotations
+  (1.5.1 rotation extension: one played value there is two different logical values).  Such a boundary keeps
+  the base's value, so the output is continuous exactly where the base is (a free value there made jumps of
+  7-37 Hz/m in the written JEMRIS EPI and in a rotation-extension file).
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
 import os
 import tempfile
 from pathlib import Path
@@ -36,10 +42,10 @@ import numpy as np
 
 from dtoc.constants import AXES, mT_per_m_from_hz_per_m
 from dtoc.errors import InputError
-from dtoc.seq.ir import ADCEvent, RFEvent, SequenceIR
+from dtoc.seq.ir import ADCEvent, RFEvent, SequenceIR, interp_fine
 from dtoc.seq.pulseq import quiet
 from dtoc.seq.seqtext import parse_seq_text, verify_signature
-from dtoc.seq.versions import reader_text, version_str
+from dtoc.seq.versions import quaternion_matrix, reader_text, version_str
 
 _TIME_TOL = 1e-9  # s: times closer than this to a grid point are on it
 
@@ -172,6 +178,32 @@ def grad_vertices(grad, raster_s: float) -> tuple[np.ndarray, np.ndarray]:
     return t + grad.delay, v
 
 
+@contextlib.contextmanager
+def _shared_rf_decoding(seq, cache: dict):
+    """While reading blocks: pypulseq's RF decoding (``rf_from_lib_data``: the magnitude and phase shapes
+    expanded and multiplied, 2 million complex samples for a 2 s CEST pulse at 1 us) done once per
+    (amplitude, shapes, use) and shared by the events that differ only in delay, centre, frequency and phase
+    offsets (a CEST protocol's 34 saturation pulses: one decoding, not 34).  The shared arrays are only read;
+    ``cache`` lives as long as the caller's reading (never on the sequence, which writers deep-copy)."""
+    orig = type(seq).rf_from_lib_data
+
+    def shared(lib_data, use: str = ""):
+        if len(lib_data) < 10:  # (not the 1.5 library layout dtoc reads through: pypulseq's own way)
+            return orig(seq, lib_data, use)
+        key = (float(lib_data[0]), int(lib_data[1]), int(lib_data[2]), int(lib_data[3]), use)
+        if key not in cache:
+            cache[key] = orig(seq, lib_data, use)
+        rf = copy.copy(cache[key])
+        rf.center, rf.delay, rf.freq_ppm, rf.phase_ppm, rf.freq_offset, rf.phase_offset = lib_data[4:10]
+        return rf
+
+    seq.rf_from_lib_data = shared
+    try:
+        yield
+    finally:
+        del seq.rf_from_lib_data
+
+
 def from_pypulseq(
     seq,
     *,
@@ -214,8 +246,10 @@ def from_pypulseq(
     off_grid: list[str] = []
     rf_blocks: list[int] = []
     soft: list[int] = []  # blocks holding a soft delay (their duration is set on the scanner)
+    areas: dict[int, float] = {}  # id(signal) -> its area (the RF decoding is shared, _shared_rf_decoding)
+    decoded: dict = {}
     for b, key in enumerate(keys):
-        with quiet():
+        with quiet(), _shared_rf_decoding(seq, decoded):
             blk = seq.get_block(key)
         if getattr(blk, "soft_delay", None) is not None:
             soft.append(b)
@@ -247,12 +281,14 @@ def from_pypulseq(
         if getattr(blk, "rf", None) is not None:
             rf = blk.rf
             rf_blocks.append(b)
-            t_rf = np.asarray(rf.t, dtype=np.float64)
-            sig = np.asarray(rf.signal)
-            if len(t_rf) > 1 and rf.shape_dur > 0 and not np.allclose(np.diff(t_rf), seq.rf_raster_time):
-                area = np.trapezoid(sig, t_rf)
-            else:
-                area = np.sum(sig) * seq.rf_raster_time
+            if id(rf.signal) not in areas:
+                t_rf = np.asarray(rf.t, dtype=np.float64)
+                sig = np.asarray(rf.signal)
+                if len(t_rf) > 1 and rf.shape_dur > 0 and not np.allclose(np.diff(t_rf), seq.rf_raster_time):
+                    areas[id(rf.signal)] = np.trapezoid(sig, t_rf)
+                else:
+                    areas[id(rf.signal)] = np.sum(sig) * seq.rf_raster_time
+            area = areas[id(rf.signal)]
             rf_events.append(
                 RFEvent(
                     block=b,
@@ -278,15 +314,10 @@ def from_pypulseq(
                 )
             )
     # gradient at RF centres (slice selection)
-    t_fine = np.arange(n_fine) * dtf
+    at_c = interp_fine(g, np.array([r.t_center_s for r in rf_events], dtype=np.float64), dtf)
     rf_events = [
-        RFEvent(
-            **{
-                **r.__dict__,
-                "grad_at_center_mT_per_m": tuple(float(np.interp(r.t_center_s, t_fine, g[a])) for a in range(3)),
-            }
-        )
-        for r in rf_events
+        RFEvent(**{**r.__dict__, "grad_at_center_mT_per_m": tuple(float(at_c[a, i]) for a in range(3))})
+        for i, r in enumerate(rf_events)
     ]
     defs = _plain_definitions(seq.definitions)
     ir = SequenceIR(
@@ -335,6 +366,10 @@ def _axis_index(v) -> int | None:
     return None
 
 
+#: a FOV definition above this (any axis), m, is taken as millimetres (:func:`_apply_metadata`)
+FOV_MAX_M = 2.0
+
+
 def _apply_metadata(ir: SequenceIR) -> None:
     """fov_m, matrix, kind and axes from the definitions written by dtoc's builder (or guessed)."""
     d = ir.definitions
@@ -344,6 +379,14 @@ def _apply_metadata(ir: SequenceIR) -> None:
         ir.fov_m = (float(f[0]), float(f[1]), float(f[2]))
     elif isinstance(fov, float):
         ir.fov_m = (fov, fov, 0.0)
+    if ir.fov_m is not None and max(ir.fov_m) > FOV_MAX_M:
+        # the specification's FOV is in metres; Pulseq MATLAB demos of 2018-2020 and JEMRIS wrote millimetres
+        stated = " ".join(f"{x:g}" for x in ir.fov_m)
+        ir.fov_m = tuple(x * 1e-3 for x in ir.fov_m)  # type: ignore[assignment]
+        ir.meta.setdefault("notes", []).append(
+            f"FOV definition {stated}: read as millimetres (assumed: over {FOV_MAX_M:g} m is no scanner's field "
+            "of view in metres, the specification's unit; Pulseq MATLAB demos of 2018-2020 and JEMRIS wrote mm)"
+        )
     mat = d.get("MatrixSize")
     if isinstance(mat, list):
         ir.matrix = tuple(int(round(x)) for x in mat if x)
@@ -360,7 +403,8 @@ def _apply_metadata(ir: SequenceIR) -> None:
     if ir.readout_axis is None and ir.adc:
         # guess: the axis with the largest mean |g| over all ADC samples
         t = ir.adc_times_s
-        gm = np.array([np.abs(np.interp(t, ir.t_fine_s, ir.grad_mT_per_m[a])).mean() for a in range(3)])
+        at = ir.grad_at(t)
+        gm = np.array([np.abs(at[a]).mean() for a in range(3)])  # (per axis: the sums' order of np.interp's rows)
         if gm.max() > 0:
             ir.readout_axis = int(np.argmax(gm))
             ir.meta["axes_guessed"] = True
@@ -374,6 +418,26 @@ def slice_axes(ir: SequenceIR, tol_mT_per_m: float = 1e-6) -> list[int]:
             for a in range(3):
                 if abs(r.grad_at_center_mT_per_m[a]) > tol_mT_per_m:
                     out.add(a)
+    return sorted(out)
+
+
+def held_boundaries(ir: SequenceIR) -> list[int]:
+    """Fine indices of the block boundaries that are not one played edge (module doc): next to a zero-duration
+    block, or between two blocks whose rotations (1.5.1 extension) differ."""
+    m_edges = np.round(np.asarray(ir.block_edges_s) / ir.dt_fine_s).astype(np.int64)
+    rot = {int(b): quaternion_matrix(q) for b, q in (ir.meta.get("rotations") or {}).items()}
+    if not rot:  # (from_pypulseq: the reader's matrices, before read_seq records the quaternions)
+        rot = {int(b): np.asarray(r) for b, r in (getattr(ir.source, "dtoc_rotations", None) or {}).items()}
+    nb = len(m_edges) - 1
+    zero = np.flatnonzero(m_edges[1:] == m_edges[:-1])  # zero-duration blocks: both edges are one fine index
+    out = {int(m_edges[b]) for b in zero}
+    if rot:
+        mats = np.broadcast_to(np.eye(3), (nb, 3, 3)).copy()
+        for b, r in rot.items():
+            if 0 <= b < nb:
+                mats[b] = r
+        differ = np.abs(mats[1:] - mats[:-1]).max(axis=(1, 2)) > 1e-12  # boundary b + 1 between b and b + 1
+        out |= {int(m_edges[b + 1]) for b in np.flatnonzero(differ)}
     return sorted(out)
 
 
@@ -398,6 +462,8 @@ def default_free_mask(
         lo = int(np.floor(ir.block_edges_s[b] / dtf + 1e-6))
         hi = int(np.ceil(ir.block_edges_s[b + 1] / dtf - 1e-6))
         mask[:, max(lo, 0) : min(hi, n - 1) + 1] = False
+    for m in held_boundaries(ir):
+        mask[:, m] = False
     if not free_slice_axis:
         for a in slice_axes(ir):
             mask[a, :] = False

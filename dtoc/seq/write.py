@@ -387,18 +387,37 @@ def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> No
 
 def preflight_write(ir: SequenceIR, version: tuple[int, int, int] | str | None = None) -> tuple[int, int, int]:
     """Before any work: the format version an output of ``ir`` will be written in (:func:`output_version`), after
-    the base was written in it and read back with the free gradient samples of one block of each kind
+    what the version cannot state was refused by name (:func:`unwritable`, on the whole file) and the base was
+    written in it and read back with the free gradient samples of one block of each kind
     (:func:`_representative_free_edges`) moved by 0.1 % of the peak (rewritten as the export does; the others
-    written as the base's); what the version cannot state is refused by name.
+    written as the base's).
+
+    What is written and read back is the base's sub-sequence of those blocks, each with the neighbours it is
+    written against, extended to block boundaries where no gradient plays (:func:`preflight_blocks`): the same
+    libraries (every RF, gradient, ADC, label and extension event of the file), definitions and extensions,
+    so its cost is that of the distinct blocks, not of the protocol's length (a 51 s field-camera EPI:
+    seconds).  Where no such boundaries make the sub-sequence much shorter, the whole base is written; so it
+    is when the sub-sequence fails, and a refusal (its message, its block numbers) is always the whole base's.
 
     Raises:
         InputError: one line naming what the version cannot state, or why the base does not read back."""
     v = output_version(ir, version)
     check_writable(v)
-    e = ir.edge_grad_mT_per_m.copy()
-    e[_representative_free_edges(ir)] += 1e-3 * max(float(np.abs(e).max()), 1e-3)
+    reasons = unwritable(ir, v)
+    if reasons:
+        more = f" (and {len(reasons) - 1} more)" if len(reasons) > 1 else ""
+        raise InputError(f"cannot write Pulseq format {version_str(v)}: {reasons[0]}{more}")
+    rep = _representative_free_edges(ir)
+    blocks = preflight_blocks(ir, rep)
+    if blocks is not None:
+        try:
+            sub, sub_rep = _sub_ir(ir, blocks, rep)
+            _write_moved(ir, sub, sub_rep, v)
+            return v
+        except Exception:  # noqa: BLE001 - decided on the whole base below (no refusal for the cut alone)
+            pass
     try:
-        seq_bytes_of(ir.with_grad(edges_to_fine(e)), version=v)
+        _write_moved(ir, ir, rep, v)
     except InputError:
         raise
     except DtocError as err:
@@ -410,18 +429,108 @@ def preflight_write(ir: SequenceIR, version: tuple[int, int, int] | str | None =
     return v
 
 
+def _write_moved(ir: SequenceIR, target: SequenceIR, rep: np.ndarray, v: tuple[int, int, int]) -> None:
+    """``target`` (the base or its sub-sequence) with its edges ``rep`` moved by 0.1 % of the base's peak,
+    written in format ``v`` and read back (:func:`seq_bytes_of`)."""
+    e = target.edge_grad_mT_per_m.copy()
+    e[rep] += 1e-3 * max(float(np.abs(ir.edge_grad_mT_per_m).max()), 1e-3)
+    seq_bytes_of(target.with_grad(edges_to_fine(e)), version=v)
+
+
+#: the pre-flight writes the whole base unless its sub-sequence is at most this fraction of it
+PREFLIGHT_SUB_MAX_FRACTION = 0.5
+
+
+def preflight_blocks(ir: SequenceIR, rep: np.ndarray) -> list[int] | None:
+    """The blocks (0-based, in order) of the pre-flight's sub-sequence: every block with a representative free
+    edge (``rep``, (3, N+1)) and its two neighbours, each run of them extended to block boundaries where every
+    axis is at 0 or neither block has an arbitrary gradient without a time shape (so that the runs, put end to
+    end, play what they play in the base: no edge value a pre-1.5 reader infers from the neighbour changes),
+    or None when that is not much shorter than the base (then
+    the whole base is written) or when the base has no source sequence."""
+    src = ir.source
+    nb = len(ir.block_edges_s) - 1
+    if src is None or len(src.block_events) != nb or nb < 8:
+        return None
+    edges = np.round(np.asarray(ir.block_edges_s) / ir.raster_s).astype(np.int64)
+    eg = ir.edge_grad_mT_per_m
+    # a boundary where the runs may meet: every axis at 0 there, or no arbitrary gradient without a time shape on
+    # either side (the only event whose edge value a pre-1.5 text leaves to the reader to take from the neighbour)
+    lib, types = src.grad_library.data, src.grad_library.type
+    untimed = {k for k, d in lib.items() if types.get(k) == "g" and len(d) > 4 and int(d[4]) == 0}
+    inferred = np.array([any(int(x) in untimed for x in ev[2:5]) for ev in src.block_events.values()], dtype=bool)
+    quiet_edge = ~np.any(eg[:, edges] != 0, axis=0)  # (nb + 1,): boundary b (start of block b)
+    quiet_edge[1:-1] |= ~(inferred[:-1] | inferred[1:])
+    anyrep = np.any(rep, axis=0)  # (N + 1,)
+    has = np.logical_or.reduceat(anyrep, np.minimum(edges[:-1], len(anyrep) - 1))
+    has &= edges[1:] > edges[:-1]  # (reduceat of an empty block -- a last one too -- reads the next element)
+    keep = np.zeros(nb, dtype=bool)
+    for b in np.flatnonzero(has):
+        lo, hi = max(int(b) - 1, 0), min(int(b) + 1, nb - 1)
+        while lo > 0 and not quiet_edge[lo]:
+            lo -= 1
+        while hi < nb - 1 and not quiet_edge[hi + 1]:
+            hi += 1
+        keep[lo : hi + 1] = True
+    sel = np.flatnonzero(keep)
+    if sel.size == 0:
+        return None
+    span = float(np.sum(edges[sel + 1] - edges[sel]))
+    if span > PREFLIGHT_SUB_MAX_FRACTION * max(float(edges[-1]), 1.0):
+        return None
+    return [int(b) for b in sel]
+
+
+def _sub_ir(ir: SequenceIR, blocks: list[int], rep: np.ndarray) -> tuple[SequenceIR, np.ndarray]:
+    """The IR of the base's blocks ``blocks`` put end to end (same libraries, definitions, extensions, read as
+    :func:`dtoc.seq.read.read_seq` reads the base), and ``rep`` (3, N+1) mapped onto its raster edges."""
+    from collections import OrderedDict
+
+    from dtoc.seq.read import from_pypulseq
+
+    src = ir.source
+    keys = list(src.block_events.keys())
+    sub = copy.copy(src)  # the libraries are shared (read only here: the writer works on a deep copy)
+    sub.block_events = OrderedDict((i + 1, src.block_events[keys[b]]) for i, b in enumerate(blocks))
+    sub.block_durations = {i + 1: src.block_durations[keys[b]] for i, b in enumerate(blocks)}
+    sub.block_cache, sub.block_trace = {}, OrderedDict()
+    sub.next_free_block_ID = len(blocks) + 1
+    src_rot = getattr(src, "dtoc_rotations", None) or {}
+    sub.dtoc_rotations = {i: src_rot[b] for i, b in enumerate(blocks) if b in src_rot}
+    out = from_pypulseq(sub, free_unused_axes=True, rotations=sub.dtoc_rotations)
+    for k in ("format_version", "unsigned"):
+        if k in ir.meta:
+            out.meta[k] = ir.meta[k]
+    for k in ("rotations", "rf_shims"):
+        own = ir.meta.get(k) or {}
+        mapped = {i: own[b] for i, b in enumerate(blocks) if b in own}
+        if mapped:
+            out.meta[k] = mapped
+    edges = np.round(np.asarray(ir.block_edges_s) / ir.raster_s).astype(np.int64)
+    sub_edges = np.round(np.asarray(out.block_edges_s) / out.raster_s).astype(np.int64)
+    sub_rep = np.zeros((3, int(sub_edges[-1]) + 1), dtype=bool)
+    for i, b in enumerate(blocks):
+        sub_rep[:, sub_edges[i] : sub_edges[i + 1] + 1] |= rep[:, edges[b] : edges[b + 1] + 1]
+    if out.grad_mT_per_m.shape[1] != 2 * int(sub_edges[-1]) + 1:
+        raise DtocError("the pre-flight's sub-sequence does not line up with the base's blocks")
+    return out, sub_rep
+
+
 def _representative_free_edges(ir: SequenceIR) -> np.ndarray:
-    """(3, N+1) bool: the free raster edges of one block of each kind -- the same events and duration between
-    neighbours of the same kinds (what the writer's result depends on) -- so that the pre-flight rewrites a
-    few blocks of a long protocol, not thousands of identical readouts."""
+    """(3, N+1) bool: the free raster edges of one block of each kind -- the same duration and events up to
+    their amplitudes and phases (:func:`_block_kind`) between neighbours of the same kinds: what the writer's
+    result depends on -- so that the pre-flight rewrites a few blocks of a long protocol, not thousands of
+    readouts that differ only in their phase-encoding amplitude or RF-spoiling phase."""
     free = ir.free_mask[:, ::2]
     src = ir.source
     edges = np.round(np.asarray(ir.block_edges_s) / ir.raster_s).astype(np.int64)
     if src is None or len(src.block_events) != len(edges) - 1:
         return free
+    rot = {int(b): tuple(float(x) for x in q) for b, q in (ir.meta.get("rotations") or {}).items()}
+    memo: dict = {}
     kinds = [
-        (round(float(src.block_durations[k]) / ir.raster_s), tuple(int(x) for x in src.block_events[k][1:6]))
-        for k in src.block_events
+        (round(float(src.block_durations[k]) / ir.raster_s), _block_kind(src, src.block_events[k], memo), rot.get(b))
+        for b, k in enumerate(src.block_events)
     ]
     out = np.zeros_like(free)
     seen: set = set()
@@ -431,6 +540,57 @@ def _representative_free_edges(ir: SequenceIR) -> np.ndarray:
             seen.add(ctx)
             out[:, edges[b] : edges[b + 1] + 1] = free[:, edges[b] : edges[b + 1] + 1]
     return out
+
+
+def _block_kind(src, ev, memo: dict) -> tuple:
+    """A block's events up to amplitudes and phases: RF shapes and delay; per axis a trapezoid (delayed or not:
+    it starts and ends at 0, its ramps are written as any vertex list), or an arbitrary gradient's shapes, delay
+    and whether it starts/ends at 0; ADC samples, dwell and delay; the extension list's types (a label's value
+    is not the writer's business; a trigger is kept as it is)."""
+
+    def lib_kind(name: str, i: int):
+        if not i:
+            return 0
+        key = (name, i)
+        if key not in memo:
+            lib = getattr(src, name)
+            d = tuple(float(x) for x in lib.data[i])
+            if name == "rf_library":
+                memo[key] = ("rf", d[1:4], d[5], lib.type.get(i))
+            elif name == "adc_library":
+                memo[key] = ("adc", d[:3])
+            elif lib.type.get(i) == "t":  # (starts and ends at 0: its timing is rewritten as any vertex list)
+                memo[key] = ("t", d[4] > 0.0)
+            else:  # (amp, first, last, shape, time, delay)
+                memo[key] = ("g", d[3:6], d[1] == 0.0, d[2] == 0.0)
+        return memo[key]
+
+    e = [int(x) for x in ev]
+    return (
+        lib_kind("rf_library", e[1]),
+        *(lib_kind("grad_library", i) for i in e[2:5]),
+        lib_kind("adc_library", e[5]),
+        *(_extension_kinds(src, i, memo) for i in e[6:]),
+    )
+
+
+def _extension_kinds(src, ext_id: int, memo: dict) -> tuple:
+    """The types of a block's extension list (labels: their type, not their values; other extensions: the
+    event itself)."""
+    if not ext_id:
+        return ()
+    key = ("ext", ext_id)
+    if key not in memo:
+        lib = src.extensions_library.data
+        names = dict(zip(getattr(src, "extension_numeric_idx", []), getattr(src, "extension_string_idx", [])))
+        out, seen, i = [], set(), ext_id
+        while i and i in lib and i not in seen:
+            seen.add(i)
+            t, ref, nxt = (int(x) for x in lib[i][:3])
+            out.append(names.get(t, t) if names.get(t) in ("LABELSET", "LABELINC") else (names.get(t, t), ref))
+            i = nxt
+        memo[key] = tuple(out)
+    return memo[key]
 
 
 def write_seq(ir: SequenceIR, path: str | Path, force: bool = False, version=None) -> Path:
