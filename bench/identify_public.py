@@ -275,8 +275,10 @@ def table(rows: list[dict]) -> str:
         "|---|---|---|---|---|---|",
     ]
     for x in rows:
+        window = f"the first {x['window_ms']:.3g} ms" if x.get("window_ms") else "the whole records"
         out.append(
-            f"| {x['name']}: {CASES[x['name']][0]} | {x['channel']}: {x['before']:.2f} -> {x['after']:.2f} "
+            f"| {x['name']}: {CASES[x['name']][0]}; identified on {window} "
+            f"| {x['channel']}: {x['before']:.2f} -> {x['after']:.2f} "
             f"(noise {x['noise']:.3g}) | {x['adopted']} | {x['rejected']} | {' / '.join(x['notes']) or 'nothing'} "
             f"| {x['seconds']:.0f} ({x['load'][0]:.1f}-{x['load'][1]:.1f}, {x['date']}) |"
         )
@@ -295,6 +297,7 @@ def main(argv=None) -> None:
     p.add_argument("--without", default="", help="comma-separated candidate kinds left out (a diagnostic run)")
     p.add_argument("--save-rows", type=Path, help="write this run's rows as JSON (to compose a table later)")
     p.add_argument("--rows", type=Path, nargs="+", help="compose the table from saved rows instead of running")
+    p.add_argument("--max-ms", type=float, help="use only the first MAX_MS ms of every record (stated in the row)")
     a = p.parse_args(argv)
     without = frozenset(x for x in a.without.split(",") if x)
     if a.write_docs and without:
@@ -319,8 +322,20 @@ def main(argv=None) -> None:
             print(f"{name}: skipped ({folder} absent)")
             continue
         data = loader(folder)
+        if a.max_ms:
+            n = int(round(a.max_ms * 1e-3 / data.dt_s))
+            data = IdentData(
+                dt_s=data.dt_s,
+                g=data.g[:, :, :n],
+                k=None if data.k is None else data.k[:, :, :n],
+                G=None if data.G is None else data.G[:, :, :n],
+                sigma=data.sigma,
+                labels=data.labels,
+                axes_measured=data.axes_measured,
+            )
         load0 = os.getloadavg()[0]
         x = run_case(name, data, without)
+        x["window_ms"] = data.g.shape[-1] * data.dt_s * 1e3 if a.max_ms else None
         x["load"] = (load0, os.getloadavg()[0])
         x["date"] = datetime.date.today().isoformat()
         rows.append(x)
