@@ -26,7 +26,7 @@ measured k like a gain of the driven axis: identify cannot tell the two apart fr
 Check of this time axis (issue 37): the toolbox itself pairs input sample i with the output difference
 k[i+1] - k[i] and keeps only |H| (``get_GIRF.m``: ``H.Hx_w = abs(...)``), so it fixes no time origin; on
 the converted data the first moment of the measured gradient (t_end k_end - integral of k, over k_end; the
-low-frequency group delay of any linear chain) lies +0.65 us (x) and +0.0 us (y) after the demand's, the
+low-frequency group delay of any linear chain) lies +0.64 us (x) and +0.07 us (y) after the demand's, the
 same for all 12 durations and 3 repeats (``centroid_shift``).  A timing offset in the conversion would
 shift it by the offset (half a raster = 5 us for the other Pulseq sample convention): there is none beyond
 what the data measure.
@@ -360,8 +360,12 @@ def main(argv=None) -> None:
             "Declared model: ideal hardware; identify with its defaults (see the module docstring of "
             "`bench/identify_public.py` for the data and their conversion). Last column: wall seconds of "
             "the identification, the machine's load average at its start and end, and the date of the run "
-            "(the rows may come from separate runs: `--save-rows`, `--rows`).\n\n" + table(rows) + "\n",
-            "python -m bench.identify_public --data DIR --write-docs",
+            "(the rows may come from separate runs: `--save-rows`, `--rows`); identify runs with 1 torch thread "
+            "(its default), whatever the line above says of the process that wrote this section.\n\n"
+            + table(rows)
+            + "\n",
+            "python -m bench.identify_public --data DIR --write-docs` (or per data set `--only NAME --save-rows "
+            "F.json`, then `--rows F.json ... --write-docs",
             doc=DOC.parent / "identify.md",
         )
 
