@@ -44,8 +44,9 @@ CORPUS = [  # name, description, writer call
     ("multislice_labels", "3-slice GRE 16x16, LIN/SLC labels, soft delay", "gre_multislice_labels()"),
     ("mprage", "3D MPRAGE-like 32x32x8, inversion + TI, 8 shots of 1 s (windowed)", "mprage(nz=8)"),
 ]
-#: members too long for the default test job (tests/test_foreign_corpus.py marks them slow)
-SLOW = {"mprage"}
+#: members too long for the default test job (tests/test_foreign_corpus.py marks them slow): 49-63 s each on
+#: 2 cores (radial, gre3d, ute; non-Cartesian and 3D paths keep fast tests in test_ndft.py and test_sim_3d.py)
+SLOW = {"mprage", "radial", "gre3d", "ute"}
 #: extra optimize/simulate options per member (an image term on a 3D phantom is asked for, never assumed)
 EXTRA = {"gre3d": ("--phantom", "brain3d")}
 
