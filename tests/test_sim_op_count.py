@@ -22,11 +22,14 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
+import dtoc
+
 sys.path.insert(0, str(Path(__file__).parent))
 from opt_synth import eddy_model  # noqa: E402
 
 SEQ = Path(__file__).resolve().parents[1] / "sequences"
 _SYNC = ("aten._local_scalar_dense", "aten.item")
+_PKG = Path(dtoc.__file__).resolve().parent
 
 
 class _Count(TorchDispatchMode):
@@ -40,11 +43,15 @@ class _Count(TorchDispatchMode):
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         self.n += 1
         if str(func).startswith(_SYNC):
+            # the innermost frame in the dtoc package itself (not merely under a folder named dtoc: a
+            # clone named dtoc holds .venv/.../torch too)
             f = sys._getframe(1)
-            while f is not None and "/dtoc/" not in f.f_code.co_filename.replace("\\", "/"):
+            while f is not None and not Path(f.f_code.co_filename).resolve().is_relative_to(_PKG):
                 f = f.f_back
             where = (
-                "?" if f is None else f"{f.f_code.co_filename.replace(chr(92), '/').split('/dtoc/')[-1]}:{f.f_lineno}"
+                "?"
+                if f is None
+                else f"{Path(f.f_code.co_filename).resolve().relative_to(_PKG).as_posix()}:{f.f_lineno}"
             )
             self.syncs[where] += 1
         return func(*args, **(kwargs or {}))
