@@ -7,6 +7,7 @@ import re
 
 import numpy as np
 import pytest
+import torch
 
 from dtoc.hardware.model import HardwareModel, girf_effect
 from dtoc.identify.search import identify
@@ -42,3 +43,47 @@ def test_slew_limit_that_mimics_a_linear_lowpass_is_dropped_on_retest():
     assert m is not None, lines[0]
     with_slew, without = float(m.group(1)), float(m.group(2))
     assert without < with_slew
+
+
+class _Eff(torch.nn.Module):
+    def __init__(self, kind: str, axis: str | None):
+        super().__init__()
+        self.kind, self.axis, self.input_axis = kind, axis, None
+        self.p = torch.nn.Parameter(torch.zeros(()))
+
+
+class _Found:
+    def __init__(self, kind: str, axis: str | None):
+        self.effect = _Eff(kind, axis)
+
+
+class _Twin:
+    """Two found effects whose parameters are correlated -0.99; ``refit`` (without one of them) returns a
+    given chi-square."""
+
+    def __init__(self, chi2_without: float):
+        self.found = [_Found("delay", "z"), _Found("gain", "z")]
+        self.chi2_without = chi2_without
+
+    def refit(self, max_iter: int = 10) -> dict:
+        return {"chi2": self.chi2_without}
+
+
+@pytest.mark.parametrize("chi2_without", [1000.0 + 3.0, 1000.0 - 2040973.9])
+def test_degenerate_pair_note_never_prints_a_negative_rise(chi2_without):
+    """Removing one of a degenerate pair: a small rise is printed as a rise; a fall (the joint fit had stalled,
+    the Bruker run printed "rises by only -2040973.9") is said as such."""
+    from dtoc.identify.separability import redundancy_problems
+
+    fit = {"free": [(0, "seconds", None), (1, "factor", None)], "cov_u": np.array([[1.0, -0.99], [-0.99, 1.0]])}
+    fit["chi2"] = 1000.0
+    twin = _Twin(chi2_without)
+    out = redundancy_problems(twin, fit, threshold=10.0, n_samples=1000)  # type: ignore[arg-type]
+    assert len(out) == 1
+    text = out[0][1]
+    assert "rises by only -" not in text
+    if chi2_without > fit["chi2"]:
+        assert "rises by only 3.0" in text, text
+    else:
+        assert "fits better (chi-square lower by 2040973.9)" in text and "stalled" in text, text
+    assert len(twin.found) == 2  # the twin is left as it was
