@@ -478,6 +478,10 @@ def _search_and_gate(
 #: Each adopted one costs one more full search + gate without it; no further re-test inside that search.
 RETEST_KINDS = ("slew_limit",)
 
+#: Relative difference of the held-out scores below which the report says "as well" rather than "better" (the
+#: model without the effect is still the one kept: it is simpler and not worse).
+RETEST_SAME = 0.01
+
 
 def _retest_exclusions(e: Any) -> set:
     """Candidate names a re-test of the found effect ``e`` leaves out: for a slew limit every limit that acts
@@ -521,9 +525,11 @@ def _retest(first: _Run, declared, data: IdentData, sigma: dict, noise_first: di
         a, b = _ratios(best, sigma0, channels), _ratios(alt, sigma0, channels)
         cmp = ", ".join(f"{c} {a[c]:.2f}x -> {b[c]:.2f}x" for c in channels)
         found_alt = ", ".join(effect_name(x.effect) for x in alt.twin.found) or "nothing"
-        if _heldout_score(alt, sigma0, channels) < _heldout_score(best, sigma0, channels):
+        s_best, s_alt = _heldout_score(best, sigma0, channels), _heldout_score(alt, sigma0, channels)
+        if s_alt < s_best:
+            how = "better" if s_alt < (1.0 - RETEST_SAME) * s_best else "as well (within 1 %)"
             reason = (
-                f"{name} ({ps}) dropped on re-test: a model without it explains the held-out data better: "
+                f"{name} ({ps}) dropped on re-test: a model without it explains the held-out data {how}: "
                 f"{cmp} the noise floor (a non-linear effect re-tested against the rest of the "
                 "library; the model without it found " + found_alt + ")"
             )
