@@ -13,6 +13,8 @@ Algorithm (forward stepwise selection with a held-out information criterion):
    A measurement the declared model already explains gets nothing: spurious candidates gain ~chi2(p) in
    held-out chi-square, far below the ln(n) penalty.
 4. Held-out error of the final model: every fold refitted on its training samples, scored on its test samples.
+   Then every adopted effect of a kind in :data:`RETEST_KINDS` (the slew limit) is re-tested: the whole search
+   and gate again without it; the final model with the lower held-out error is kept (:func:`_retest`).
 5. ``explained`` = for every measured channel the held-out RMS residual is <= ``explained_ratio`` (1.2) x
    the noise floor AND no significant narrow-band structure is left (:func:`diagnostics.spectral_peaks`).
 """
