@@ -13,6 +13,8 @@ Algorithm (forward stepwise selection with a held-out information criterion):
    A measurement the declared model already explains gets nothing: spurious candidates gain ~chi2(p) in
    held-out chi-square, far below the ln(n) penalty.
 4. Held-out error of the final model: every fold refitted on its training samples, scored on its test samples.
+   Then every adopted effect of a kind in :data:`RETEST_KINDS` (the slew limit) is re-tested: the whole search
+   and gate again without it; the final model with the lower held-out error is kept (:func:`_retest`).
 5. ``explained`` = for every measured channel the held-out RMS residual is <= ``explained_ratio`` (1.2) x
    the noise floor AND no significant narrow-band structure is left (:func:`diagnostics.spectral_peaks`).
 """
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -186,12 +189,174 @@ def _identify(
     twin.sigma = sigma
     ws = Workspace(data, sigma, folds, pred0)
     res_before = ws.res
-    history = []
     eddy_cache: dict = {}  # eddy columns are driven by the demanded g: the same in every round
     heldout_before = diagnostics.rmse(data, res_before)
     noise_first = dict(noise)
+
+    def run(twin_: Twin, excluded: set) -> _Run:
+        return _search_and_gate(
+            twin_,
+            data,
+            sigma,
+            folds,
+            noise_first,
+            heldout_before,
+            excluded,
+            kinds=kinds,
+            max_effects=max_effects,
+            threshold=threshold,
+            say=say,
+            eddy_cache=eddy_cache,
+        )
+
+    best_run = run(twin, set())
+    best_run = _retest(best_run, declared, data, sigma, noise_first, run, say)
+    twin, history, rejected = best_run.twin, best_run.history, best_run.rejected
+    noise, res_after = best_run.noise, best_run.res_after
+    heldout_after: Any = best_run.heldout_after
+    sigma = {c: noise[c].sigma for c in noise}
+    twin.sigma = sigma
+    before = diagnostics.rmse(data, res_before)
+    after = diagnostics.rmse(data, res_after)
+    # Explained?
+    remaining = []
+    energy_desc: dict = {}
+    explained = True
+    for c in data.channels():
+        ratio = heldout_after[c] / sigma[c]
+        if ratio > explained_ratio:
+            explained = False
+            worst = ""
+            if c != "b0":
+                per = {ax: heldout_after.get(f"{c}_{ax}") for ax in AXES if heldout_after.get(f"{c}_{ax}") is not None}
+                if per:
+                    ax = max(per, key=per.get)
+                    worst = f" (worst axis {ax}: {per[ax] / sigma[c]:.2f}x)"
+            remaining.append(f"held-out {c} residual is {ratio:.2f}x the noise floor{worst}")
+        z = res_after[c] / sigma[c]
+        desc = energy.describe(data, c, res_after[c], sigma[c])
+        if desc is not None:
+            energy_desc[c] = desc
+        during = desc is not None and desc["windows"].get("during demanded gradients", 0.0) >= 0.5
+        for pk in diagnostics.spectral_peaks(data, c, z):
+            explained = False
+            if pk["narrow"]:
+                remaining.append(
+                    f"narrow-band {c} residual near {pk['f_hz'] / 1e3:.2f} kHz ({pk['ratio']:.1f}x the broadband level)"
+                )
+            else:
+                remaining.append(
+                    f"broadband {c} residual from {pk['f_lo_hz'] / 1e3:.2f} to {pk['f_hi_hz'] / 1e3:.2f} kHz "
+                    f"(up to {pk['ratio']:.1f}x the high-frequency level, peak near {pk['f_hz'] / 1e3:.2f} "
+                    f"kHz in 256-sample segments): "
+                    + ("structure that follows the waveforms, " if during else "")
+                    + "not a resonance"
+                )
+        if desc is not None:
+            remaining.append(energy.note(c, desc, UNITS[c]))
+    gres = diagnostics.gradient_residual(data, res_after, sigma)
+    if gres is not None:
+        rG, sG, how = gres
+        zG = rG / sG
+        for what in ("slew", "amplitude"):
+            note = diagnostics.dependence_note(data, zG, what)
+            if note:
+                remaining.append(note + how)
+                explained = False
+        note = diagnostics.direction_note(data, rG, sG, quiet_samples(data.g))
+        if note:
+            remaining.append(note)
+            explained = False
+    for fo in twin.found:
+        if fo.effect.kind == "slew_limit":
+            remaining.append(
+                "a non-linear slew-rate limit was modelled"
+                + (f" on {fo.effect.axis}" if fo.effect.axis else "")
+                + ": the amplifier cannot follow the demanded slew"
+            )
+        if fo.effect.kind == "time_base":
+            ppm = float(fo.effect.ppm.detach())
+            remaining.append(
+                f"the measurement's time base is off by {ppm:+.2f} ppm (a delay growing linearly with time: "
+                f"{-ppm * 1e-6 * data.N * data.dt_s * 1e6:+.3f} us at the end of the record): a clock error of the "
+                "measuring device, applied to the measurement, not written into the hardware model"
+            )
+        if fo.effect.kind == "resonance":
+            e = fo.effect
+            remaining.append(
+                f"a damped mechanical resonance was modelled on {e.axis or 'all axes'}: f0 {float(e.f0_hz.detach()):.1f}"
+                f" Hz, Q {float(e.q.detach()):.1f}, amplitude {float(e.amplitude.detach()):.3g} per mT/m of ramp"
+            )
+        if fo.effect.kind == "lti":
+            e = fo.effect
+            band = excited_band_hz(data.g[:, e._ax][data.axes_measured[:, e._ax]], data.dt_s)
+            n = lti_features(e.taps.detach().numpy().reshape(-1), int(round(e.t0_s / e.dt_s)), e.dt_s, band)
+            fo.notes = {**fo.notes, "features": n}
+            remaining.append(
+                f"lti correction on {fo.effect.axis}: {lti_physical_text(n)}; largest |dH| {n['peak_abs']:.3f} near "
+                f"{n['peak_hz'] / 1e3:.2f} kHz within the excited band 0-{band / 1e3:.1f} kHz, DC change "
+                f"{n['dc_change']:+.4f} (a linear response no parametric effect explained)"
+            )
+    remaining.extend(best_run.notes)
+    if len(twin.found) >= max_effects:
+        remaining.append(f"stopped at the cap of {max_effects} added effects")
+    adopted_names = {effect_name(f.effect) for f in twin.found}
+    for r in rejected:
+        remaining.append(rejected_line(r, adopted_names))
+    say("done")
+    return IdentifyResult(
+        data,
+        twin,
+        noise,
+        folds,
+        before,
+        after,
+        heldout_before,
+        heldout_after,
+        explained,
+        remaining,
+        res_before,
+        res_after,
+        history,
+        rejected,
+        energy_desc,
+    )
+
+
+@dataclass
+class _Run:
+    """One forward search + adoption gate: the final twin and what the report needs of it."""
+
+    twin: Twin
+    history: list
+    rejected: list
+    noise: dict
+    res_after: dict
+    heldout_after: dict
+    excluded: set  # candidate names excluded from the start (a re-test run)
+    notes: list = field(default_factory=list)  # re-test outcomes, for the report
+
+
+def _search_and_gate(
+    twin: Twin,
+    data: IdentData,
+    sigma: dict,
+    folds: Folds,
+    noise_first: dict,
+    heldout_before: dict,
+    excluded: set,
+    *,
+    kinds,
+    max_effects: int,
+    threshold: float,
+    say,
+    eddy_cache: dict,
+) -> _Run:
+    """Steps 2-4 of the module docstring from ``twin`` (the declared model, nothing found yet), with the
+    candidates named in ``excluded`` never screened; then the adoption gate (:mod:`dtoc.identify.adopt`)."""
+    history: list = []
     rejected: list[dict] = []
-    gate_excluded: set = set()
+    gate_excluded = set(excluded)
     for _attempt in range(GATE_ATTEMPTS):
         # Forward stepwise search from the current (possibly pruned) model.
         ws = Workspace(data, sigma, folds, twin.predict())
@@ -307,112 +472,91 @@ def _identify(
             twin.found.pop(i)
         if len(rejected) == n_rejected:
             break
-    sigma = {c: noise[c].sigma for c in noise}
-    twin.sigma = sigma
-    before = diagnostics.rmse(data, res_before)
-    after = diagnostics.rmse(data, res_after)
-    # Explained?
-    remaining = []
-    energy_desc: dict = {}
-    explained = True
-    for c in data.channels():
-        ratio = heldout_after[c] / sigma[c]
-        if ratio > explained_ratio:
-            explained = False
-            worst = ""
-            if c != "b0":
-                per = {ax: heldout_after.get(f"{c}_{ax}") for ax in AXES if heldout_after.get(f"{c}_{ax}") is not None}
-                if per:
-                    ax = max(per, key=per.get)
-                    worst = f" (worst axis {ax}: {per[ax] / sigma[c]:.2f}x)"
-            remaining.append(f"held-out {c} residual is {ratio:.2f}x the noise floor{worst}")
-        z = res_after[c] / sigma[c]
-        desc = energy.describe(data, c, res_after[c], sigma[c])
-        if desc is not None:
-            energy_desc[c] = desc
-        during = desc is not None and desc["windows"].get("during demanded gradients", 0.0) >= 0.5
-        for pk in diagnostics.spectral_peaks(data, c, z):
-            explained = False
-            if pk["narrow"]:
-                remaining.append(
-                    f"narrow-band {c} residual near {pk['f_hz'] / 1e3:.2f} kHz ({pk['ratio']:.1f}x the broadband level)"
-                )
-            else:
-                remaining.append(
-                    f"broadband {c} residual from {pk['f_lo_hz'] / 1e3:.2f} to {pk['f_hi_hz'] / 1e3:.2f} kHz "
-                    f"(up to {pk['ratio']:.1f}x the high-frequency level, peak near {pk['f_hz'] / 1e3:.2f} "
-                    f"kHz in 256-sample segments): "
-                    + ("structure that follows the waveforms, " if during else "")
-                    + "not a resonance"
-                )
-        if desc is not None:
-            remaining.append(energy.note(c, desc, UNITS[c]))
-    gres = diagnostics.gradient_residual(data, res_after, sigma)
-    if gres is not None:
-        rG, sG, how = gres
-        zG = rG / sG
-        for what in ("slew", "amplitude"):
-            note = diagnostics.dependence_note(data, zG, what)
-            if note:
-                remaining.append(note + how)
-                explained = False
-        note = diagnostics.direction_note(data, rG, sG, quiet_samples(data.g))
-        if note:
-            remaining.append(note)
-            explained = False
-    for fo in twin.found:
-        if fo.effect.kind == "slew_limit":
-            remaining.append(
-                "a non-linear slew-rate limit was modelled"
-                + (f" on {fo.effect.axis}" if fo.effect.axis else "")
-                + ": the amplifier cannot follow the demanded slew"
+    return _Run(twin, history, rejected, noise, res_after, heldout_after, set(excluded))
+
+
+#: Kinds re-tested once the forward search and the gate are done (:func:`_retest`): non-linear effects that
+#: can mimic a linear one in an early round (explain the most then) and hold the search in their optimum.
+#: Each adopted one costs one more full search + gate without it; no further re-test inside that search.
+RETEST_KINDS = ("slew_limit",)
+
+#: Relative difference of the held-out scores below which the report says "as well" rather than "better" (the
+#: model without the effect is still the one kept: it is simpler and not worse).
+RETEST_SAME = 0.01
+
+
+def _retest_exclusions(e: Any) -> set:
+    """Candidate names a re-test of the found effect ``e`` leaves out: for a slew limit every limit that acts
+    on its axes (a shared limit: all of them; a per-axis one: itself and the shared one), so that the same
+    non-linearity cannot come back under another axis label; otherwise the effect's own name."""
+    if e.kind == "slew_limit":
+        if e.axis is None:
+            return {"slew_limit"} | {f"slew_limit[{a}]" for a in AXES}
+        return {"slew_limit", f"slew_limit[{e.axis}]"}
+    return {effect_name(e)}
+
+
+def _heldout_score(r: _Run, sigma0: dict, channels) -> float:
+    """Held-out error of a run's final model as the sum over channels of (held-out RMS / noise floor)^2, with
+    the noise floors estimated on the declared model's residual (the same for every run)."""
+    return float(sum(v**2 for v in _ratios(r, sigma0, channels).values()))
+
+
+def _ratios(r: _Run, sigma0: dict, channels) -> dict:
+    return {c: float(r.heldout_after[c]) / sigma0[c] for c in channels}
+
+
+def _retest(first: _Run, declared, data: IdentData, sigma: dict, noise_first: dict, run, say) -> _Run:
+    """Re-test every adopted effect of a kind in :data:`RETEST_KINDS`: the whole search (same candidates, same
+    adoption rules) again from the declared model with the effect excluded (:func:`_retest_exclusions`); the
+    final model with the lower held-out error (:func:`_heldout_score`) is kept, ties to the first.  The outcome
+    is reported either way: a dropped effect as a rejection with both held-out errors, a kept one as a note."""
+    channels = data.channels()
+    sigma0 = {c: noise_first[c].sigma for c in channels}
+    best = first
+    for f in list(first.twin.found):
+        e: Any = f.effect
+        if e.kind not in RETEST_KINDS:
+            continue
+        name = effect_name(e)
+        ps = ", ".join(f"{k} {v:.4g}" for k, v in e.params_dict().items() if isinstance(v, float))
+        say(f"re-test: the search again without {name}")
+        twin = Twin(declared, data, {c: 1.0 for c in channels})
+        twin.sigma = sigma
+        alt = run(twin, best.excluded | _retest_exclusions(e))
+        a, b = _ratios(best, sigma0, channels), _ratios(alt, sigma0, channels)
+        cmp = ", ".join(f"{c} {a[c]:.2f}x -> {b[c]:.2f}x" for c in channels)
+        found_alt = ", ".join(effect_name(x.effect) for x in alt.twin.found) or "nothing"
+        s_best, s_alt = _heldout_score(best, sigma0, channels), _heldout_score(alt, sigma0, channels)
+        if s_alt < s_best:
+            how = "better" if s_alt < (1.0 - RETEST_SAME) * s_best else "as well (within 1 %)"
+            reason = (
+                f"{name} ({ps}) dropped on re-test: a model without it explains the held-out data {how}: "
+                f"{cmp} the noise floor (a non-linear effect re-tested against the rest of the "
+                "library; the model without it found " + found_alt + ")"
             )
-        if fo.effect.kind == "time_base":
-            ppm = float(fo.effect.ppm.detach())
-            remaining.append(
-                f"the measurement's time base is off by {ppm:+.2f} ppm (a delay growing linearly with time: "
-                f"{-ppm * 1e-6 * data.N * data.dt_s * 1e6:+.3f} us at the end of the record): a clock error of the "
-                "measuring device, applied to the measurement, not written into the hardware model"
+            say(f"  {reason}")
+            alt.rejected.append(
+                {
+                    "effect": name,
+                    "kind": e.kind,
+                    "axis": e.axis,
+                    "input_axis": e.input_axis,
+                    "params": e.params_dict(),
+                    "score": float(f.score),
+                    "reasons": [reason],
+                }
             )
-        if fo.effect.kind == "resonance":
-            e = fo.effect
-            remaining.append(
-                f"a damped mechanical resonance was modelled on {e.axis or 'all axes'}: f0 {float(e.f0_hz.detach()):.1f}"
-                f" Hz, Q {float(e.q.detach()):.1f}, amplitude {float(e.amplitude.detach()):.3g} per mT/m of ramp"
+            alt.notes = best.notes + alt.notes
+            best = alt
+        else:
+            note = (
+                f"{name} re-tested and kept: the search without it explains the held-out data no better "
+                f"({cmp} the noise floor; it found {found_alt})"
             )
-        if fo.effect.kind == "lti":
-            e = fo.effect
-            band = excited_band_hz(data.g[:, e._ax][data.axes_measured[:, e._ax]], data.dt_s)
-            n = lti_features(e.taps.detach().numpy().reshape(-1), int(round(e.t0_s / e.dt_s)), e.dt_s, band)
-            fo.notes = {**fo.notes, "features": n}
-            remaining.append(
-                f"lti correction on {fo.effect.axis}: {lti_physical_text(n)}; largest |dH| {n['peak_abs']:.3f} near "
-                f"{n['peak_hz'] / 1e3:.2f} kHz within the excited band 0-{band / 1e3:.1f} kHz, DC change "
-                f"{n['dc_change']:+.4f} (a linear response no parametric effect explained)"
-            )
-    if len(twin.found) >= max_effects:
-        remaining.append(f"stopped at the cap of {max_effects} added effects")
-    adopted_names = {effect_name(f.effect) for f in twin.found}
-    for r in rejected:
-        remaining.append(rejected_line(r, adopted_names))
-    say("done")
-    return IdentifyResult(
-        data,
-        twin,
-        noise,
-        folds,
-        before,
-        after,
-        heldout_before,
-        heldout_after,
-        explained,
-        remaining,
-        res_before,
-        res_after,
-        history,
-        rejected,
-        energy_desc,
-    )
+            say(f"  {note}")
+            best.notes.append(note)
+    return best
 
 
 #: Units of the channels, for the notes.

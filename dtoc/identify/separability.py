@@ -214,12 +214,18 @@ def redundancy_problems(twin: Twin, fit: dict, threshold: float, n_samples: int)
     if best is None:
         return []
     _, i, j, r, d, p = best
+    if d < 0:  # the reduced model fits better: the joint fit with it had stalled (the gate refits without it)
+        change = (
+            f"without it the refitted model fits better (chi-square lower by {-d:.1f}): the joint fit with it had "
+            "stalled; the rest is refitted from the reduced model"
+        )
+    else:
+        change = f"without it the chi-square rises by only {d:.1f} (<= {threshold:g} + {p} ln n)"
     return [
         (
             i,
             f"{effect_name(twin.found[i].effect)}: not needed beside {effect_name(twin.found[j].effect)}: the two "
-            f"are nearly degenerate on these waveforms (parameter correlation {r:+.2f}); without it the "
-            f"chi-square rises by only {d:.1f} (<= {threshold:g} + {p} ln n)",
+            f"are nearly degenerate on these waveforms (parameter correlation {r:+.2f}); {change}",
         )
     ]
 
