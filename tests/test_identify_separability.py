@@ -217,6 +217,26 @@ def test_energy_description_time_window_and_band():
     assert "after the last demanded gradient" in energy.note("G", desc, "mT/m")
 
 
+def test_energy_windows_below_the_noise_floor_are_named_so_the_shares_add_up():
+    """Quieter than the stated noise floor during the gradients (0.002 against 0.01) and a 300 Hz wave after
+    them: the window shares of the excess sum to 100 %, the after-window's exceeds 100 %, and the line names
+    the negative window instead of printing shares that seem to add to more than 100 %."""
+    N, M = 4000, 2
+    g = np.zeros((M, 3, N))
+    g[:, 0, 100:1500] = 10.0
+    rng = np.random.default_rng(1)
+    res = 0.01 * rng.standard_normal((M, 3, N))
+    res[:, :, 100:1500] *= 0.2
+    t = np.arange(N) * DT
+    res[:, 1, 2000:] += 0.05 * np.sin(2 * np.pi * 300 * t[2000:])
+    d = IdentData(dt_s=DT, g=g, sigma={}, G=g + res)
+    desc = energy.describe(d, "G", res, 0.01)
+    assert abs(sum(desc["windows"].values()) - 1.0) < 1e-9
+    assert desc["windows"]["during demanded gradients"] < -0.1
+    line = energy.note("G", desc, "mT/m")
+    assert re.search(r"-\d+ % during demanded gradients \(less energy than the noise floor predicts", line), line
+
+
 def test_rejected_line_never_contradicts_an_adopted_effect():
     r = {"effect": "exp_eddy[x]", "params": {"alpha": 0.001, "tau_s": 3e-6}, "reasons": ["exp_eddy[x]: tau_s ..."]}
     line = rejected_line(r, {"exp_eddy[x]"})

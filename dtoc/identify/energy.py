@@ -151,6 +151,12 @@ def note(c: str, d: dict, unit: str) -> str:
     parts.append(f"90 % within {lo / 1e3:.2g}-{hi / 1e3:.3g} kHz;")
     wins = sorted(((v, k) for k, v in d["windows"].items() if v >= 0.1), reverse=True)
     parts.append(", ".join(f"{_pct(v)} {k}" for v, k in wins) + ";" if wins else "no time window dominates;")
+    # the windows partition the samples, so their shares of the excess sum to 100 %: a window with less
+    # energy than the noise floor predicts has a negative share, named so that the shown ones add up
+    below = sorted((v, k) for k, v in d["windows"].items() if v <= -0.1)
+    if below:
+        names = ", ".join(f"{_pct(v)} {k}" for v, k in below)
+        parts.append(f"{names} (less energy than the noise floor predicts there; the shares sum to 100 %);")
     dem = []
     for key, what in (("top_amplitude", "|g|"), ("top_slew", "|dg/dt|")):
         v = d.get(key)
