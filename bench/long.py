@@ -14,27 +14,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
+import math
 import sys
 import tempfile
-import time
 from pathlib import Path
+
+from bench._proc import run_step
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _run(argv: list[str]) -> tuple[float, float, float, int]:
-    """(wall s, CPU s, peak RSS GB, exit code) of one ``python -m dtoc`` process."""
-    t0 = time.time()
-    with tempfile.TemporaryFile() as errf:  # a file, not a pipe: a long run's progress lines cannot block it
-        p = subprocess.Popen([sys.executable, "-m", "dtoc", *argv], cwd=REPO, stdout=subprocess.DEVNULL, stderr=errf)
-        _, status, ru = os.wait4(p.pid, 0)
-        p.returncode = os.waitstatus_to_exitcode(status)
-        if p.returncode:
-            errf.seek(0)
-            sys.stderr.write(errf.read().decode(errors="replace")[-2000:])
-    return time.time() - t0, ru.ru_utime + ru.ru_stime, ru.ru_maxrss / 1e6, p.returncode
+    """(wall s, CPU s, peak RSS GB, exit code) of one ``python -m dtoc`` process (no time limit)."""
+    r = run_step([sys.executable, "-m", "dtoc", *argv], math.inf)
+    if r["rc"]:
+        sys.stderr.write(r["err"][-2000:])
+    return r["wall_s"], r["cpu_s"], r["peak_mb"] * 1024 / 1e6, r["rc"]
 
 
 def _k_err_dk(seq: Path, base: Path, girf: Path | None) -> float:

@@ -16,13 +16,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import signal
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from bench._proc import run_step
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -146,29 +146,14 @@ def run_row(name: str, girf: Path, timeout_s: float, d: Path) -> dict:
     out, man = d / "out.seq", d / "m.json"
     argv = [sys.executable, "-m", "dtoc", "optimize", str(base), "--girf", str(girf), "--b0", "7", "-o", str(out)]
     argv += ["--json", str(man), "--force", "-q", "--no-trajectory", *extra]
-    t0 = time.time()
-    with tempfile.TemporaryFile() as errf:
-        p = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.DEVNULL, stderr=errf, start_new_session=True)
-        timed_out = False
-        while True:
-            pid, status, ru = os.wait4(p.pid, os.WNOHANG)
-            if pid:
-                break
-            if time.time() - t0 > timeout_s:
-                os.killpg(p.pid, signal.SIGKILL)
-                _, status, ru = os.wait4(p.pid, 0)
-                timed_out = True
-                break
-            time.sleep(0.5)
-        rc = os.waitstatus_to_exitcode(status)
-        errf.seek(0)
-        err = errf.read().decode(errors="replace")
+    r = run_step(argv, timeout_s)
+    rc, timed_out, err = r["rc"], r["timed_out"], r["err"]
     row = {
         "name": name,
         "desc": desc,
-        "wall_s": time.time() - t0,
-        "cpu_s": ru.ru_utime + ru.ru_stime,
-        "rss_gb": ru.ru_maxrss / 1e6,
+        "wall_s": r["wall_s"],
+        "cpu_s": r["cpu_s"],
+        "rss_gb": r["peak_mb"] * 1024 / 1e6,
         "timed_out": timed_out,
         "rc": rc,
     }

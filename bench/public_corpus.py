@@ -32,12 +32,12 @@ import json
 import os
 import platform
 import re
-import signal
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
+
+from bench._proc import run_step
 
 REPO = Path(__file__).resolve().parents[1]
 DOC = REPO / "docs" / "foreign.md"
@@ -89,60 +89,6 @@ def _probe(path: str) -> None:
             }
         )
     )
-
-
-def _group_rss_mb(pgid: int) -> float:
-    """Resident memory of every process of session/group ``pgid`` (Linux /proc), MB."""
-    total = 0
-    for d in os.listdir("/proc"):
-        if not d.isdigit():
-            continue
-        try:
-            with open(f"/proc/{d}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-            if int(fields[2]) == pgid:  # (state ppid pgrp ...): pgrp
-                total += int(fields[21]) * os.sysconf("SC_PAGE_SIZE")  # rss in pages
-        except (OSError, ValueError, IndexError):
-            continue
-    return total / 2**20
-
-
-def run_step(argv: list[str], budget_s: float, env: dict, mem_cap_mb: float | None = None) -> dict:
-    """Run one subprocess within ``budget_s`` and, where given, ``mem_cap_mb`` of resident memory (the machine is
-    shared: a step over it is killed before the kernel's OOM killer picks a neighbour):
-    {rc, out, err, wall_s, peak_mb, timed_out, mem_capped}."""
-    t0 = time.perf_counter()
-    mem_cap_mb = MEM_CAP_MB if mem_cap_mb is None else mem_cap_mb
-    with tempfile.TemporaryFile() as fo, tempfile.TemporaryFile() as fe:
-        p = subprocess.Popen(argv, stdout=fo, stderr=fe, env=env, cwd=REPO, start_new_session=True)
-        timed_out, capped, ru, status, n = False, False, None, 0, 0
-        while True:
-            pid, status, ru = os.wait4(p.pid, os.WNOHANG)
-            if pid:
-                break
-            over = time.perf_counter() - t0 > budget_s
-            n += 1
-            if not over and mem_cap_mb and n % 5 == 0 and _group_rss_mb(p.pid) > mem_cap_mb:
-                capped = over = True
-            if over:
-                os.killpg(p.pid, signal.SIGKILL)
-                _, status, ru = os.wait4(p.pid, 0)
-                timed_out = not capped
-                break
-            time.sleep(0.1)
-        p.returncode = os.waitstatus_to_exitcode(status)
-        fo.seek(0)
-        fe.seek(0)
-        out, err = fo.read().decode(errors="replace"), fe.read().decode(errors="replace")
-    return {
-        "rc": p.returncode,
-        "out": out,
-        "err": err,
-        "wall_s": time.perf_counter() - t0,
-        "peak_mb": ru.ru_maxrss / 1024.0 if ru is not None else None,
-        "timed_out": timed_out,
-        "mem_capped": capped,
-    }
 
 
 def _stopped(r: dict, budget_s: float) -> str | None:
@@ -247,7 +193,7 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
 
     def step(name, argv, budget):
         nonlocal peak, total
-        r = run_step(argv, budget, env)
+        r = run_step(argv, budget, env, MEM_CAP_MB)
         peak = max(peak, r["peak_mb"] or 0.0)
         total += r["wall_s"]
         row[f"{name}_s"] = r["wall_s"]
@@ -477,7 +423,7 @@ def main() -> None:
     ap.add_argument("--girf-label", default=None, help="how the table names the GIRF (default: its file name)")
     a = ap.parse_args()
     budgets = {"read": a.budget, "other": a.budget, "optimize": a.budget_optimize}
-    globals()["MEM_CAP_MB"] = 1024 * a.mem_cap_gb  # (run_step's default, render's header)
+    globals()["MEM_CAP_MB"] = 1024 * a.mem_cap_gb  # (the steps' cap, render's header)
     if a.render is not None:
         rows = [json.loads(ln) for ln in a.render.read_text().splitlines() if ln.strip()]
         _finish(rows, a, budgets, a.commit or "?")
