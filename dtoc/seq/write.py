@@ -213,12 +213,7 @@ def seq_bytes_of(
     Raises:
         InputError: the version is not one dtoc writes, or cannot state something ``ir`` holds.
         DtocError: the written text does not read back to ``ir``."""
-    v = output_version(ir, version)
-    check_writable(v)
-    reasons = unwritable(ir, v)
-    if reasons:
-        more = f" (and {len(reasons) - 1} more)" if len(reasons) > 1 else ""
-        raise InputError(f"cannot write Pulseq format {version_str(v)}: {reasons[0]}{more}")
+    v = writable_version(ir, version)
     seq = to_pypulseq(ir, adc_offsets)
     for k, val in (definitions or {}).items():
         vals = [float(x) for x in np.ravel(val)] if isinstance(val, (list, tuple, np.ndarray)) else val
@@ -250,6 +245,21 @@ def output_version(ir: SequenceIR, version: tuple[int, int, int] | str | None = 
         return (1, 5, 0)
     v = parse_version(src)
     return v if v in WRITABLE + WRITABLE_AS_INPUT else ((1, 4, 1) if v < (1, 5, 0) else WRITABLE[-1])
+
+
+def writable_version(ir: SequenceIR, version: tuple[int, int, int] | str | None = None) -> tuple[int, int, int]:
+    """The output version (:func:`output_version`) once dtoc writes it and ``ir`` holds nothing it cannot
+    state (:func:`unwritable`).
+
+    Raises:
+        InputError: one line naming the first thing the version cannot state (and how many more)."""
+    v = output_version(ir, version)
+    check_writable(v)
+    reasons = unwritable(ir, v)
+    if reasons:
+        more = f" (and {len(reasons) - 1} more)" if len(reasons) > 1 else ""
+        raise InputError(f"cannot write Pulseq format {version_str(v)}: {reasons[0]}{more}")
+    return v
 
 
 def unwritable(ir: SequenceIR, version: tuple[int, int, int]) -> list[str]:
@@ -401,12 +411,7 @@ def preflight_write(ir: SequenceIR, version: tuple[int, int, int] | str | None =
 
     Raises:
         InputError: one line naming what the version cannot state, or why the base does not read back."""
-    v = output_version(ir, version)
-    check_writable(v)
-    reasons = unwritable(ir, v)
-    if reasons:
-        more = f" (and {len(reasons) - 1} more)" if len(reasons) > 1 else ""
-        raise InputError(f"cannot write Pulseq format {version_str(v)}: {reasons[0]}{more}")
+    v = writable_version(ir, version)
     rep = _representative_free_edges(ir)
     blocks = preflight_blocks(ir, rep)
     if blocks is not None:
