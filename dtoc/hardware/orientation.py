@@ -10,8 +10,11 @@ given by name or by 9 numbers (docs/conventions.md, "Orientation"):
 
 :class:`RotatedChain` plays a hardware model at an orientation: it rotates the demanded gradient to physical
 axes, applies the model there and rotates the realized gradient back, so k-space stays in the file's frame.
-Per-axis limits hold on the physical axes; :func:`logical_limit_scale` gives the factor that keeps every
-physical axis within its limit whatever the logical waveform (``max_i sum_j |R_ij|``).
+Per-axis limits hold on the physical axes: the optimizer holds them there with
+:meth:`dtoc.optimize.limits.Limits.rotated` (boxes around the base, checked on R @ g).
+:func:`logical_limit_scale` is the conservative uniform bound (the factor that keeps every physical axis within
+its limit whatever the logical waveform, ``max_i sum_j |R_ij|``); dtoc no longer limits with it (it refused
+bases that play within the physical limits), it stays as the reference the tests compare against.
 """
 
 from __future__ import annotations
