@@ -125,6 +125,7 @@ def read_seq(
         free_slice_axis=free_slice_axis,
         free_unused_axes=free_unused_axes,
         rf_guard=rf_guard,
+        free_mask=False,
     )
     ir.meta["path"] = str(path)
     ir.meta["format_version"] = version_str(st.version)
@@ -138,10 +139,10 @@ def read_seq(
         ir.meta.setdefault("notes", []).extend(lay.notes)
     from dtoc.seq.rfuse import block_rf_ids_of_text, resolve_rf_use
 
-    if resolve_rf_use(ir, st.version, block_rf_ids_of_text(st), rf_use):  # pre-1.5 files: detected (no use field)
-        ir.free_mask = default_free_mask(
-            ir, free_slice_axis=free_slice_axis, free_unused_axes=free_unused_axes, rf_guard=rf_guard
-        )
+    resolve_rf_use(ir, st.version, block_rf_ids_of_text(st), rf_use)  # pre-1.5 files: detected (no use field)
+    ir.free_mask = default_free_mask(  # once, where the RF use is known (it fixes the samples around pulses)
+        ir, free_slice_axis=free_slice_axis, free_unused_axes=free_unused_axes, rf_guard=rf_guard
+    )
     return ir
 
 
@@ -211,12 +212,14 @@ def from_pypulseq(
     free_unused_axes: bool = False,
     rf_guard: str = "block",
     rotations: dict[int, np.ndarray] | None = None,
+    free_mask: bool = True,
 ) -> SequenceIR:
     """Convert a ``pypulseq.Sequence`` (read or built) into a :class:`SequenceIR`.
 
     ``rotations``: {block index: 3x3 matrix} of the 1.5.1 rotation extension: that block's gradients are played
     as ``R @ (gx, gy, gz)`` (the IR holds the played, rotated gradients); default: those :func:`read_pypulseq`
-    found in the file.
+    found in the file.  ``free_mask`` False: the caller sets ``ir.free_mask`` (:func:`read_seq` does, once the
+    RF use of a pre-1.5 file is known, so the mask is built once).
 
     Raises:
         InputError: a block duration that is not a whole number of gradient rasters (the fine grid
@@ -333,9 +336,10 @@ def from_pypulseq(
     _apply_metadata(ir)
     if soft:
         ir.meta["soft_delay_blocks"] = soft
-    ir.free_mask = default_free_mask(
-        ir, free_slice_axis=free_slice_axis, free_unused_axes=free_unused_axes, rf_guard=rf_guard
-    )
+    if free_mask:
+        ir.free_mask = default_free_mask(
+            ir, free_slice_axis=free_slice_axis, free_unused_axes=free_unused_axes, rf_guard=rf_guard
+        )
     ir.meta["block_ids"] = [int(k) for k in keys]
     n_undef = sum(r.use == "undefined" for r in rf_events)
     if n_undef:
