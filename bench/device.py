@@ -73,7 +73,9 @@ def _optimize_job(base, quick: bool, *, girf=None, model=None, overrides=None, b
             device=device,
         )
         m = res.manifest
-        iters = max(1, int(cfg.iters) + int(cfg.warm_iters))
+        # warm_iters None (the default): the warm start is solved to a tolerance; its evaluations are in the manifest
+        warm = cfg.warm_iters if cfg.warm_iters is not None else (m.get("solver") or {}).get("evaluations", 0)
+        iters = max(1, int(cfg.iters or 0) + int(warm or 0))
         return {"result": m["after"].get("nrmse_percent"), "iterations": iters}
 
     return run
