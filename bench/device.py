@@ -211,13 +211,13 @@ def run(selected: list[str] | None, quick: bool, count: bool, devices: list[str]
     return rows
 
 
-def table(rows: list[dict], devices: list[str], quick: bool) -> str:
+def table(rows: list[dict], devices: list[str], quick: bool, merged: bool = False) -> str:
     cuda = torch.cuda.is_available()
     name = torch.cuda.get_device_name(0) if cuda else "none"
     lines = [
         f"CUDA device: {name}{' (none on this machine: its columns say not measured)' if not cuda else ''}; "
         f"{'short settings (--quick: 4 full-loss and 100 warm-start iterations, 30 dummies); ' if quick else ''}"
-        "both devices in one process, the same job each.  'ops' = aten operations dispatched, counted in a "
+        f"{'each job and device in its own process, side by side on this machine' if merged else 'both devices in one process'}, the same job each.  'ops' = aten operations dispatched, counted in a "
         "second run under a TorchDispatchMode (optimize jobs: the whole run's count over its warm-start + "
         "full-loss iterations; simulator jobs: per call).  Times on a shared machine are noisy.",
         "",
@@ -334,6 +334,17 @@ def write_section(text: str, quick: bool) -> None:
     )
 
 
+def _load_rows(paths: list[str]) -> list[dict]:
+    """Rows saved by ``--save-rows`` in several processes, merged per job (first-seen job order)."""
+    merged: dict[str, dict] = {}
+    for p in paths:
+        for r in torch.load(p, weights_only=False):
+            merged.setdefault(r["job"], {"job": r["job"], "label": r["label"]}).update(
+                {k: v for k, v in r.items() if k not in ("job", "label")}
+            )
+    return list(merged.values())
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="short settings (smoke run)")
@@ -343,14 +354,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-count", action="store_true", help="skip the operation count (one run per job and device)")
     ap.add_argument("--no-write", action="store_true", help="print only; do not update docs/benchmarks.md")
     ap.add_argument("--ops-only", action="store_true", help="only the operation-count table (printed, not written)")
+    ap.add_argument(
+        "--devices", default="", help="comma-separated devices to run (default: cpu, and cuda where present)"
+    )
+    ap.add_argument(
+        "--save-rows", default="", help="save this process's rows (torch.save) for --merge; no table is written"
+    )
+    ap.add_argument(
+        "--merge",
+        nargs="+",
+        default=None,
+        help="build the table from rows saved by several processes (each job on each device in its own process, "
+        "one torch thread each, run side by side on one machine) instead of running jobs",
+    )
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     if a.ops_only:
         print(op_table(op_counts("cpu")))
         return 0
-    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-    rows = run([s for s in a.jobs.split(",") if s] or None, a.quick, not a.no_count, devices)
-    text = table(rows, devices + ([] if "cuda" in devices else ["cuda-absent"]), a.quick)
+    if a.merge:
+        rows = _load_rows(a.merge)
+        devices = ["cpu"] + (["cuda"] if any("cuda" in r for r in rows) else [])
+    else:
+        devices = [d for d in a.devices.split(",") if d] or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+        rows = run([s for s in a.jobs.split(",") if s] or None, a.quick, not a.no_count, devices)
+        if a.save_rows:
+            torch.save(rows, a.save_rows)
+            return 0
+    text = table(rows, devices + ([] if "cuda" in devices else ["cuda-absent"]), a.quick, merged=bool(a.merge))
     if not a.no_count:
         text += op_table(op_counts("cpu"))
     print(text)
