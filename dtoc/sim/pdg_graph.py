@@ -515,7 +515,14 @@ def build_graph(
     is_z = np.array([True])
     k = np.zeros((1, 3))
     tau = np.zeros(1)
-    P = bnd.probe_t1.size
+    probe_t1, probe_t2, probe_b1 = bnd.probe_t1, bnd.probe_t2, bnd.probe_b1
+    if bnd.probe_w is None:
+        # the estimate is the largest magnitude over the probes: identical probes (a phantom without B1 map has 2
+        # distinct of 6) give identical columns, so each is propagated once (same maxima, bit for bit)
+        _, first = np.unique(np.stack([probe_t1, probe_t2, probe_b1], axis=1), axis=0, return_index=True)
+        pi = np.sort(first)
+        probe_t1, probe_t2, probe_b1 = probe_t1[pi], probe_t2[pi], probe_b1[pi]
+    P = probe_t1.size
     amp = np.ones((1, P), dtype=np.complex128)
     mag = np.ones(1)
     eq = 0
@@ -531,12 +538,12 @@ def build_graph(
         tr = ~is_z
         k_end = k + tr[:, None] * m_int[n][None, :]
         tau_end = tau + tr * dt
-        pe1 = np.exp(-dt / bnd.probe_t1)
-        pe2 = np.exp(-dt / bnd.probe_t2)
+        pe1 = np.exp(-dt / probe_t1)
+        pe2 = np.exp(-dt / probe_t2)
         amp_end = amp * np.where(tr[:, None], pe2[None, :], pe1[None, :])
         amp_end[eq] += 1.0 - pe1
         rf = ir.rf[rf_order[n]]
-        pc = rf_edge_coefficients_np(rf.flip_angle_rad, rf.phase_rad, bnd.probe_b1)  # (6, P)
+        pc = rf_edge_coefficients_np(rf.flip_angle_rad, rf.phase_rad, probe_b1)  # (6, P)
         st = split_step(
             is_z, k_end, tau_end, amp_end, pc, qk, qt, tau_ignored, cfg.min_magnitude, cfg.max_states, bnd.probe_w, keys
         )
