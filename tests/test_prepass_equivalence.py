@@ -131,6 +131,85 @@ def test_prepass_builds_the_recorded_graphs_of_more_sequences(tmp_path):
             np.testing.assert_allclose(fp["floats"][name], vals, rtol=1e-12, atol=1e-300, err_msg=f"{key}: {name}")
 
 
+def test_nominal_integrals_are_pwl_integral_at_bit_for_bit():
+    """The pre-pass integrates the demanded gradient in numpy: the same operations in the same order as
+    dtoc.seq.kspace.pwl_integral_at (torch), so the same bits (the merge keys round these k values)."""
+    import torch
+
+    from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
+    from dtoc.seq.kspace import pwl_integral_at
+    from dtoc.sim.pdg_graph import _nominal_integrals
+
+    for name in ("gre_paper", "epi_small"):
+        ir = load_sequence(REPO / "sequences" / f"{name}.seq")
+        t_rf = np.array([0.0] + [r.t_center_s for r in ir.rf] + [ir.duration_s, ir.duration_s + 1e-3, -1e-3])
+        t_adc = np.sort(ir.adc_times_s)
+        got = _nominal_integrals(ir, t_rf, t_adc, np.zeros(0))
+        for t, g in zip((t_rf, t_adc), got, strict=False):
+            want = (GAMMA_RAD_PER_S_PER_MT * pwl_integral_at(torch.as_tensor(ir.grad_mT_per_m), ir.dt_fine_s, t)).T
+            np.testing.assert_array_equal(g, want.numpy())
+        assert got[2].shape == (0, 3)
+
+
+def test_packed_keys_order_the_children_as_unique_rows():
+    """The RF split merges children by packed parent keys: sorting them gives the same merged states, in the same
+    order, with the same inverse as pdg_graph.unique_rows of the explicit (type, +-k, +-tau) rows -- with narrow
+    columns (offset), wide ones (ranked) and an all-zero one; and it declines (None) when even ranks cannot fit."""
+    from dtoc.sim.pdg_graph import unique_rows
+    from dtoc.sim.pdg_graph_step import packed_parent_keys
+
+    rng = np.random.default_rng(3)
+    S = 500
+    for widths in ((50, 50, 1, 50), (10**12, 7, 1, 10**15), (10**17, 10**17, 10**17, 10**17)):
+        cols = [rng.integers(-w, w, S) if w > 1 else np.zeros(S, dtype=np.int64) for w in widths]
+        cols[0][:20] = cols[0][20:40]  # coinciding parents, and their negatives
+        cols[0][40:60] = -cols[0][20:40]
+        same, conj, zkey, span = packed_parent_keys(cols)
+        K = np.stack(cols, axis=1)
+        rows = np.concatenate(
+            [np.c_[np.zeros(S, np.int64), K], np.c_[np.zeros(S, np.int64), -K], np.c_[np.ones(S, np.int64), K]]
+        )
+        rows = np.concatenate([rows, [[1, 0, 0, 0, 0]]])
+        keys = np.concatenate([same, conj, same + span, [zkey + span]])
+        want_rows, want_inv = unique_rows(rows)
+        u, inv = np.unique(keys, return_inverse=True)
+        np.testing.assert_array_equal(inv.reshape(-1), want_inv.reshape(-1))
+        assert u.size == want_rows.shape[0] and keys.max() < 2**62
+    wide = [rng.integers(-(10**17), 10**17, 40_000) for _ in range(4)]
+    assert packed_parent_keys(wide) is None
+
+
+def test_split_without_packed_keys_builds_the_same_graph(monkeypatch):
+    """The fallback of the RF split (explicit key rows through unique_rows, used when the packed keys cannot fit)
+    builds the same graph as the packed keys."""
+    import dtoc.sim.pdg_graph_step as step
+
+    ir = load_sequence(REPO / "sequences" / "gre_small.seq")
+    ph = brain_phantom(32, fov_m=tuple(ir.fov_m[:2]), b0=True, b1=True)
+    want = build_graph(ir, pdg.PDGConfig(), ph)
+    monkeypatch.setattr(step, "packed_parent_keys", lambda cols: None)
+    got = build_graph(ir, pdg.PDGConfig(), ph)
+    assert got.n_states_total == want.n_states_total > 500
+    for a, b in zip(got.intervals, want.intervals, strict=True):
+        for name, v in vars(b).items():
+            np.testing.assert_array_equal(getattr(a, name), v, err_msg=name)
+
+
+def test_add_complex_rows_is_add_at_bit_for_bit():
+    """The children's amplitude sums: one bincount over interleaved real/imaginary parts adds in edge order from
+    zero, as np.add.at does (values of very different magnitudes, so a different order would round differently)."""
+    from dtoc.sim.pdg_graph_step import add_complex_rows
+
+    rng = np.random.default_rng(5)
+    E, P, n = 4000, 3, 700
+    idx = rng.integers(0, n, E)
+    rows = (rng.standard_normal((E, P)) + 1j * rng.standard_normal((E, P))) * 10.0 ** rng.integers(-12, 6, (E, 1))
+    want = np.zeros((n, P), dtype=np.complex128)
+    np.add.at(want, idx, rows)
+    got = add_complex_rows(idx, rows, n)
+    assert np.array_equal(got.view(np.float64), want.view(np.float64))
+
+
 if __name__ == "__main__":
     import sys
     import tempfile
