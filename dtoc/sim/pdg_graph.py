@@ -33,12 +33,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import torch
 
 from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
 from dtoc.seq.ir import SequenceIR
-from dtoc.seq.kspace import pwl_integral_at
 from dtoc.sim.pdg_config import PDGConfig
+from dtoc.sim.pdg_graph_step import split_step
 
 #: edge kinds whose child is longitudinal / whose parent amplitude is conjugated
 Z_CHILD = np.array([False, False, True, False, False, True])
@@ -256,6 +255,23 @@ class ObjectSpectrum:
         self.step_y = 2 * np.pi / (pad * ny * self.dy)
         self.shape = phantom.voxel_shape
 
+    def bound_at_ky(self, ky: np.ndarray, dist_x: np.ndarray) -> np.ndarray:
+        """An upper bound of :meth:`at_axes` over every kx with abs(kx) >= ``dist_x`` at the given ``ky`` (same
+        row of the spectrum, same y factor) and any kz: the row's maximum times the x factor's envelope
+        (abs(sinc(u)) <= 1 / (pi abs(u))).  3D phantoms: 1."""
+        if self.F.ndim == 3:
+            return np.ones(np.shape(ky))
+        if not hasattr(self, "_row_max"):
+            self._row_max = self.F.max(axis=1)
+        val = self._row_max[np.round(ky / self.step_y).astype(np.int64) % self.F.shape[-2]]
+        if self.shape == "box":
+            with np.errstate(divide="ignore"):
+                xb = np.minimum(1.0, 2.0 / (dist_x * self.dx))
+            val = val * xb * np.abs(np.sinc(ky * self.dy / (2 * np.pi)))
+        elif self.shape == "sinc":
+            val = val * (np.abs(ky) <= np.pi / self.dy)
+        return np.minimum(val, 1.0)
+
     def __call__(self, k: np.ndarray) -> np.ndarray:
         """k (..., 3) rad/m -> (...) estimate in [0, 1]."""
         return self.at_axes(k[..., 0], k[..., 1], k[..., 2])
@@ -278,6 +294,12 @@ class ObjectSpectrum:
             if self.F.ndim == 3:
                 val = val * (np.abs(kz) <= np.pi / self.dz)
         return np.minimum(val, 1.0)
+
+
+def _distance_to_zero(a0: np.ndarray, a1: np.ndarray) -> np.ndarray:
+    """Smallest abs(x) over x in [a0, a1] (elementwise; a0 <= a1), shrunk by 1e-9 relative: a lower bound of abs()
+    of any value computed inside the range."""
+    return np.where((a0 <= 0) & (a1 >= 0), 0.0, np.minimum(np.abs(a0), np.abs(a1))) * (1.0 - 1e-9)
 
 
 def _bounds(ir: SequenceIR, config: PDGConfig, phantom) -> _Bounds:
@@ -411,13 +433,30 @@ def add_rows_by_index(index: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray
     return out
 
 
-def _nominal_integrals(ir: SequenceIR, times: np.ndarray) -> np.ndarray:
-    """(Q, 3) gamma * integral_0^t of the demanded gradient, rad/m (exact PWL)."""
-    if times.size == 0:
-        return np.zeros((0, 3))
-    g = torch.as_tensor(ir.grad_mT_per_m, dtype=torch.float64)
-    out = pwl_integral_at(g, ir.dt_fine_s, times).numpy()
-    return (GAMMA_RAD_PER_S_PER_MT * out).T
+def _nominal_integrals(ir: SequenceIR, *times: np.ndarray) -> list[np.ndarray]:
+    """(Q, 3) gamma * integral_0^t of the demanded gradient, rad/m, for each array of query times (exact PWL).
+
+    The numpy form of :func:`dtoc.seq.kspace.pwl_integral_at` (the same operations in the same order, so the same
+    bits: tests/test_prepass_equivalence.py), with the running integral computed once for all the arrays and
+    without torch's start-up cost in a fresh process."""
+    g = np.asarray(ir.grad_mT_per_m, dtype=np.float64)
+    dt = ir.dt_fine_s
+    M = g.shape[-1]
+    C = np.empty_like(g)  # running integral at the samples, built in place (long files: few whole-length passes)
+    C[:, 0] = 0.0
+    inc = C[:, 1:]
+    np.add(g[:, 1:], g[:, :-1], out=inc)
+    np.multiply(inc, 0.5 * dt, out=inc)
+    np.cumsum(inc, axis=-1, out=inc)
+    out = []
+    for ts in times:
+        t = np.clip(np.asarray(ts, dtype=np.float64), 0.0, (M - 1) * dt)
+        m = np.clip(np.floor(t / dt + 1e-9).astype(np.int64), 0, max(M - 2, 0))
+        tau = t - m * dt
+        g0 = g[:, m]
+        g1 = g[:, m + 1] if M > 1 else g0
+        out.append((GAMMA_RAD_PER_S_PER_MT * (C[:, m] + tau * g0 + 0.5 * tau * tau * (g1 - g0) / dt)).T)
+    return out
 
 
 def build_graph(
@@ -461,8 +500,7 @@ def build_graph(
     adc_hi[-1] = adc_t.size
     adc_lo[0] = 0
 
-    I_b = _nominal_integrals(ir, bounds_t)  # (NI+1, 3)
-    I_adc = _nominal_integrals(ir, adc_t)  # (N_adc, 3)
+    I_b, I_adc = _nominal_integrals(ir, bounds_t, adc_t)  # (NI+1, 3), (N_adc, 3)
     m_int = I_b[1:] - I_b[:-1]  # (NI, 3) nominal moment per interval
     dt_int = np.diff(bounds_t)
 
@@ -477,7 +515,14 @@ def build_graph(
     is_z = np.array([True])
     k = np.zeros((1, 3))
     tau = np.zeros(1)
-    P = bnd.probe_t1.size
+    probe_t1, probe_t2, probe_b1 = bnd.probe_t1, bnd.probe_t2, bnd.probe_b1
+    if bnd.probe_w is None:
+        # the estimate is the largest magnitude over the probes: identical probes (a phantom without B1 map has 2
+        # distinct of 6) give identical columns, so each is propagated once (same maxima, bit for bit)
+        _, first = np.unique(np.stack([probe_t1, probe_t2, probe_b1], axis=1), axis=0, return_index=True)
+        pi = np.sort(first)
+        probe_t1, probe_t2, probe_b1 = probe_t1[pi], probe_t2[pi], probe_b1[pi]
+    P = probe_t1.size
     amp = np.ones((1, P), dtype=np.complex128)
     mag = np.ones(1)
     eq = 0
@@ -493,60 +538,17 @@ def build_graph(
         tr = ~is_z
         k_end = k + tr[:, None] * m_int[n][None, :]
         tau_end = tau + tr * dt
-        pe1 = np.exp(-dt / bnd.probe_t1)
-        pe2 = np.exp(-dt / bnd.probe_t2)
+        pe1 = np.exp(-dt / probe_t1)
+        pe2 = np.exp(-dt / probe_t2)
         amp_end = amp * np.where(tr[:, None], pe2[None, :], pe1[None, :])
         amp_end[eq] += 1.0 - pe1
         rf = ir.rf[rf_order[n]]
-        pc = rf_edge_coefficients_np(rf.flip_angle_rad, rf.phase_rad, bnd.probe_b1)  # (6, P)
-        S = is_z.size
-        par = np.repeat(np.arange(S), 3)
-        kind = np.tile(np.arange(3), S) + 3 * is_z[par]
-        src = np.repeat(amp_end[:, None, :], 3, axis=1)  # (S, 3, P): the three children of each parent
-        np.conjugate(src[:, 1], out=src[:, 1])  # kinds 1 and 4 conjugate (module table)
-        ccand = (pc.reshape(2, 3, P)[is_z.astype(np.int64)] * src).reshape(3 * S, P)  # (E, P)
-        cand = bnd.amp_estimate(ccand)
-        keep = cand >= cfg.min_magnitude
-        par, kind, cand, ccand = par[keep], kind[keep], cand[keep], ccand[keep]
-        conj = CONJ[kind]
-        sgn = np.where(conj, -1.0, 1.0)
-        ck = k_end[par] * sgn[:, None]
-        ct = tau_end[par] * sgn
-        cz = Z_CHILD[kind]
-        kk = keys(cz, ck, ct)
-        eq_key = keys(np.array([True]), np.zeros((1, 3)), np.zeros(1))
-        uniq, inv = unique_rows(np.concatenate([kk, eq_key]))
-        inv = inv.ravel()
-        inv_e, eq_new = inv[:-1], int(inv[-1])
-        nU = uniq.shape[0]
-        camp = add_rows_by_index(inv_e, ccand, nU)
-        cmag = bnd.amp_estimate(camp)
-        # representative edge per child: largest cand
-        rep_e = first_max_by_group(inv_e, cand, nU)
-        alive = (cmag >= cfg.min_magnitude) & (rep_e >= 0)
-        alive[eq_new] = True
-        if alive.sum() > cfg.max_states:
-            score = np.where(alive, cmag, -1.0)
-            score[eq_new] = np.inf
-            alive = top_k_mask(score, cfg.max_states)
-        new_idx = np.cumsum(alive) - 1
-        ekeep = alive[inv_e]
-        e_child = new_idx[inv_e[ekeep]]
-        e_par, e_kind, e_cand = par[ekeep], kind[ekeep], cand[ekeep]
-        sel = np.where(alive)[0]
-        is_z = uniq[sel, 0].astype(bool)
-        r = rep_e[sel]
-        has = r >= 0
-        k = np.zeros((sel.size, 3))
-        tau = np.zeros(sel.size)
-        k[has] = ck[r[has]]
-        tau[has] = ct[r[has]]
-        eq = int(new_idx[eq_new])
-        k[eq] = 0.0
-        tau[eq] = 0.0
-        is_z[eq] = True
-        mag = cmag[sel]
-        amp = camp[sel]
+        pc = rf_edge_coefficients_np(rf.flip_angle_rad, rf.phase_rad, probe_b1)  # (6, P)
+        st = split_step(
+            is_z, k_end, tau_end, amp_end, pc, qk, qt, tau_ignored, cfg.min_magnitude, cfg.max_states, bnd.probe_w, keys
+        )
+        is_z, k, tau, mag, amp, eq = st.is_z, st.k, st.tau, st.mag, st.amp, st.eq
+        e_child, e_par, e_kind, e_cand = st.e_child, st.e_par, st.e_kind, st.e_cand
 
     # --- emission and latent bounds (backward) --------------------------------------------------
     vm = bnd.voxel_m
@@ -556,31 +558,60 @@ def build_graph(
         e = voxel_envelope_axes((kx, ky, kz), vm, bnd.voxel_shape)
         return e if spec is None else np.minimum(e, spec.at_axes(kx, ky, kz))
 
-    emit_b = []
-    for n in range(NI):
+    def emission(n: int, idx: np.ndarray) -> np.ndarray:
+        """Emission bound of the transverse states ``idx`` of interval ``n`` at its ADC samples (max over them)."""
+        R = raw[n]
+        lo, hi = adc_lo[n], adc_hi[n]
+        out = np.empty(idx.size)
+        dtt = adc_t[lo:hi] - bounds_t[n]
+        mt = I_adc[lo:hi] - I_b[n]
+        fixed = [bool(np.all(mt[:, a] == mt[0, a])) for a in range(3)]
+        # chunk over states to bound memory (S x T)
+        step = max(1, int(2**22 // max(1, hi - lo)))
+        for s0 in range(0, idx.size, step):
+            ks = R["k"][idx[s0 : s0 + step]]
+            # per axis (S, T), or (S, 1) where the nominal gradient is off during the window (same values)
+            env = envelope(*(ks[:, a, None] + (mt[None, :1, a] if fixed[a] else mt[None, :, a]) for a in range(3)))
+            tt = np.abs(R["tau"][idx[s0 : s0 + step]][:, None] + dtt[None, :])
+            env = env * bnd.e2(dtt)[None, :] * np.exp(-tt / bnd.t2d)
+            out[s0 : s0 + step] = env.max(axis=1)
+        return out
+
+    def emission_bound(n: int, idx: np.ndarray) -> np.ndarray:
+        """An upper bound of :func:`emission` of the states ``idx`` of interval ``n`` from the range of the moment
+        over the window (the voxel envelope is non-increasing in abs(k); the object spectrum and the relaxation
+        factors are at most 1), with a relative margin far above the rounding of the exact evaluation."""
+        lo, hi = adc_lo[n], adc_hi[n]
+        mt = I_adc[lo:hi] - I_b[n]
+        dtt = adc_t[lo:hi] - bounds_t[n]
+        ks = raw[n]["k"][idx]
+        dist = _distance_to_zero(ks + mt.min(axis=0)[None, :], ks + mt.max(axis=0)[None, :])
+        ub = voxel_envelope_axes((dist[:, 0], dist[:, 1], dist[:, 2]), vm, bnd.voxel_shape)
+        if spec is not None and np.all(mt[:, 1] == mt[0, 1]):  # ky constant over the window: its spectrum row
+            ub = np.minimum(ub, spec.bound_at_ky(ks[:, 1] + mt[0, 1], dist[:, 0]))
+        tau = raw[n]["tau"][idx]
+        ub = ub * bnd.e2(dtt.min()) * np.exp(-_distance_to_zero(tau + dtt.min(), tau + dtt.max()) / bnd.t2d)
+        return ub * (1.0 + 1e-6)
+
+    def emission_of(n: int, best: np.ndarray | None) -> np.ndarray:
+        """(S,) emission bounds of interval ``n``.  With ``best`` (the bound through the children, see
+        :func:`_latent`), a state whose upper bound can change neither its latent bound (bound <= best) nor its
+        emitter decision (amplitude x bound below ``min_emitted_signal``) is not evaluated: 0, which gives the same
+        latent bound and the same decision as its exact value."""
         R = raw[n]
         e = np.zeros(R["is_z"].size)
-        lo, hi = adc_lo[n], adc_hi[n]
-        tr = np.where(~R["is_z"])[0]
-        if hi > lo and tr.size:
-            dtt = adc_t[lo:hi] - bounds_t[n]
-            mt = I_adc[lo:hi] - I_b[n]
-            fixed = [bool(np.all(mt[:, a] == mt[0, a])) for a in range(3)]
-            # chunk over states to bound memory (S x T)
-            step = max(1, int(2**22 // max(1, hi - lo)))
-            for s0 in range(0, tr.size, step):
-                idx = tr[s0 : s0 + step]
-                ks = R["k"][idx]
-                # per axis (S, T), or (S, 1) where the nominal gradient is off during the window (same values)
-                env = envelope(*(ks[:, a, None] + (mt[None, :1, a] if fixed[a] else mt[None, :, a]) for a in range(3)))
-                tt = np.abs(R["tau"][idx][:, None] + dtt[None, :])
-                env = env * bnd.e2(dtt)[None, :] * np.exp(-tt / bnd.t2d)
-                e[idx] = env.max(axis=1)
+        tr = np.flatnonzero(~R["is_z"])
+        if adc_hi[n] > adc_lo[n] and tr.size:
+            if best is not None and cfg.min_emitted_signal > 0:
+                ub = emission_bound(n, tr)
+                tr = tr[(ub > best[tr]) | (R["mag"][tr] * ub >= cfg.min_emitted_signal)]
+            e[tr] = emission(n, tr)
         if final_z_readout and n == NI - 1:
             zi = np.where(R["is_z"])[0]
             kz_ = R["k"][zi]
             e[zi] = envelope(kz_[:, 0], kz_[:, 1], kz_[:, 2]) * np.exp(-np.abs(R["tau"][zi]) / bnd.t2d)
-        emit_b.append(e)
+        return e
+
     ctx = dict(
         raw=raw,
         ir=ir,
@@ -592,7 +623,9 @@ def build_graph(
         bounds_t=bounds_t,
         cfg=cfg,
     )
-    intervals, keeps = _prune(ctx, emit_b, _latent(ctx, emit_b))
+    emit_b: list[Any] = [None] * NI
+    latent = _latent(ctx, emit_b, emission_of)
+    intervals, keeps = _prune(ctx, emit_b, latent)
 
     def graph_of(ivs):
         return PDGGraph(
@@ -619,8 +652,8 @@ def build_graph(
         tot = float(np.sum(phantom.pd)) or 1.0
         emit_c = []
         for n, R in enumerate(raw):
-            if n not in peaks:  # not evaluated by the batched path: keep the bounds
-                emit_c.append(np.where(keeps[n], emit_b[n], 0.0))
+            if n not in peaks:  # not evaluated by the batched path: keep the bounds (all of them evaluated)
+                emit_c.append(np.where(keeps[n], emission_of(n, None), 0.0))
                 continue
             e = np.zeros(R["is_z"].size)
             src = np.where(keeps[n])[0][intervals[n].emit]  # raw index of each emitting state
@@ -632,15 +665,17 @@ def build_graph(
     return graph
 
 
-def _latent(ctx, emit_b) -> list:
+def _latent(ctx, emit_b: list, emission_of: Callable | None = None) -> list:
     """Per interval, per state: bound on what the state can still contribute to any ADC sample (its own
-    emission ``emit_b`` or, through the RF-splitting edges, that of any descendant), per unit amplitude."""
+    emission ``emit_b`` or, through the RF-splitting edges, that of any descendant), per unit amplitude.
+    ``emission_of(n, best) -> (S,)``: computes ``emit_b[n]`` (stored there) from the bound ``best`` through the
+    children, backwards (None: ``emit_b`` is given)."""
     raw, ir, rf_order, bnd, dt_int = ctx["raw"], ctx["ir"], ctx["rf_order"], ctx["bnd"], ctx["dt_int"]
     NI = len(raw)
     latent: list[Any] = [None] * NI
     for n in range(NI - 1, -1, -1):
         R = raw[n]
-        L = emit_b[n].copy()
+        best = None
         if n + 1 < NI:
             C = raw[n + 1]
             rf = ir.rf[rf_order[n]]
@@ -650,8 +685,9 @@ def _latent(ctx, emit_b) -> list:
             via = cm[C["e_kind"]] * latent[n + 1][C["e_child"]] * decay[C["e_par"]]
             best = np.zeros(R["is_z"].size)
             np.maximum.at(best, C["e_par"], via)
-            L = np.maximum(L, best)
-        latent[n] = L
+        if emission_of is not None:
+            emit_b[n] = emission_of(n, best)
+        latent[n] = emit_b[n].copy() if best is None else np.maximum(emit_b[n], best)
     return latent
 
 

@@ -1,0 +1,209 @@
+"""One RF split of the PDG pre-pass (:func:`dtoc.sim.pdg_graph.build_graph`): the children of every state, their
+merge by (type, rounded nominal k, rounded tau), their probe amplitudes, the representative edges and the cap.
+
+The recursion over intervals is sequential (which children exist depends on the merged amplitudes of the
+previous interval), so the cost of the pre-pass is this step times the number of RF pulses.  The step is a fixed
+number of numpy calls whatever the number of states, and every array it returns is bit for bit what the
+per-column formulation gave (tests/test_prepass_golden.py, tests/test_prepass_equivalence.py):
+
+* the merge keys are computed per *parent* (S rows) instead of per candidate edge (3 S rows): a child's key is
+  its parent's rounded end-of-interval (k, tau), negated for a conjugating edge (``round(-x / q) = -round(x / q)``
+  exactly), with the child's type in front;
+* the keys are packed into one int64 per row in lexicographic order (a column too wide for the product to fit is
+  replaced by its dense rank over the parents' values and their negatives, one sort of S values), so one argsort
+  of the kept edges gives the merged states in the same order and with the same inverse as
+  :func:`dtoc.sim.pdg_graph.unique_rows` of the explicit key rows (which remains the fallback when even the ranks
+  do not fit);
+* the children's amplitude sums add every edge's complex value in edge order from zero (one ``np.bincount`` over
+  the interleaved real and imaginary parts: the same additions in the same order as ``np.add.at``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: largest packed key range (the keys stay below 2**62)
+_KEY_LIMIT = 2**62
+
+
+@dataclass
+class SplitResult:
+    """The states of the next interval and the edges into them (see :class:`dtoc.sim.pdg_graph.IntervalGraph`)."""
+
+    is_z: np.ndarray
+    k: np.ndarray
+    tau: np.ndarray
+    mag: np.ndarray
+    amp: np.ndarray
+    eq: int
+    e_child: np.ndarray
+    e_par: np.ndarray
+    e_kind: np.ndarray
+    e_cand: np.ndarray
+
+
+def _signed_rank(v: np.ndarray) -> tuple[np.ndarray, int]:
+    """Order-preserving dense rank of ``v`` (S,) int64 over the set {v} | {-v} | {0}: (rank of each v, rank of 0).
+    The rank of -v is ``2 * centre - rank(v)``; the set has ``2 * centre + 1`` values."""
+    a = np.abs(v)
+    ua, ia = np.unique(a, return_inverse=True)
+    z0 = 1 if ua.size and ua[0] == 0 else 0
+    centre = ua.size - z0
+    return centre + np.sign(v) * (ia.reshape(-1) + 1 - z0), centre
+
+
+def packed_parent_keys(cols: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, int, int] | None:
+    """Pack the parents' key columns (each (S,) int64: rounded kx, ky, kz, tau) into one int64 per parent for the
+    child with the same sign and one for the conjugated child, in lexicographic order of the columns over the set
+    of both signs and zero.  Returns (same, conjugated, key of all-zero columns, number of packed values) or None
+    when the columns do not fit below 2**62 even as ranks.  A column is used as it is (offset by its largest
+    absolute value) when the product fits, else replaced by its rank, widest first."""
+    pos: list[np.ndarray] = []
+    neg: list[np.ndarray] = []
+    zero: list[int] = []
+    span: list[int] = []
+    for c in cols:
+        m = int(np.abs(c).max()) if c.size else 0
+        pos.append(c + m)
+        neg.append(m - c)
+        zero.append(m)
+        span.append(2 * m + 1)
+    ranked = [False] * len(cols)
+    while np.prod(span, dtype=object) * 2 >= _KEY_LIMIT:
+        j = max((i for i in range(len(cols)) if not ranked[i]), key=lambda i: span[i], default=None)
+        if j is None:
+            return None
+        r, centre = _signed_rank(cols[j])
+        pos[j], neg[j], zero[j], span[j], ranked[j] = r, 2 * centre - r, centre, 2 * centre + 1, True
+    same = pos[0]
+    conj = neg[0]
+    z = zero[0]
+    for j in range(1, len(cols)):
+        same = same * span[j] + pos[j]
+        conj = conj * span[j] + neg[j]
+        z = z * span[j] + zero[j]
+    return same, conj, z, int(np.prod(span, dtype=object))
+
+
+def _probe_max_abs(amp: np.ndarray, probe_w: np.ndarray | None) -> np.ndarray:
+    """(R,) amplitude estimate of (R, P) complex probe amplitudes (:meth:`dtoc.sim.pdg_graph._Bounds.amp_estimate`)."""
+    a = np.abs(amp)
+    if probe_w is not None:
+        return a @ probe_w
+    m = a[:, 0].copy()
+    for p in range(1, a.shape[1]):  # column by column: faster than .max(axis=1) on few columns
+        np.maximum(m, a[:, p], out=m)
+    return m
+
+
+def add_complex_rows(index: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
+    """(n, P) complex sums of ``rows`` (E, P) complex by ``index`` (E,): ``np.add.at(zeros, index, rows)`` bit for bit
+    (every output element adds its rows in input order from 0) by ONE ``np.bincount`` over the interleaved real and
+    imaginary parts."""
+    P2 = 2 * rows.shape[1]
+    flat = np.ascontiguousarray(rows).view(np.float64).reshape(-1)
+    idx = (index[:, None] * P2 + np.arange(P2)).reshape(-1)
+    return np.bincount(idx, weights=flat, minlength=n * P2).view(np.complex128).reshape(n, P2 // 2)
+
+
+def split_step(
+    is_z: np.ndarray,
+    k_end: np.ndarray,
+    tau_end: np.ndarray,
+    amp_end: np.ndarray,
+    pc: np.ndarray,
+    qk: float,
+    qt: float,
+    tau_ignored: bool,
+    min_magnitude: float,
+    max_states: int,
+    probe_w: np.ndarray | None,
+    fallback_keys,
+) -> SplitResult:
+    """Split every state (``is_z`` (S,), end-of-interval ``k_end`` (S, 3), ``tau_end`` (S,), probe amplitudes
+    ``amp_end`` (S, P)) by one RF pulse of probe edge coefficients ``pc`` (6, P), merge, prune by amplitude and
+    cap (see :func:`dtoc.sim.pdg_graph.build_graph`).  ``fallback_keys(is_z, k, tau)``: the explicit key rows,
+    used when the packed keys do not fit."""
+    from dtoc.sim.pdg_graph import CONJ, first_max_by_group, top_k_mask, unique_rows
+
+    S, P = amp_end.shape
+    # the three children of every parent, slot-major within the parent (kinds 0-2 or 3-5): slot 1 conjugates
+    coef = pc.reshape(2, 3, P)[is_z.astype(np.intp)]  # (S, 3, P)
+    ccand = np.multiply(coef, amp_end[:, None, :])
+    np.multiply(coef[:, 1], np.conjugate(amp_end), out=ccand[:, 1])
+    ccand = ccand.reshape(3 * S, P)
+    cand = _probe_max_abs(ccand, probe_w)
+    kept = np.flatnonzero(cand >= min_magnitude)  # candidate edges in (parent, slot) order
+    par = kept // 3
+    slot = kept - 3 * par
+    kind = slot + 3 * is_z[par]
+    cand = cand[kept]
+    ccand = ccand[kept]
+    E = kept.size
+
+    # merge keys: per parent, the rounded (k, tau) of the same-sign and the conjugated child; the type in front
+    kq = np.round(k_end / qk).astype(np.int64)
+    tq = np.zeros(S, dtype=np.int64) if tau_ignored else np.round(tau_end / qt).astype(np.int64)
+    packed = packed_parent_keys([kq[:, 0], kq[:, 1], kq[:, 2], tq])
+    if packed is not None:
+        same, conj, zkey, span = packed
+        per_parent = np.stack([same, conj, same + span], axis=1).reshape(-1)  # slot 2: the longitudinal child
+        key = np.empty(E + 1, dtype=np.int64)
+        np.take(per_parent, kept, out=key[:E])
+        key[E] = zkey + span  # the equilibrium state (longitudinal, k = 0, tau = 0) always exists
+        order = np.argsort(key)
+        sk = key[order]
+        new = np.empty(E + 1, dtype=bool)
+        new[0] = True
+        np.not_equal(sk[1:], sk[:-1], out=new[1:])
+        inv = np.empty(E + 1, dtype=np.int64)
+        inv[order] = np.cumsum(new) - 1
+        child_z = sk[new] >= span
+    else:  # keys too wide to pack even as ranks: the explicit rows
+        sgn = np.where(CONJ[kind], -1.0, 1.0)
+        kk = fallback_keys(slot == 2, k_end[par] * sgn[:, None], tau_end[par] * sgn)
+        eq_key = fallback_keys(np.array([True]), np.zeros((1, 3)), np.zeros(1))
+        uniq, inv = unique_rows(np.concatenate([kk, eq_key]))
+        inv = inv.reshape(-1)
+        child_z = uniq[:, 0].astype(bool)
+    nU = child_z.size
+    inv_e, eq_new = inv[:E], int(inv[E])
+    camp = add_complex_rows(inv_e, ccand, nU)
+    cmag = _probe_max_abs(camp, probe_w)
+    rep_e = first_max_by_group(inv_e, cand, nU)  # representative edge per child: largest cand; -1 when none
+    alive = (cmag >= min_magnitude) & (rep_e >= 0)
+    alive[eq_new] = True
+    if alive.sum() > max_states:
+        score = np.where(alive, cmag, -1.0)
+        score[eq_new] = np.inf
+        alive = top_k_mask(score, max_states)
+    new_idx = np.cumsum(alive) - 1
+    ekeep = alive[inv_e]
+    sel = np.flatnonzero(alive)
+    r = rep_e[sel]
+    has = r >= 0
+    rp = par[r[has]]
+    rs = np.where(slot[r[has]] == 1, -1.0, 1.0)
+    k = np.zeros((sel.size, 3))
+    tau = np.zeros(sel.size)
+    k[has] = k_end[rp] * rs[:, None]
+    tau[has] = tau_end[rp] * rs
+    eq = int(new_idx[eq_new])
+    k[eq] = 0.0
+    tau[eq] = 0.0
+    z = child_z[sel]
+    z[eq] = True
+    return SplitResult(
+        is_z=z,
+        k=k,
+        tau=tau,
+        mag=cmag[sel],
+        amp=camp[sel],
+        eq=eq,
+        e_child=new_idx[inv_e[ekeep]],
+        e_par=par[ekeep],
+        e_kind=kind[ekeep],
+        e_cand=cand[ekeep],
+    )
