@@ -22,6 +22,12 @@ this convex set:
    (``e[n] = clip(y[n], e[n-1] -+ S) & [L[n], U[n]]``; both passes are feasible because the envelopes
    are S-Lipschitz, and the feasible set is convex, so their mean is feasible too).
 
+Both run as whole-array operations, not a Python step per sample or pair: Dykstra on the axes with free samples,
+its columns ordered even edges then odd ones (each pair set is two contiguous slices), into buffers made once;
+the greedy passes of all axes and both directions as sweeps of one array until nothing changes
+(:func:`_sequential_clip`).  The numbers are those of the per-sample algorithm, bit for bit
+(tests/test_limits_vectorized.py).  A tensor on an accelerator is projected there (:meth:`EdgeProjector.project`).
+
 At an oblique orientation (``Limits.rotation`` = R, logical -> physical, not an axis permutation) the scanner
 enforces the limits on the physical axes ``R @ g``, which couple the logical axes.  The projector keeps its
 per-logical-axis structure with *per-sample* bounds: every edge gets a box ``alo[:, n] <= e[:, n] <= ahi[:, n]``
@@ -158,38 +164,274 @@ def base_physical_warnings(fine_mT_per_m: np.ndarray, dt_fine_s: float, limits: 
     ]
 
 
-def _greedy_pass(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, step: float) -> np.ndarray:
-    """Sequential clip: x[n] = clip(y[n], [lo[n], hi[n]] & [x[n-1]-step, x[n-1]+step]) (1-D)."""
-    yl, lol, hil = y.tolist(), lo.tolist(), hi.tolist()
-    out = [0.0] * len(yl)
-    prev = None
-    for n, v in enumerate(yl):
-        a, b = lol[n], hil[n]
-        if prev is not None:
-            a = max(a, prev - step)
-            b = min(b, prev + step)
-        if a > b:  # cannot happen with Lipschitz envelopes; keep the bound nearest to feasibility
-            b = a
-        prev = a if v < a else (b if v > b else v)
-        out[n] = prev
-    return np.asarray(out)
+class _NP:
+    """The array operations of :func:`_dykstra` and :func:`_sequential_clip` for numpy (``out=``: in place)."""
+
+    add, sub, mul, abs, sign, where, nonzero = np.add, np.subtract, np.multiply, np.abs, np.sign, np.where, np.nonzero
+
+    @staticmethod
+    def clip(a, lo, hi, out):
+        return np.clip(a, lo, hi, out=out)
+
+    @staticmethod
+    def relu(a, out):  # = np.clip(a, 0.0, None), which numpy computes as this
+        return np.maximum(a, 0.0, out=out)
+
+    @staticmethod
+    def zero_where(a, mask):
+        np.copyto(a, 0.0, where=mask)
+
+    @staticmethod
+    def bits(a):
+        return a.view(np.uint64)
+
+    zeros_like, cat = np.zeros_like, np.concatenate
+
+    @staticmethod
+    def empty(shape, like):
+        return np.empty(shape)
+
+    @staticmethod
+    def flip(a):
+        return a[:, ::-1]
+
+    @staticmethod
+    def host(a):
+        return a
 
 
-def _greedy_pass_var(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, dlo: np.ndarray, dhi: np.ndarray) -> np.ndarray:
-    """:func:`_greedy_pass` with per-segment step bounds: ``dlo[n] <= x[n+1] - x[n] <= dhi[n]``."""
-    yl, lol, hil, dll, dhl = y.tolist(), lo.tolist(), hi.tolist(), dlo.tolist(), dhi.tolist()
-    out = [0.0] * len(yl)
-    prev = None
-    for n, v in enumerate(yl):
-        a, b = lol[n], hil[n]
-        if prev is not None:
-            a = max(a, prev + dll[n - 1])
-            b = min(b, prev + dhl[n - 1])
-        if a > b:  # rounding of the envelopes' sums only (they are consistent): the bound nearest feasibility
+class _TORCH:
+    """:class:`_NP` for torch tensors (float64, on any device): the same elementwise operations, so the same bits."""
+
+    add, sub, mul, abs, sign, where = torch.add, torch.sub, torch.mul, torch.abs, torch.sign, torch.where
+
+    @staticmethod
+    def nonzero(a):
+        return torch.nonzero(a, as_tuple=True)
+
+    @staticmethod
+    def clip(a, lo, hi, out):
+        return torch.clamp(a, lo, hi, out=out)
+
+    @staticmethod
+    def relu(a, out):
+        return torch.clamp(a, min=0.0, out=out)
+
+    @staticmethod
+    def zero_where(a, mask):
+        a.masked_fill_(mask, 0.0)
+
+    @staticmethod
+    def bits(a):
+        return a.view(torch.int64)
+
+    @staticmethod
+    def zeros_like(a):
+        return torch.zeros_like(a)
+
+    @staticmethod
+    def empty(shape, like):
+        return torch.empty(shape, dtype=like.dtype, device=like.device)
+
+    @staticmethod
+    def cat(arrays):
+        return torch.cat(list(arrays))
+
+    @staticmethod
+    def flip(a):
+        return a.flip(1)
+
+    @staticmethod
+    def host(a):
+        return a.cpu().numpy()
+
+
+def _clip_step(prev, v, lo, hi, dl, dh):
+    """One step of the sequential clip, elementwise: ``v`` clipped to ``[lo, hi] & [prev + dl, prev + dh]``; where
+    that is empty (rounding of consistent envelopes only) the bound nearest feasibility.  The comparisons are the
+    ones Python's ``max(lo, c)`` / ``min(hi, c)`` make, so the values are those of the scalar loop, bit for bit."""
+    w = torch.where if isinstance(prev, torch.Tensor) else np.where
+    c = prev + dl
+    a = w(c > lo, c, lo)
+    c = prev + dh
+    b = w(c < hi, c, hi)
+    b = w(a > b, a, b)
+    return w(v < a, a, w(v > b, b, v))
+
+
+def _clip_loop(x: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, dl: np.ndarray, dh: np.ndarray, m: int):
+    """:func:`_clip_step` one sample after the other from ``m >= 1`` to the end of the 1-D ``x`` (in place)."""
+    prev = float(x[m - 1])
+    out = []
+    for vv, a, b, d0, d1 in zip(
+        v[m:].tolist(), lo[m:].tolist(), hi[m:].tolist(), dl[m - 1 :].tolist(), dh[m - 1 :].tolist()
+    ):
+        a = max(a, prev + d0)
+        b = min(b, prev + d1)
+        if a > b:
             b = a
-        prev = a if v < a else (b if v > b else v)
-        out[n] = prev
-    return np.asarray(out)
+        prev = a if vv < a else (b if vv > b else vv)
+        out.append(prev)
+    x[m:] = out
+
+
+def _sequential_clip(xp, v, lo, hi, dl, dh):
+    """Row by row, the greedy pass ``x[n] = clip(v[n], [lo[n], hi[n]] & [x[n-1] + dl[n-1], x[n-1] + dh[n-1]])``
+    (``v``, ``lo``, ``hi``: (R, n); ``dl``, ``dh``: (R, n-1); float64 arrays of ``xp``, :class:`_NP` or
+    :class:`_TORCH`), computed as whole-array sweeps.
+
+    Each sample depends on the one before only, so the sequence is the unique fixed point of
+    ``x[n] = step(x[n-1])`` with ``x[0] = clip(v[0], lo[0], hi[0])``.  Sweeps recompute, from the current guess, the
+    samples whose predecessor changed (the first sweep: all of them) until none changes: every sweep settles at
+    least the next sample of each chain, and the fixed point is the scalar loop's sequence, bit for bit (the same
+    operations on the same numbers).  Where the limits are active over long chains (far from the set) a sweep
+    settles few samples: past a sweep budget the rest of such a row runs as the scalar loop from its first
+    unsettled sample (everything before it is settled).
+    """
+    b = xp.where(lo > hi, lo, hi)
+    x = xp.where(v < lo, lo, xp.where(v > b, b, v))  # sample 0 (no predecessor), and the first guess of the others
+    n = x.shape[1]
+    if n < 2:
+        return x
+    new = _clip_step(x[:, :-1], v[:, 1:], lo[:, 1:], hi[:, 1:], dl, dh)
+    changed = xp.bits(new) != xp.bits(x[:, 1:])
+    x[:, 1:] = new
+    rows, cols = xp.nonzero(changed[:, :-1])  # sample cols + 1 changed: recompute cols + 2
+    cols = cols + 2
+    sweeps, budget = 1, 64 + n // 64
+    while rows.shape[0]:
+        if sweeps >= budget:  # long active chains: the scalar loop from each row's first unsettled sample
+            xh, vh, loh, hih, dlh, dhh = (xp.host(t) for t in (x, v, lo, hi, dl, dh))
+            rh, ch = xp.host(rows), xp.host(cols)
+            for r in np.unique(rh):
+                _clip_loop(xh[r], vh[r], loh[r], hih[r], dlh[r], dhh[r], int(ch[rh == r].min()))
+            x[:] = xh if xh is x else torch.as_tensor(xh, device=x.device)
+            break
+        prev = x[rows, cols - 1]
+        new = _clip_step(prev, v[rows, cols], lo[rows, cols], hi[rows, cols], dl[rows, cols - 1], dh[rows, cols - 1])
+        ch = xp.bits(new) != xp.bits(x[rows, cols])
+        x[rows, cols] = new
+        rows, cols = rows[ch], cols[ch] + 1
+        keep = cols < n
+        rows, cols = rows[keep], cols[keep]
+        sweeps += 1
+    return x
+
+
+def _greedy_mean(xp, x, lo, hi, dlo, dhi, free_axes):
+    """The repair's mean of the forward and the backward greedy pass on the axes ``free_axes`` (index array), as
+    rows of one :func:`_sequential_clip` (backwards, x[n] - x[n+1] lies in -dhi..-dlo); the other axes as they are."""
+    out = x.clone() if isinstance(x, torch.Tensor) else x.copy()
+    k = free_axes.shape[0]
+    if k:
+        xa, la, ha, dla, dha = x[free_axes], lo[free_axes], hi[free_axes], dlo[free_axes], dhi[free_axes]
+        f = xp.flip
+        p = _sequential_clip(
+            xp,
+            xp.cat([xa, f(xa)]),
+            xp.cat([la, f(la)]),
+            xp.cat([ha, f(ha)]),
+            xp.cat([dla, -f(dha)]),
+            xp.cat([dha, -f(dla)]),
+        )
+        out[free_axes] = 0.5 * (p[:k] + f(p[k:]))
+    return out
+
+
+class _PairSet:
+    """One of the two sets of disjoint neighbour pairs ``(n, n+1)``, ``n = start, start + 2, ...``, in the
+    columns of :class:`_Layout` (even edges first, then odd ones: every pair's ends and every run of untouched
+    columns are contiguous slices ``a``, ``b``, ``rest``); the pairs that are not free-free (``off``, left alone)
+    and their step bounds ``dlo..dhi`` (oblique limits)."""
+
+    def __init__(self, m: int, a: slice, b: slice, rest: tuple, off, dlo, dhi):
+        self.m, self.a, self.b, self.rest, self.off, self.dlo, self.dhi = m, a, b, rest, off, dlo, dhi
+
+    @classmethod
+    def make(cls, start: int, n_edges: int, pair_free: np.ndarray, dlo: np.ndarray, dhi: np.ndarray) -> _PairSet:
+        m = len(range(start, n_edges - 1, 2))
+        n_even = (n_edges + 1) // 2  # column of edge n: n // 2 (even n), n_even + n // 2 (odd n)
+        col = lambda n: n // 2 if n % 2 == 0 else n_even + n // 2  # noqa: E731
+        a = slice(col(start), col(start) + m)
+        b = slice(col(start + 1), col(start + 1) + m)
+        used = np.zeros(n_edges, dtype=bool)
+        used[a], used[b] = True, True
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], (~used).astype(np.int8), [0]])))
+        rest = tuple(slice(int(i), int(j)) for i, j in zip(edges[::2], edges[1::2]))
+        cols = slice(None), slice(start, None, 2)
+        return cls(m, a, b, rest, ~pair_free[cols][:, :m], dlo[cols][:, :m], dhi[cols][:, :m])
+
+    def to(self, convert) -> _PairSet:
+        """The same set with its arrays converted (``convert``: array -> tensor on a device)."""
+        return _PairSet(self.m, self.a, self.b, self.rest, convert(self.off), convert(self.dlo), convert(self.dhi))
+
+
+class _Layout:
+    """What :func:`_dykstra` works on: the rows (axes) with free samples, their columns in the order ``perm`` (even
+    edges, then odd ones), the box ``lo..hi`` in that order and the two pair sets."""
+
+    def __init__(self, rows, perm, lo, hi, sets: tuple[_PairSet, ...]):
+        self.rows, self.perm, self.lo, self.hi, self.sets = rows, perm, lo, hi, sets
+
+    @classmethod
+    def make(cls, free, lo, hi, pair_free, dlo, dhi) -> _Layout:
+        rows = np.flatnonzero(free.any(axis=1))
+        n = lo.shape[1]
+        perm = np.concatenate([np.arange(0, n, 2), np.arange(1, n, 2)])
+        sets = tuple(_PairSet.make(start, n, pair_free[rows], dlo[rows], dhi[rows]) for start in (0, 1))
+        return cls(rows, perm, np.ascontiguousarray(lo[rows][:, perm]), np.ascontiguousarray(hi[rows][:, perm]), sets)
+
+    def to(self, convert) -> _Layout:
+        return _Layout(
+            convert(self.rows),
+            convert(self.perm),
+            convert(self.lo),
+            convert(self.hi),
+            tuple(p.to(convert) for p in self.sets),
+        )
+
+
+def _dykstra(xp, x, lay: _Layout, step, n_iter: int):
+    """Dykstra's alternating projection onto the box ``lo..hi`` and the two pair sets (closed form each: a pair
+    beyond its step bound moves both ends by half the excess), ``n_iter`` rounds, then the box.  ``step``: the
+    uniform step bound, or None for the pair sets' own ``dlo..dhi``.  Whole-array operations on contiguous
+    slices (the columns reordered, :class:`_Layout`) into buffers made once; the values are those of the plain
+    expressions ``a + 0.5 * excess`` and so on, bit for bit."""
+    out = x.clone() if isinstance(x, torch.Tensor) else x.copy()
+    # only the rows with free samples are computed: a row without (``x`` holds its fixed values, lo = hi) ends
+    # as the last box makes it, its values (a clip returns the bound it equals: a zero keeps its sign)
+    lo, hi = lay.lo, lay.hi
+    x = x[lay.rows][:, lay.perm]
+    z = xp.empty(x.shape, x)
+    incr = [xp.zeros_like(x) for _ in range(3)]
+    bufs = [(xp.empty((x.shape[0], p.m), x), xp.empty((x.shape[0], p.m), x)) for p in lay.sets]
+    for _ in range(n_iter):
+        xp.add(x, incr[0], out=z)
+        xp.clip(z, lo, hi, out=x)
+        xp.sub(z, x, out=incr[0])
+        for p, (d, e), inc in zip(lay.sets, bufs, incr[1:]):
+            xp.add(x, inc, out=z)
+            a, b = z[:, p.a], z[:, p.b]
+            xp.sub(b, a, out=d)
+            if step is not None:  # excess = where(pair free, max(|d| - S, 0), 0) * sign(d)
+                xp.abs(d, out=e)
+                xp.sub(e, step, out=e)
+                xp.relu(e, out=e)
+                xp.zero_where(e, p.off)
+                xp.mul(e, xp.sign(d, out=d), out=e)
+            else:  # excess = where(pair free, d - clip(d, dlo, dhi), 0)
+                xp.sub(d, xp.clip(d, p.dlo, p.dhi, out=e), out=e)
+                xp.zero_where(e, p.off)
+            xp.mul(e, 0.5, out=e)
+            xp.add(a, e, out=x[:, p.a])
+            xp.sub(b, e, out=x[:, p.b])
+            for r in p.rest:
+                x[:, r] = z[:, r]
+            xp.sub(z, x, out=inc)
+    xp.clip(x, lo, hi, out=z)
+    x[:, lay.perm] = z
+    out[lay.rows] = x
+    return out
 
 
 def _envelope_var(alo, ahi, dlo, dhi):
@@ -377,6 +619,8 @@ class EdgeProjector:
         # free-free neighbour pairs (fixed neighbours are folded into the envelopes)
         self.pair_free = free[:, 1:] & free[:, :-1]
         self.n_edges = n_e
+        self._layout = _Layout.make(free, lo, hi, self.pair_free, self.dlo, self.dhi)
+        self._on_device: dict = {}  # the arrays as float64 tensors, per torch device (:meth:`_device_arrays`)
 
     @staticmethod
     def _envelope(c: np.ndarray, fixed: np.ndarray, G: float, S: float):
@@ -399,33 +643,13 @@ class EdgeProjector:
         return lo, hi
 
     # ---- projection ----------------------------------------------------------------------------
-    def _pair_project(self, x: np.ndarray, start: int) -> np.ndarray:
-        """Exact projection onto {|x[n+1]-x[n]| <= S for free pairs n = start, start+2, ...}."""
-        S = self.step
-        y = x.copy()
-        a = y[:, start:-1:2]
-        b = y[:, start + 1 :: 2]
-        m = min(a.shape[1], b.shape[1])
-        a, b = a[:, :m], b[:, :m]
-        mask = self.pair_free[:, start::2][:, :m]
-        d = b - a
-        if self.uniform:
-            excess = np.where(mask, np.clip(np.abs(d) - S, 0.0, None), 0.0) * np.sign(d)
-        else:
-            dlo, dhi = self.dlo[:, start::2][:, :m], self.dhi[:, start::2][:, :m]
-            excess = np.where(mask, d - np.clip(d, dlo, dhi), 0.0)
-        y[:, start : start + 2 * m : 2] = a + 0.5 * excess
-        y[:, start + 1 : start + 1 + 2 * m : 2] = b - 0.5 * excess
-        return y
-
-    def _box(self, x: np.ndarray) -> np.ndarray:
-        return np.clip(x, self.lo, self.hi)
-
     def project(self, edges, n_iter: int = 30, exact: bool = True):
         """Project edge samples onto the limit set.
 
         Args:
-            edges: (3, N+1) numpy array or torch tensor, mT/m.
+            edges: (3, N+1) numpy array or torch tensor, mT/m.  A tensor on an accelerator is projected there, in
+                float64, with no copy to the host (with ``exact`` the repair's sweeps wait for the device, see
+                :meth:`_project_device`).
             n_iter: Dykstra iterations (the approximation of the Euclidean projection).
             exact: apply the feasibility repair, which makes the result meet the (margin) limits
                 by construction; without it the result is only approximately feasible (cheap, for
@@ -434,6 +658,8 @@ class EdgeProjector:
             the projected samples, same type/dtype/device as ``edges`` (detached for tensors).
         """
         is_t = isinstance(edges, torch.Tensor)
+        if is_t and edges.device.type != "cpu":
+            return self._project_device(edges, n_iter, exact)
         x = edges.detach().cpu().numpy().astype(np.float64) if is_t else np.asarray(edges, dtype=np.float64)
         x = np.where(self.free, x, self.base)
         if self.is_feasible(x, tol=0.0):  # already in the set: the projection is the identity (bit for bit)
@@ -446,15 +672,52 @@ class EdgeProjector:
         return x
 
     def _dykstra(self, x: np.ndarray, n_iter: int) -> np.ndarray:
-        sets = (self._box, lambda v: self._pair_project(v, 0), lambda v: self._pair_project(v, 1))
-        incr = [np.zeros_like(x) for _ in sets]
-        for _ in range(n_iter):
-            for i, P in enumerate(sets):
-                z = x + incr[i]
-                x_new = P(z)
-                incr[i] = z - x_new
-                x = x_new
-        return self._box(x)
+        return _dykstra(_NP, x, self._layout, self.step if self.uniform else None, n_iter)
+
+    def _device_arrays(self, device) -> dict:
+        """lo, hi, base, free, pair_free, dlo, dhi and the pair sets as tensors on ``device`` (made once)."""
+        key = str(device)
+        if key not in self._on_device:
+
+            def t(a):
+                return torch.as_tensor(a, device=device)
+
+            self._on_device[key] = {
+                **{k: t(getattr(self, k)) for k in ("lo", "hi", "base", "free", "pair_free", "dlo", "dhi")},
+                "layout": self._layout.to(t),
+            }
+        return self._on_device[key]
+
+    def _project_device(self, edges: torch.Tensor, n_iter: int, exact: bool) -> torch.Tensor:
+        """:meth:`project` of a tensor where it lies, in float64 (the same operations as the numpy path, so the
+        same numbers).  Without ``exact`` nothing waits for the device: the identity on a point already in the
+        set is a select on the device, not a branch on the host.  With it, the repair's sweeps check on the host
+        whether they are done (one scalar each; a long chain of active limits finishes on the host)."""
+        d = self._device_arrays(edges.device)
+        x = torch.where(d["free"], edges.detach().to(torch.float64), d["base"])
+        y = _dykstra(_TORCH, x, d["layout"], self.step if self.uniform else None, n_iter)
+        if exact:
+            y = self._repair_tensor(y, d)
+        return torch.where(self._feasible_tensor(x, d, 0.0), x, y).to(edges.dtype)
+
+    def _repair_tensor(self, x: torch.Tensor, d: dict) -> torch.Tensor:
+        """:meth:`repair` of a float64 tensor where it lies (the same numbers)."""
+        x = torch.where(d["free"], x, d["base"])
+        if bool(self._feasible_tensor(x, d, 0.0)):
+            return x
+        axes = torch.nonzero(d["free"].any(dim=1)).flatten()
+        out = _greedy_mean(_TORCH, x, d["lo"], d["hi"], d["dlo"], d["dhi"], axes)
+        return torch.where(d["free"], torch.clamp(out, d["lo"], d["hi"]), d["base"])
+
+    def _feasible_tensor(self, x: torch.Tensor, d: dict, tol: float) -> torch.Tensor:
+        """:meth:`is_feasible` as a 0-dim bool tensor on x's device (nothing waits for it)."""
+        inside = ((x >= d["lo"] - tol) & (x <= d["hi"] + tol)).all()
+        s = torch.diff(x, dim=1)
+        if self.uniform:
+            bad = d["pair_free"] & (s.abs() > self.step + tol)
+        else:
+            bad = d["pair_free"] & ((s > d["dhi"] + tol) | (s < d["dlo"] - tol))
+        return inside & ~bad.any()
 
     def is_feasible(self, x: np.ndarray, tol: float = 1e-9) -> bool:
         """True if ``x`` (3, N+1) meets the margin limits and the fixed values."""
@@ -483,19 +746,7 @@ class EdgeProjector:
         x = np.where(self.free, np.asarray(x, dtype=np.float64), self.base)
         if self.is_feasible(x, tol=0.0):
             return x
-        out = x.copy()
-        for a in range(3):
-            if not self.free[a].any():
-                continue
-            if self.uniform:
-                fw = _greedy_pass(x[a], self.lo[a], self.hi[a], self.step)
-                bw = _greedy_pass(x[a, ::-1], self.lo[a, ::-1], self.hi[a, ::-1], self.step)[::-1]
-            else:  # backwards, x[n] - x[n+1] lies in -dhi..-dlo
-                fw = _greedy_pass_var(x[a], self.lo[a], self.hi[a], self.dlo[a], self.dhi[a])
-                bw = _greedy_pass_var(
-                    x[a, ::-1], self.lo[a, ::-1], self.hi[a, ::-1], -self.dhi[a, ::-1], -self.dlo[a, ::-1]
-                )[::-1]
-            out[a] = 0.5 * (fw + bw)
+        out = _greedy_mean(_NP, x, self.lo, self.hi, self.dlo, self.dhi, np.flatnonzero(self.free.any(axis=1)))
         out = np.where(self.free, np.clip(out, self.lo, self.hi), self.base)
         return out
 

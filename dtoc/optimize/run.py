@@ -40,6 +40,7 @@ from dtoc.optimize.report import plotted_span
 from dtoc.optimize.twin import EdgeTwin
 from dtoc.seq.check import SafetyChecks, check_file, check_ir_limits
 from dtoc.seq.ir import SequenceIR
+from dtoc.seq.seqtext import shared_parse
 from dtoc.seq.system import SystemSpec
 from dtoc.seq.versions import version_str
 from dtoc.seq.write import output_version, preflight_write, seq_bytes_of
@@ -998,7 +999,8 @@ def _write_checked(
     ``definitions``: extra [DEFINITIONS] entries (e.g. ``DtocInterrupted 1`` on a best-so-far)."""
     outp = Path(out)
     version = ir_out.meta.get("output_format_version")
-    with tempfile.TemporaryDirectory(dir=outp.parent if str(outp.parent) else ".") as d:
+    # the written text is parsed once: by the writer's read-back and by the check (dtoc.seq.seqtext.shared_parse)
+    with tempfile.TemporaryDirectory(dir=outp.parent if str(outp.parent) else ".") as d, shared_parse():
         tmp = Path(d) / outp.name
         tmp.write_bytes(seq_bytes_of(ir_out, definitions, adc_offsets, version))  # a private folder: checked first
         sysspec = SystemSpec(

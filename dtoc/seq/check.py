@@ -40,7 +40,7 @@ from dtoc.errors import InputError
 from dtoc.seq.ir import SequenceIR
 from dtoc.seq.pulseq import quiet
 from dtoc.seq.read import from_pypulseq, grad_vertices, read_pypulseq
-from dtoc.seq.seqtext import INTEGER_COLUMNS, parse_seq_text
+from dtoc.seq.seqtext import INTEGER_COLUMNS, forget_shared_parse, parse_seq_text, shared_parse
 from dtoc.seq.system import SystemSpec, format_validation_error
 
 _RTOL = 1e-6  # relative tolerance on limits (file precision: 6 significant digits)
@@ -678,48 +678,49 @@ def check_file(
         InputError: only when the file cannot be opened or parsed at all (missing, binary, truncated
             structure); every other problem is a :class:`Violation`.
     """
-    st = parse_seq_text(path)
-    source = "given"
-    if conventions == _AUTO:
-        conventions = f"system {system.name}" if system is not None else None
-    if system is None:
-        defs = {}
-        for k, v in st.definitions().items():
-            defs[k] = v.split()[0] if v.split() else v
-        try:
-            system = system_from_definitions(defs)
-        except InputError as e:
-            raise InputError(f"{path}: {e}") from None
+    with shared_parse():  # one parse of the text for its rules here and for the reader (and the writer's, in an export)
+        st = parse_seq_text(path)
+        source = "given"
+        if conventions == _AUTO:
+            conventions = f"system {system.name}" if system is not None else None
         if system is None:
-            raise InputError(
-                f"{path}: the file records no gradient limits (MaxGrad_mT_per_m / MaxSlew_T_per_m_per_s): give "
-                "--gmax and --smax or --system (limits are never assumed)"
+            defs = {}
+            for k, v in st.definitions().items():
+                defs[k] = v.split()[0] if v.split() else v
+            try:
+                system = system_from_definitions(defs)
+            except InputError as e:
+                raise InputError(f"{path}: {e}") from None
+            if system is None:
+                raise InputError(
+                    f"{path}: the file records no gradient limits (MaxGrad_mT_per_m / MaxSlew_T_per_m_per_s): give "
+                    "--gmax and --smax or --system (limits are never assumed)"
+                )
+            source = "file definitions"
+        res = CheckResult(
+            path=str(path), system=system, limits_source=limits_source or source, definitions=dict(st.definitions())
+        )
+        version = ".".join(str(x) for x in st.version)
+        res.sources = {FORMAT: f"Pulseq format {version}", LIMITS: res.limits_source}
+        if conventions:
+            res.sources[CONVENTION] = conventions
+        else:
+            res.not_checked.append(
+                "vendor conventions (RF dead time and ring-down, ADC dead time, ADC sample count and segmenting, the "
+                "file's rasters against the scanner's): not checked, no scanner profile or --system names them"
             )
-        source = "file definitions"
-    res = CheckResult(
-        path=str(path), system=system, limits_source=limits_source or source, definitions=dict(st.definitions())
-    )
-    version = ".".join(str(x) for x in st.version)
-    res.sources = {FORMAT: f"Pulseq format {version}", LIMITS: res.limits_source}
-    if conventions:
-        res.sources[CONVENTION] = conventions
-    else:
-        res.not_checked.append(
-            "vendor conventions (RF dead time and ring-down, ADC dead time, ADC sample count and segmenting, the "
-            "file's rasters against the scanner's): not checked, no scanner profile or --system names them"
-        )
-    if res.definitions.get("DtocInterrupted", "").split()[:1] == ["1"]:
-        res.warnings.append(
-            "written by an interrupted dtoc optimize (DtocInterrupted 1): a best-so-far, not a finished result"
-        )
-    if st.signature_hash is None:
-        res.warnings.append(
-            "unsigned (no [SIGNATURE]): the format allows it, but the interpreter cannot detect a modified file"
-        )
-    seg = _adc_segment(res.definitions.get("MaxAdcSegmentLength"))
-    _text_rules(st, res.violations)
-    del st  # the text parse (~20 bytes per file byte) is not kept while pypulseq reads the file again
-    seq = read_pypulseq(path, require_signature=False)[0]  # its text parse is dropped at once
+        if res.definitions.get("DtocInterrupted", "").split()[:1] == ["1"]:
+            res.warnings.append(
+                "written by an interrupted dtoc optimize (DtocInterrupted 1): a best-so-far, not a finished result"
+            )
+        if st.signature_hash is None:
+            res.warnings.append(
+                "unsigned (no [SIGNATURE]): the format allows it, but the interpreter cannot detect a modified file"
+            )
+        seg = _adc_segment(res.definitions.get("MaxAdcSegmentLength"))
+        _text_rules(st, res.violations)
+        seq = read_pypulseq(path, require_signature=False)[0]
+        forget_shared_parse()  # the text's last reader: its parse (~20 bytes per file byte) is not kept
     if conventions:
         _raster_convention(file_rasters(seq), system, res.violations)
     try:

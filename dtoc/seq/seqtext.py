@@ -10,10 +10,14 @@ Signature: Pulseq's md5 covers the bytes before the newline that precedes ``[SIG
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+import dataclasses
 import hashlib
 import math
 import os
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -113,8 +117,34 @@ def _err(path, msg):
     return InputError(f"{path}: {msg}")
 
 
+#: The parse :func:`shared_parse` keeps: [(the bytes parsed, their SeqText)] or [None]; None outside the scope.
+_SHARED: contextvars.ContextVar[list | None] = contextvars.ContextVar("dtoc_shared_parse", default=None)
+
+
+@contextlib.contextmanager
+def shared_parse() -> Iterator[None]:
+    """Inside this scope a text is parsed once: :func:`parse_seq_text` of the same bytes again (a written file
+    read back by the writer's check, by the ``dtoc check`` rules and by the reader, each from its own path) gives
+    the first parse, with its own path, instead of parsing again.  Only the latest parse is kept, and only for the
+    scope (a parse holds ~20 bytes per byte of text).  Checks and messages are those of a parse: what is reused
+    is a text that parsed without error, byte for byte the same.  Nested scopes share the outer one."""
+    token = _SHARED.set([None]) if _SHARED.get() is None else None
+    try:
+        yield
+    finally:
+        if token is not None:
+            _SHARED.reset(token)
+
+
+def forget_shared_parse() -> None:
+    """Inside :func:`shared_parse`: drop the parse kept (its text's last reader is done with it)."""
+    shared = _SHARED.get()
+    if shared is not None:
+        shared[0] = None
+
+
 def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
-    """Split a ``.seq`` file into sections and check its structure.
+    """Split a ``.seq`` file into sections and check its structure (inside :func:`shared_parse`: once per text).
 
     Raises:
         InputError: missing, empty, binary, no/unsupported [VERSION], malformed or truncated content,
@@ -140,6 +170,16 @@ def parse_seq_text(path: str | Path, raw: bytes | None = None) -> SeqText:
             raw = p.read_bytes()
         except OSError as e:
             raise _err(p, f"cannot read ({e.strerror})") from None
+    shared = _SHARED.get()
+    if shared is not None and shared[0] is not None and shared[0][0] == raw:
+        return dataclasses.replace(shared[0][1], path=str(p), layout=None)
+    st = _parse(p, raw)
+    if shared is not None:
+        shared[0] = (raw, st)
+    return st
+
+
+def _parse(p: Path, raw: bytes) -> SeqText:
     if not raw.strip():
         raise _err(p, "empty file")
     binary = raw.startswith(BINARY_MAGIC)
