@@ -226,10 +226,10 @@ def test_emission_bound_is_never_below_the_exact_emission(monkeypatch):
     assert seen["states"] > 5000 and seen["tight"] > 1000 and seen["skipped"] > 1000, seen
 
 
-def test_add_complex_rows_is_add_at_bit_for_bit():
+def test_add_rows_by_index_is_add_at_bit_for_bit():
     """The children's amplitude sums: one bincount over interleaved real/imaginary parts adds in edge order from
     zero, as np.add.at does (values of very different magnitudes, so a different order would round differently)."""
-    from dtoc.sim.pdg_graph_step import add_complex_rows
+    from dtoc.sim.pdg_graph import add_rows_by_index
 
     rng = np.random.default_rng(5)
     E, P, n = 4000, 3, 700
@@ -237,7 +237,7 @@ def test_add_complex_rows_is_add_at_bit_for_bit():
     rows = (rng.standard_normal((E, P)) + 1j * rng.standard_normal((E, P))) * 10.0 ** rng.integers(-12, 6, (E, 1))
     want = np.zeros((n, P), dtype=np.complex128)
     np.add.at(want, idx, rows)
-    got = add_complex_rows(idx, rows, n)
+    got = add_rows_by_index(idx, rows, n)
     assert np.array_equal(got.view(np.float64), want.view(np.float64))
 
 
