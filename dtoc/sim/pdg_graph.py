@@ -424,13 +424,12 @@ def first_max_by_group(group: np.ndarray, value: np.ndarray, n: int) -> np.ndarr
 
 def add_rows_by_index(index: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
     """(n, P) complex sums of ``rows`` (E, P) complex by ``index`` (E,): ``np.add.at(zeros, index, rows)``, bit for
-    bit (both add in input order from 0), by one ``np.bincount`` per real column (~2.7x faster: ufunc.at has no
-    fast path for complex rows)."""
-    out = np.empty((n, rows.shape[1]), dtype=np.complex128)
-    for p in range(rows.shape[1]):
-        out[:, p].real = np.bincount(index, weights=rows[:, p].real, minlength=n)
-        out[:, p].imag = np.bincount(index, weights=rows[:, p].imag, minlength=n)
-    return out
+    bit (every output element adds its rows in input order from 0), by ONE ``np.bincount`` over the interleaved real
+    and imaginary parts (ufunc.at has no fast path for complex rows)."""
+    P2 = 2 * rows.shape[1]
+    flat = np.ascontiguousarray(rows).view(np.float64).reshape(-1)
+    idx = (index[:, None] * P2 + np.arange(P2)).reshape(-1)
+    return np.bincount(idx, weights=flat, minlength=n * P2).view(np.complex128).reshape(n, P2 // 2)
 
 
 def _nominal_integrals(ir: SequenceIR, *times: np.ndarray) -> list[np.ndarray]:
@@ -545,73 +544,25 @@ def build_graph(
         rf = ir.rf[rf_order[n]]
         pc = rf_edge_coefficients_np(rf.flip_angle_rad, rf.phase_rad, probe_b1)  # (6, P)
         st = split_step(
-            is_z, k_end, tau_end, amp_end, pc, qk, qt, tau_ignored, cfg.min_magnitude, cfg.max_states, bnd.probe_w, keys
+            is_z,
+            k_end,
+            tau_end,
+            amp_end,
+            pc,
+            qk,
+            qt,
+            tau_ignored,
+            cfg.min_magnitude,
+            cfg.max_states,
+            bnd.amp_estimate,
+            keys,
         )
         is_z, k, tau, mag, amp, eq = st.is_z, st.k, st.tau, st.mag, st.amp, st.eq
         e_child, e_par, e_kind, e_cand = st.e_child, st.e_par, st.e_kind, st.e_cand
 
     # --- emission and latent bounds (backward) --------------------------------------------------
-    vm = bnd.voxel_m
     spec = ObjectSpectrum(phantom) if (phantom is not None and cfg.object_spectrum) else None
-
-    def envelope(kx, ky, kz):
-        e = voxel_envelope_axes((kx, ky, kz), vm, bnd.voxel_shape)
-        return e if spec is None else np.minimum(e, spec.at_axes(kx, ky, kz))
-
-    def emission(n: int, idx: np.ndarray) -> np.ndarray:
-        """Emission bound of the transverse states ``idx`` of interval ``n`` at its ADC samples (max over them)."""
-        R = raw[n]
-        lo, hi = adc_lo[n], adc_hi[n]
-        out = np.empty(idx.size)
-        dtt = adc_t[lo:hi] - bounds_t[n]
-        mt = I_adc[lo:hi] - I_b[n]
-        fixed = [bool(np.all(mt[:, a] == mt[0, a])) for a in range(3)]
-        # chunk over states to bound memory (S x T)
-        step = max(1, int(2**22 // max(1, hi - lo)))
-        for s0 in range(0, idx.size, step):
-            ks = R["k"][idx[s0 : s0 + step]]
-            # per axis (S, T), or (S, 1) where the nominal gradient is off during the window (same values)
-            env = envelope(*(ks[:, a, None] + (mt[None, :1, a] if fixed[a] else mt[None, :, a]) for a in range(3)))
-            tt = np.abs(R["tau"][idx[s0 : s0 + step]][:, None] + dtt[None, :])
-            env = env * bnd.e2(dtt)[None, :] * np.exp(-tt / bnd.t2d)
-            out[s0 : s0 + step] = env.max(axis=1)
-        return out
-
-    def emission_bound(n: int, idx: np.ndarray) -> np.ndarray:
-        """An upper bound of :func:`emission` of the states ``idx`` of interval ``n`` from the range of the moment
-        over the window (the voxel envelope is non-increasing in abs(k); the object spectrum and the relaxation
-        factors are at most 1), with a relative margin far above the rounding of the exact evaluation."""
-        lo, hi = adc_lo[n], adc_hi[n]
-        mt = I_adc[lo:hi] - I_b[n]
-        dtt = adc_t[lo:hi] - bounds_t[n]
-        ks = raw[n]["k"][idx]
-        dist = _distance_to_zero(ks + mt.min(axis=0)[None, :], ks + mt.max(axis=0)[None, :])
-        ub = voxel_envelope_axes((dist[:, 0], dist[:, 1], dist[:, 2]), vm, bnd.voxel_shape)
-        if spec is not None and np.all(mt[:, 1] == mt[0, 1]):  # ky constant over the window: its spectrum row
-            ub = np.minimum(ub, spec.bound_at_ky(ks[:, 1] + mt[0, 1], dist[:, 0]))
-        tau = raw[n]["tau"][idx]
-        ub = ub * bnd.e2(dtt.min()) * np.exp(-_distance_to_zero(tau + dtt.min(), tau + dtt.max()) / bnd.t2d)
-        return ub * (1.0 + 1e-6)
-
-    def emission_of(n: int, best: np.ndarray | None) -> np.ndarray:
-        """(S,) emission bounds of interval ``n``.  With ``best`` (the bound through the children, see
-        :func:`_latent`), a state whose upper bound can change neither its latent bound (bound <= best) nor its
-        emitter decision (amplitude x bound below ``min_emitted_signal``) is not evaluated: 0, which gives the same
-        latent bound and the same decision as its exact value."""
-        R = raw[n]
-        e = np.zeros(R["is_z"].size)
-        tr = np.flatnonzero(~R["is_z"])
-        if adc_hi[n] > adc_lo[n] and tr.size:
-            if best is not None and cfg.min_emitted_signal > 0:
-                ub = emission_bound(n, tr)
-                tr = tr[(ub > best[tr]) | (R["mag"][tr] * ub >= cfg.min_emitted_signal)]
-            e[tr] = emission(n, tr)
-        if final_z_readout and n == NI - 1:
-            zi = np.where(R["is_z"])[0]
-            kz_ = R["k"][zi]
-            e[zi] = envelope(kz_[:, 0], kz_[:, 1], kz_[:, 2]) * np.exp(-np.abs(R["tau"][zi]) / bnd.t2d)
-        return e
-
+    em = _Emission(raw, bnd, spec, adc_t, adc_lo, adc_hi, bounds_t, I_adc, I_b, cfg.min_emitted_signal, final_z_readout)
     ctx = dict(
         raw=raw,
         ir=ir,
@@ -624,7 +575,7 @@ def build_graph(
         cfg=cfg,
     )
     emit_b: list[Any] = [None] * NI
-    latent = _latent(ctx, emit_b, emission_of)
+    latent = _latent(ctx, emit_b, em.of)
     intervals, keeps = _prune(ctx, emit_b, latent)
 
     def graph_of(ivs):
@@ -653,7 +604,7 @@ def build_graph(
         emit_c = []
         for n, R in enumerate(raw):
             if n not in peaks:  # not evaluated by the batched path: keep the bounds (all of them evaluated)
-                emit_c.append(np.where(keeps[n], emission_of(n, None), 0.0))
+                emit_c.append(np.where(keeps[n], em.of(n, None), 0.0))
                 continue
             e = np.zeros(R["is_z"].size)
             src = np.where(keeps[n])[0][intervals[n].emit]  # raw index of each emitting state
@@ -663,6 +614,78 @@ def build_graph(
         graph = graph_of(intervals)
         graph.meta["calibrated_intervals"] = len(peaks)
     return graph
+
+
+class _Emission:
+    """Emission bounds of the raw states of :func:`build_graph`: per state, the largest signal it can give at its
+    interval's ADC samples per unit amplitude (voxel envelope, object spectrum, T2 and T2' decay; final
+    longitudinal states when the final Mz is observed)."""
+
+    def __init__(self, raw, bnd, spec, adc_t, adc_lo, adc_hi, bounds_t, I_adc, I_b, min_emitted, final_z_readout):
+        self.raw, self.bnd, self.spec = raw, bnd, spec
+        self.adc_t, self.adc_lo, self.adc_hi, self.bounds_t = adc_t, adc_lo, adc_hi, bounds_t
+        self.I_adc, self.I_b = I_adc, I_b
+        self.min_emitted, self.final_z_readout = min_emitted, final_z_readout
+
+    def envelope(self, kx, ky, kz):
+        e = voxel_envelope_axes((kx, ky, kz), self.bnd.voxel_m, self.bnd.voxel_shape)
+        return e if self.spec is None else np.minimum(e, self.spec.at_axes(kx, ky, kz))
+
+    def _window(self, n: int):
+        lo, hi = self.adc_lo[n], self.adc_hi[n]
+        return self.adc_t[lo:hi] - self.bounds_t[n], self.I_adc[lo:hi] - self.I_b[n]
+
+    def exact(self, n: int, idx: np.ndarray) -> np.ndarray:
+        """Emission bound of the transverse states ``idx`` of interval ``n`` at its ADC samples (max over them)."""
+        R, bnd = self.raw[n], self.bnd
+        out = np.empty(idx.size)
+        dtt, mt = self._window(n)
+        fixed = [bool(np.all(mt[:, a] == mt[0, a])) for a in range(3)]
+        # chunk over states to bound memory (S x T)
+        step = max(1, int(2**22 // max(1, dtt.size)))
+        for s0 in range(0, idx.size, step):
+            ks = R["k"][idx[s0 : s0 + step]]
+            # per axis (S, T), or (S, 1) where the nominal gradient is off during the window (same values)
+            env = self.envelope(*(ks[:, a, None] + (mt[None, :1, a] if fixed[a] else mt[None, :, a]) for a in range(3)))
+            tt = np.abs(R["tau"][idx[s0 : s0 + step]][:, None] + dtt[None, :])
+            env = env * bnd.e2(dtt)[None, :] * np.exp(-tt / bnd.t2d)
+            out[s0 : s0 + step] = env.max(axis=1)
+        return out
+
+    def bound(self, n: int, idx: np.ndarray) -> np.ndarray:
+        """An upper bound of :meth:`exact` of the states ``idx`` of interval ``n`` from the range of the moment over
+        the window (the voxel envelope is non-increasing in abs(k); where ky is constant, the spectrum row's maximum
+        times the y factor and the x factor's envelope; T2 at the first sample, T2' at the smallest abs(tau)), with
+        a relative margin far above the rounding of the exact evaluation."""
+        R, bnd = self.raw[n], self.bnd
+        dtt, mt = self._window(n)
+        ks = R["k"][idx]
+        dist = _distance_to_zero(ks + mt.min(axis=0)[None, :], ks + mt.max(axis=0)[None, :])
+        ub = voxel_envelope_axes((dist[:, 0], dist[:, 1], dist[:, 2]), bnd.voxel_m, bnd.voxel_shape)
+        if self.spec is not None and np.all(mt[:, 1] == mt[0, 1]):  # ky constant over the window: its spectrum row
+            ub = np.minimum(ub, self.spec.bound_at_ky(ks[:, 1] + mt[0, 1], dist[:, 0]))
+        tau = R["tau"][idx]
+        ub = ub * bnd.e2(dtt.min()) * np.exp(-_distance_to_zero(tau + dtt.min(), tau + dtt.max()) / bnd.t2d)
+        return ub * (1.0 + 1e-6)
+
+    def of(self, n: int, best: np.ndarray | None) -> np.ndarray:
+        """(S,) emission bounds of interval ``n``.  With ``best`` (the bound through the children, see
+        :func:`_latent`), a state whose upper bound can change neither its latent bound (bound <= best) nor its
+        emitter decision (amplitude x bound below ``min_emitted_signal``) is not evaluated: 0, which gives the same
+        latent bound and the same decision as its exact value."""
+        R = self.raw[n]
+        e = np.zeros(R["is_z"].size)
+        tr = np.flatnonzero(~R["is_z"])
+        if self.adc_hi[n] > self.adc_lo[n] and tr.size:
+            if best is not None and self.min_emitted > 0:
+                ub = self.bound(n, tr)
+                tr = tr[(ub > best[tr]) | (R["mag"][tr] * ub >= self.min_emitted)]
+            e[tr] = self.exact(n, tr)
+        if self.final_z_readout and n == len(self.raw) - 1:
+            zi = np.where(R["is_z"])[0]
+            kz_ = R["k"][zi]
+            e[zi] = self.envelope(kz_[:, 0], kz_[:, 1], kz_[:, 2]) * np.exp(-np.abs(R["tau"][zi]) / self.bnd.t2d)
+        return e
 
 
 def _latent(ctx, emit_b: list, emission_of: Callable | None = None) -> list:

@@ -14,12 +14,14 @@ per-column formulation gave (tests/test_prepass_golden.py, tests/test_prepass_eq
   of the kept edges gives the merged states in the same order and with the same inverse as
   :func:`dtoc.sim.pdg_graph.unique_rows` of the explicit key rows (which remains the fallback when even the ranks
   do not fit);
-* the children's amplitude sums add every edge's complex value in edge order from zero (one ``np.bincount`` over
-  the interleaved real and imaginary parts: the same additions in the same order as ``np.add.at``).
+* the children's amplitude sums add every edge's complex value in edge order from zero
+  (:func:`dtoc.sim.pdg_graph.add_rows_by_index`: one ``np.bincount`` over the interleaved real and imaginary parts,
+  the same additions in the same order as ``np.add.at``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -87,27 +89,6 @@ def packed_parent_keys(cols: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, 
     return same, conj, z, int(np.prod(span, dtype=object))
 
 
-def _probe_max_abs(amp: np.ndarray, probe_w: np.ndarray | None) -> np.ndarray:
-    """(R,) amplitude estimate of (R, P) complex probe amplitudes (:meth:`dtoc.sim.pdg_graph._Bounds.amp_estimate`)."""
-    a = np.abs(amp)
-    if probe_w is not None:
-        return a @ probe_w
-    m = a[:, 0].copy()
-    for p in range(1, a.shape[1]):  # column by column: faster than .max(axis=1) on few columns
-        np.maximum(m, a[:, p], out=m)
-    return m
-
-
-def add_complex_rows(index: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
-    """(n, P) complex sums of ``rows`` (E, P) complex by ``index`` (E,): ``np.add.at(zeros, index, rows)`` bit for bit
-    (every output element adds its rows in input order from 0) by ONE ``np.bincount`` over the interleaved real and
-    imaginary parts."""
-    P2 = 2 * rows.shape[1]
-    flat = np.ascontiguousarray(rows).view(np.float64).reshape(-1)
-    idx = (index[:, None] * P2 + np.arange(P2)).reshape(-1)
-    return np.bincount(idx, weights=flat, minlength=n * P2).view(np.complex128).reshape(n, P2 // 2)
-
-
 def split_step(
     is_z: np.ndarray,
     k_end: np.ndarray,
@@ -119,14 +100,15 @@ def split_step(
     tau_ignored: bool,
     min_magnitude: float,
     max_states: int,
-    probe_w: np.ndarray | None,
+    estimate: Callable[[np.ndarray], np.ndarray],
     fallback_keys,
 ) -> SplitResult:
     """Split every state (``is_z`` (S,), end-of-interval ``k_end`` (S, 3), ``tau_end`` (S,), probe amplitudes
     ``amp_end`` (S, P)) by one RF pulse of probe edge coefficients ``pc`` (6, P), merge, prune by amplitude and
-    cap (see :func:`dtoc.sim.pdg_graph.build_graph`).  ``fallback_keys(is_z, k, tau)``: the explicit key rows,
+    cap (see :func:`dtoc.sim.pdg_graph.build_graph`).  ``estimate``: (R, P) probe amplitudes -> (R,) amplitude
+    estimate (:meth:`dtoc.sim.pdg_graph._Bounds.amp_estimate`).  ``fallback_keys(is_z, k, tau)``: the explicit key rows,
     used when the packed keys do not fit."""
-    from dtoc.sim.pdg_graph import CONJ, first_max_by_group, top_k_mask, unique_rows
+    from dtoc.sim.pdg_graph import CONJ, add_rows_by_index, first_max_by_group, top_k_mask, unique_rows
 
     S, P = amp_end.shape
     # the three children of every parent, slot-major within the parent (kinds 0-2 or 3-5): slot 1 conjugates
@@ -134,7 +116,7 @@ def split_step(
     ccand = np.multiply(coef, amp_end[:, None, :])
     np.multiply(coef[:, 1], np.conjugate(amp_end), out=ccand[:, 1])
     ccand = ccand.reshape(3 * S, P)
-    cand = _probe_max_abs(ccand, probe_w)
+    cand = estimate(ccand)
     kept = np.flatnonzero(cand >= min_magnitude)  # candidate edges in (parent, slot) order
     par = kept // 3
     slot = kept - 3 * par
@@ -170,8 +152,8 @@ def split_step(
         child_z = uniq[:, 0].astype(bool)
     nU = child_z.size
     inv_e, eq_new = inv[:E], int(inv[E])
-    camp = add_complex_rows(inv_e, ccand, nU)
-    cmag = _probe_max_abs(camp, probe_w)
+    camp = add_rows_by_index(inv_e, ccand, nU)
+    cmag = estimate(camp)
     rep_e = first_max_by_group(inv_e, cand, nU)  # representative edge per child: largest cand; -1 when none
     alive = (cmag >= min_magnitude) & (rep_e >= 0)
     alive[eq_new] = True
