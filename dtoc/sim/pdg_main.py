@@ -371,12 +371,15 @@ def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | N
 
 
 def _fused_fits(graph: PDGGraph, U: int, cdtype: torch.dtype, cfg: PDGConfig) -> bool:
-    """Whether the fused propagation's buffers fit ``cfg.checkpoint_bytes``: the doubled amplitudes of all
-    intervals (2 S x U complex), with autograd also their adjoint and the real row scales and their
-    gradient (about 3 such buffers; the per-interval path keeps ~1 and can recompute instead)."""
+    """Whether the fused propagation's buffers fit ``cfg.checkpoint_bytes``: the mirrored amplitudes of all
+    intervals (2 S x U complex) and the weights of the mirrored edges (2 E x U complex); with autograd also
+    the adjoint, the conjugated weights and the chunked temporaries of dL/dF (about three buffers more;
+    the per-interval path keeps ~1 buffer and can recompute instead)."""
     per = 16 if cdtype == torch.complex128 else 8
-    n_buf = 3 if torch.is_grad_enabled() else 1
-    return n_buf * per * U * 2 * graph.n_states_total <= cfg.checkpoint_bytes
+    grad = torch.is_grad_enabled()
+    rows2 = 2 * (graph.n_states_total + len(graph.intervals))
+    edges2 = 2 * sum(int(iv.edge_parent.size) for iv in graph.intervals[1:])
+    return per * U * (rows2 * (5 if grad else 1) + edges2 * (2 if grad else 1)) <= cfg.checkpoint_bytes
 
 
 def _main_loop_fused(p: MainPass, tis, A0: torch.Tensor, Ks: list, b_all, probe: dict | None) -> list:
