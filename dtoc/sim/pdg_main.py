@@ -22,7 +22,7 @@ from dtoc.sim.pdg_graph import CONJ, IntervalGraph, PDGGraph, build_graph
 from dtoc.sim.pdg_moments import Moments, compute_moments
 from dtoc.sim.pdg_rfsplit import rf_coefficients, rf_split
 from dtoc.sim.pdg_signal import VoxelData, emit_signal, signal_method
-from dtoc.sim.pdg_signal_batch import EmitItem, emit_signal_batched
+from dtoc.sim.pdg_signal_batch import EmitItem, cat_views, emit_signal_batched
 
 
 def complex_dtype(dtype: torch.dtype) -> torch.dtype:
@@ -512,7 +512,7 @@ def _emitting_k(Ks, steps, graph: PDGGraph | None = None):
         )
     else:
         idx = torch.cat([steps[n].emit + int(offs[n]) for n in emit_n])
-    K_emit = torch.cat(Ks, 0).index_select(0, idx)
+    K_emit = cat_views(Ks, 0).index_select(0, idx)  # K_all itself when Ks are its split
     for n, Kj in zip(emit_n, torch.split(K_emit, [int(steps[n].emit.numel()) for n in emit_n], 0)):
         out[n] = Kj
     return out
@@ -622,7 +622,7 @@ def run_main_pass(
     sig = torch.zeros((p.vox.n_coils, N), dtype=cdtype, device=device)
     if pieces:  # one scatter for all pieces (ADC indices from numpy, one transfer)
         idx = np.concatenate([np.arange(start, start + s.shape[1]) for start, s in pieces])
-        sig = sig.index_add(1, torch.as_tensor(idx, device=device), torch.cat([s for _, s in pieces], 1))
+        sig = sig.index_add(1, torch.as_tensor(idx, device=device), cat_views([s for _, s in pieces], 1))
     if N:
         ph = torch.as_tensor(np.exp(-1j * graph.adc_phase_rad), dtype=cdtype, device=device)
         sig = sig * ph[None, :]
