@@ -490,7 +490,7 @@ def _tissue_classes(vox, cfg) -> TissueClasses:
 
 _BATCH_ELEMS = 2**21
 _GPU_BATCHES = (
-    3  # the 'batched' schedule: at most this many signal batches per ADC sample count (PDGConfig.signal_batches)
+    1  # the 'batched' schedule: at most this many signal batches per ADC sample count (PDGConfig.signal_batches)
 )
 
 
@@ -550,17 +550,21 @@ class _SignalBatcher:
     def plan_batches(self, emitting: list[tuple[int, int]], device) -> None:
         """With every interval's number of emitting rows known up front ((n, J) pairs): size the batches of
         each sample count T so that there are at most ``PDGConfig.signal_batches`` of them with the 'batched'
-        schedule (a constant number of operations however long the sequence; default 3), else no limit
+        schedule (a constant number of operations however long the sequence; default 1: as few as the kernel budget allows), else no limit
         (cache-sized 2**21-element batches), never below 2**21 elements nor above the kernel budget."""
         vox = self.vox
         total: dict = {}
+        largest: dict = {}
         for n, J in emitting:
             iv = self.graph.intervals[n]
             T = iv.adc_stop - iv.adc_start
-            total[T] = total.get(T, 0) + vox.n_coils * vox.n * (T + J)
+            cost = vox.n_coils * vox.n * (T + J)
+            total[T] = total.get(T, 0) + cost
+            largest[T] = max(largest.get(T, 0), cost)
         n_max = (self.cfg.signal_batches or _GPU_BATCHES) if self.cfg.batched(device) else 0
         for T, tot in total.items():
-            want = -(-tot // n_max) if n_max > 0 else self.batch_elems
+            # greedy filling (:meth:`add`) closes a batch only above ``want - largest``: at most n_max batches
+            want = (-(-tot // n_max) + (largest[T] if n_max > 1 else 0)) if n_max > 0 else self.batch_elems
             self.batch_for[T] = min(self.budget, max(self.batch_elems, want))
 
     def add(self, n: int, Y: torch.Tensor) -> None:
