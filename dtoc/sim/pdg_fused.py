@@ -207,30 +207,33 @@ def scale_rows(graph, bounds_t: np.ndarray, tis, b_all: torch.Tensor | None) -> 
     return torch.cat([fac, rec], 0)
 
 
-def _mirrored_weights(plan: FusedPlan, CT: torch.Tensor, F: torch.Tensor | None, n_steps: int) -> torch.Tensor:
-    """(E2, U) complex: the weight of every edge of the mirrored buffer (steps 0..n_steps-1, step order,
-    each step's main edges then their mirrors): its coefficient (conjugated on a mirror edge) times its
-    parent row's real scale F (no F when ``F`` is None).  A handful of operations for all steps."""
+def _mirrored_weights(plan: FusedPlan, CT: torch.Tensor, F: torch.Tensor | None, n0: int, n1: int) -> torch.Tensor:
+    """(E2, U) complex: the weight of every edge of the mirrored buffer of steps n0..n1-1 (step order, each
+    step's main edges then their mirrors): its coefficient (conjugated on a mirror edge) times its parent
+    row's real scale F (no F when ``F`` is None).  A handful of operations for all those steps."""
     assert plan.crow2 is not None and plan.frow2 is not None and plan.step_edges2 is not None
-    E2 = int(plan.step_edges2[n_steps])
-    W = torch.cat([CT, CT.conj()], 0).index_select(0, plan.crow2[:E2])
-    return W if F is None else W * F.index_select(0, plan.frow2[:E2])
+    e0, e1 = int(plan.step_edges2[n0]), int(plan.step_edges2[n1])
+    W = torch.cat([CT, CT.conj()], 0).index_select(0, plan.crow2[e0:e1])
+    return W if F is None else W * F.index_select(0, plan.frow2[e0:e1])
 
 
-def _forward(plan: FusedPlan, A0: torch.Tensor, F: torch.Tensor, CT: torch.Tensor, n_steps: int):
-    """The mirrored buffer of all blocks (rows2, U) complex (see the module docstring): per step one
-    gather of the parents' rows, one product with the edges' weights (coefficient x parent scale, all
-    steps' weights computed at once), one scatter-add into the next block: three dispatched operations."""
-    R2, U = int(plan.offs2[-1]), A0.shape[1]
-    S0, m0 = A0.shape[0], plan.sizes[0]
-    buf = torch.zeros((R2, U), dtype=A0.dtype, device=A0.device)
+def _forward(plan: FusedPlan, A0: torch.Tensor, F: torch.Tensor, CT: torch.Tensor, n_steps: int, n0: int = 0):
+    """The mirrored buffer (rows2, U) complex of the blocks n0..n0 + n_steps (see the module docstring),
+    ``A0`` the amplitudes at the start of interval n0: per step one gather of the parents' rows, one product
+    with the edges' weights (coefficient x parent scale, computed for all the steps at once), one
+    scatter-add into the next block: three dispatched operations."""
+    n1 = n0 + n_steps
+    sizes2 = [2 * m for m in plan.sizes[n0 : n1 + 1]]
+    o0 = int(plan.offs2[n0])
+    S0, m0, U = A0.shape[0], plan.sizes[n0], A0.shape[1]
+    buf = torch.zeros((sum(sizes2), U), dtype=A0.dtype, device=A0.device)
     buf[:S0] = A0
     buf[m0 : m0 + S0] = A0.conj()
-    buf.index_fill_(0, plan.one_rows2, 1.0)
-    blocks = torch.split(buf, [2 * m for m in plan.sizes], 0)
-    W = torch.split(_mirrored_weights(plan, CT, F, n_steps), plan.n_edges2[:n_steps], 0)
-    for n in range(n_steps):
-        blocks[n + 1].index_add_(0, plan.child2[n], blocks[n].index_select(0, plan.parent2[n]).mul_(W[n]))
+    buf.index_fill_(0, plan.one_rows2[2 * n0 : 2 * (n1 + 1)] - o0 if o0 else plan.one_rows2[: 2 * (n1 + 1)], 1.0)
+    blocks = torch.split(buf, sizes2, 0)
+    W = torch.split(_mirrored_weights(plan, CT, F, n0, n1), plan.n_edges2[n0:n1], 0)
+    for i, n in enumerate(range(n0, n1)):
+        blocks[i + 1].index_add_(0, plan.child2[n], blocks[i].index_select(0, plan.parent2[n]).mul_(W[i]))
     return buf
 
 
@@ -250,8 +253,8 @@ class _FusedPropagate(torch.autograd.Function):
         plan, n_steps = ctx.plan, ctx.n_steps
         assert plan.gparent2 is not None and plan.gchild2 is not None and plan.frow2 is not None
         lam = torch.zeros_like(buf).index_add_(0, emit_rows2, gY)
-        lams = torch.split(lam, [2 * m for m in plan.sizes], 0)
-        Wc = torch.split(_mirrored_weights(plan, CT, F, n_steps).conj_physical_(), plan.n_edges2[:n_steps], 0)
+        lams = torch.split(lam, [2 * m for m in plan.sizes[: n_steps + 1]], 0)
+        Wc = torch.split(_mirrored_weights(plan, CT, F, 0, n_steps).conj_physical_(), plan.n_edges2[:n_steps], 0)
         for n in range(n_steps - 1, -1, -1):  # the adjoint: L_n[parent] += conj(w) L_{n+1}[child]
             lams[n].index_add_(0, plan.parent2[n], lams[n + 1].index_select(0, plan.child2[n]).mul_(Wc[n]))
         # dL/dF of a row = sum over its edges e of Re(L[child_e] conj(c_e) conj(B[parent_e])), in chunks of
@@ -287,12 +290,26 @@ def propagate_fused(graph, plan: FusedPlan, A0: torch.Tensor, F: torch.Tensor, C
     return out
 
 
-def final_amplitudes(graph, plan: FusedPlan, A0: torch.Tensor, F: torch.Tensor, CT: torch.Tensor) -> torch.Tensor:
+def final_amplitudes(
+    graph, plan: FusedPlan, A0: torch.Tensor, F: torch.Tensor, CT: torch.Tensor, max_bytes: float = float("inf")
+) -> torch.Tensor:
     """(S_last, U) amplitudes at the END of the last interval, its T1 recovery added to the equilibrium state
-    (the dummy trains' final state; no autograd), as :func:`dtoc.sim.pdg_evolve.propagate` with ``final_state``."""
+    (the dummy trains' final state; no autograd), as :func:`dtoc.sim.pdg_evolve.propagate` with ``final_state``.
+
+    The train runs in segments whose mirrored buffer and edge weights stay within ``max_bytes`` (at least one
+    step each): the last block of a segment is the first of the next, so the amplitudes are the same."""
     NI = len(plan.sizes)
-    buf = _forward(plan, A0, F, CT, NI - 1)
-    o, o2, S = int(plan.offs[NI - 1]), int(plan.offs2[NI - 1]), plan.sizes[NI - 1] - 1
-    A_end = buf[o2 : o2 + S] * F[o : o + S]
+    per = A0.element_size() * A0.shape[1]
+    A, n0 = A0, 0
+    while n0 < NI - 1:
+        n1, used = n0 + 1, per * (2 * plan.sizes[n0] + 2 * plan.sizes[n0 + 1] + plan.n_edges2[n0])
+        while n1 < NI - 1 and used + per * (2 * plan.sizes[n1 + 1] + plan.n_edges2[n1]) <= max_bytes:
+            used += per * (2 * plan.sizes[n1 + 1] + plan.n_edges2[n1])
+            n1 += 1
+        buf = _forward(plan, A, F, CT, n1 - n0, n0)
+        o2 = int(plan.offs2[n1] - plan.offs2[n0])
+        A, n0 = buf[o2 : o2 + plan.sizes[n1] - 1], n1
+    o, S = int(plan.offs[NI - 1]), plan.sizes[NI - 1] - 1
+    A_end = A * F[o : o + S]
     A_end[graph.intervals[-1].eq_index] += F[o + S].to(A_end.dtype)
     return A_end

@@ -236,18 +236,67 @@ def _k_path_matrix(graph: PDGGraph):
     return cache["kpath"]
 
 
+def _k_jumps(graph: PDGGraph) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """Pointer jumping over the representative parents (numpy, graph only, cached on the graph).
+
+    A state's start-of-interval k is affine in its representative parent's, ``K_s = a_s K_rep(s) + c_s dM_(n-1)``
+    (a = c = +-1 through a plain or conjugating edge while the parent is transverse, a = +-1, c = 0 while it
+    is longitudinal, a = c = 0 for a state without parent and in the first interval).  Composing the maps
+    in rounds (``v += a_r v[ptr_r]``, ``a_(r+1) = a_r a_r[ptr_r]``, ``ptr_(r+1) = ptr_r[ptr_r]``) reaches every
+    root in ceil(log2 NI) rounds.  Returns (c (S_tot,), the dM row of each state (S_tot,), [(a_r, ptr_r)])."""
+    cache = graph.__dict__.setdefault("_torch_cache", {})
+    if "kjumps" in cache:
+        return cache["kjumps"]
+    ivs = graph.intervals
+    soff = np.concatenate([[0], np.cumsum([iv.n_states for iv in ivs])]).astype(np.int64)
+    a = np.zeros(soff[-1])
+    c = np.zeros(soff[-1])
+    ptr = np.arange(soff[-1], dtype=np.int64)
+    row = np.zeros(soff[-1], dtype=np.int64)
+    for n in range(1, len(ivs)):
+        rep, sl = ivs[n].rep_parent, slice(soff[n], soff[n + 1])
+        sgn = np.where(rep < 0, 0.0, np.where(ivs[n].rep_conj, -1.0, 1.0))
+        a[sl] = sgn
+        c[sl] = sgn * (~ivs[n - 1].is_z[np.maximum(rep, 0)])
+        ptr[sl] = np.where(rep < 0, np.arange(soff[n], soff[n + 1]), soff[n - 1] + np.maximum(rep, 0))
+        row[sl] = n - 1
+    rounds = []
+    while np.any(a != 0):
+        rounds.append((a, ptr))
+        a, ptr = a * a[ptr], ptr[ptr]
+    cache["kjumps"] = (c, row, rounds)
+    return cache["kjumps"]
+
+
+def _k_by_jumps(graph: PDGGraph, dM: torch.Tensor) -> torch.Tensor:
+    """(S_tot, 4) start-of-interval k of all states without the path matrix (:func:`_k_jumps`): ~3 operations
+    per round, ceil(log2 NI) rounds; the same sums as :func:`_k_path_matrix` in another order (rounding)."""
+    c, row, rounds = _k_jumps(graph)
+    dev = dM.device
+    v = dM.index_select(0, torch.as_tensor(row, device=dev)) * torch.as_tensor(c, dtype=dM.dtype, device=dev)[:, None]
+    if rounds:  # one transfer for all rounds
+        A = torch.as_tensor(np.stack([r[0] for r in rounds]), dtype=dM.dtype, device=dev)
+        P = torch.as_tensor(np.stack([r[1] for r in rounds]), device=dev)
+        for r in range(len(rounds)):
+            v = v + A[r][:, None] * v.index_select(0, P[r])
+    return v
+
+
 def _k_and_b_all(
     graph: PDGGraph, C, mom: Moments, vox: VoxelData, bounds_t: np.ndarray, final_state: bool
 ) -> tuple[list, list, torch.Tensor | None, torch.Tensor | None]:
     """Vectorised k recursion: start-of-interval k (list of (S_n, 4)), diffusion b-integrals (list, None where
     unused), with ``final_state`` the k at the end of the last interval, and the b-integrals of all states
-    concatenated (None without diffusion); same values as :func:`_k_and_b`."""
+    concatenated (None without diffusion); same values as :func:`_k_and_b`.  ``C``: the path matrix
+    (:func:`_k_path_matrix`), or None: by pointer jumping (:func:`_k_by_jumps`)."""
     ivs = graph.intervals
     NI = len(ivs)
     dev = mom.I_bound.device
     sizes = [iv.n_states for iv in ivs]
     dM = mom.I_bound[1:] - mom.I_bound[:-1]  # (NI, 4)
-    K_all = torch.as_tensor(C, dtype=dM.dtype, device=dev) @ dM  # (S_tot, 4)
+    K_all = (  # (S_tot, 4)
+        torch.as_tensor(C, dtype=dM.dtype, device=dev) @ dM if C is not None else _k_by_jumps(graph, dM)
+    )
     Ks = list(torch.split(K_all, sizes, 0))
     K_fin = None
     if final_state:
@@ -324,20 +373,29 @@ def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | N
     A0[iv0.eq_index] = tis.mz0.to(cdtype)
     C = _k_path_matrix(graph)
     b_all = None
-    if C is not None:  # all intervals at once: a handful of autograd nodes instead of ~15 per interval
+    use_fused = cfg.batched(device) if fused is None else fused
+    # the batched schedule (a GPU): a constant number of launches per interval; a dummy train (final state,
+    # no autograd) in segments of bounded buffers, so only its row scales F need to fit.  On the CPU the
+    # per-interval path stays (its working set is one interval; the fused buffers were 1.15x slower on
+    # the paper GRE's fwd+bwd and 3x on a long strict dummy train there: memory-bound)
+    fits = use_fused and (
+        _fused_fits(graph, tis.n, cdtype, cfg)
+        if not final_state
+        else (tis.n * 8 * (graph.n_states_total + NI) <= cfg.checkpoint_bytes)
+    )
+    # all intervals at once: a handful of autograd nodes instead of ~15 per interval (with the batched
+    # schedule also above the path matrix's size, by pointer jumping: the long dummy trains)
+    if C is not None or fits:
         Ks, bs, K, b_all = _k_and_b_all(graph, C, mom, vox, bounds_t, final_state)
-        use_fused = cfg.batched(device) if fused is None else fused
-        # the batched schedule (a GPU): a constant number of launches per interval.  On the CPU the
-        # per-interval path stays (its working set is one interval; the fused buffers were 1.15x slower on
-        # the paper GRE's fwd+bwd and 3x on a long strict dummy train there: memory-bound)
-        if use_fused and _fused_fits(graph, tis.n, cdtype, cfg):
+        if fits:
             if not final_state:
                 return _main_loop_fused(p, tis, A0, Ks, b_all, probe), None, None
             with torch.no_grad():
                 plan = fused_plan(graph, A0.device)
                 CT = coefficient_table(graph, ir, tis.b1, cdtype, rf_coefficients)
                 F = scale_rows(graph, bounds_t, tis, b_all).index_select(0, plan.frow)
-                return [], tis.expand(final_amplitudes(graph, plan, A0, F, CT)), K
+                A_end = final_amplitudes(graph, plan, A0, F, CT, max_bytes=cfg.checkpoint_bytes)
+                return [], tis.expand(A_end), K
     steps, rec = make_steps(graph, ir, tis, bounds_t, cdtype, with_signal, rf_coefficients)
     if C is None:
         K = torch.zeros((iv0.n_states, 4), dtype=torch.float64, device=device)
