@@ -127,7 +127,7 @@ def _iteration_ops(n: int) -> int:
 
 @pytest.mark.slow
 def test_simulate_operation_count_grows_sublinearly(batched):
-    """``dtoc.simulate`` with the GPU's schedule: measured 1,014 / 1,163 / 1,881 at 16 / 32 / 64 TRs
+    """``dtoc.simulate`` with the GPU's schedule: measured 1,015 / 1,164 / 1,882 at 16 / 32 / 64 TRs
     (1.9x for 4x the TRs, 29 per TR at 64); the CPU's per-interval schedule: 2,458 / 4,829 / 14,529."""
     torch.set_num_threads(1)
     counts = {n: _dtoc_simulate_ops(n) for n in (16, 32, 64)}
@@ -139,7 +139,7 @@ def test_simulate_operation_count_grows_sublinearly(batched):
 @pytest.mark.slow
 def test_optimizer_iteration_operation_count_grows_sublinearly(batched):
     """One full-loss iteration (forward + backward) with the GPU's schedule, issue 33's bound: at 64 TRs at
-    most 3x the count at 16 and at most 50 per TR.  Measured 2,068 / 2,285 / 2,511 at 16 / 32 / 64 TRs
+    most 3x the count at 16 and at most 50 per TR.  Measured 2,069 / 2,286 / 2,512 at 16 / 32 / 64 TRs
     (1.2x; 39 per TR at 64); before the mirrored propagation, the FFT recursion, one signal batch and the
     rejoined per-interval views: 2,465 / 2,890 / 5,173 (81 per TR)."""
     torch.set_num_threads(1)
