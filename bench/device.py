@@ -251,16 +251,19 @@ def _gre_spec(name: str, n: int):
 
 @contextmanager
 def _gpu_schedule():
-    """The GPU's schedule (fused propagation, batched signal products) selected on any device: every
-    ``PDGConfig`` made inside takes it (what ``schedule='auto'`` does off the CPU)."""
+    """The GPU's schedule (fused propagation, batched signal products, the twin's recursion by FFT) selected
+    on any device: every ``PDGConfig`` made inside takes it (what ``schedule='auto'`` does off the CPU), and
+    :func:`dtoc.hardware.recursion.batched`."""
+    from dtoc.hardware import recursion
     from dtoc.sim.pdg_config import PDGConfig
 
-    old = PDGConfig.batched
+    old, old_rec = PDGConfig.batched, recursion.batched
     PDGConfig.batched = lambda self, device: True
+    recursion.batched = lambda device: True
     try:
         yield
     finally:
-        PDGConfig.batched = old
+        PDGConfig.batched, recursion.batched = old, old_rec
 
 
 def op_counts(device: str, sizes=(16, 32, 64)) -> list[tuple[int, int, int, int]]:

@@ -158,7 +158,9 @@ class Delay(Effect):
 
     def forward(self, g, b0, dt_s):
         d = self._p("seconds", g) / dt_s
-        m = math.floor(float(d.detach()))
+        # the integer shift from the parameter where it lives (the host): the same division in the
+        # waveform's dtype, no read of a device tensor (a synchronisation per forward on a GPU)
+        m = math.floor(float(self.seconds.detach().to(g.dtype) / dt_s))
         f = d - m
         x = self._sel(g)
         out = (1 - f) * self._shift(x, m) + f * self._shift(x, m + 1)

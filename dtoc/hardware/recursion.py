@@ -16,14 +16,49 @@ Hillis-Steele prefix scan: ``ceil(log2 T)`` vectorised steps ``x[n] += a^s x[n-s
 stopped early once ``a^s`` is below 1e-30 (the remaining terms are below float64 round-off).  Cost is
 O(T log T) element operations with no Python loop over samples (a 1 s time constant costs the same as
 a 1 ms one), numerically stable (only factors <= 1 are multiplied), differentiable with respect to the
-waveform and to ``tau`` by autograd, and device/dtype agnostic.
+waveform and to ``tau`` by autograd, and device/dtype agnostic.  The scan stops early by the largest decay
+rate read on the host: one ``.item()``, free on the CPU, a device synchronisation elsewhere.
+
+Off the CPU (:func:`batched`: the GPU's schedule, as ``PDGConfig(schedule='auto')`` of the simulator) the
+same recursion is evaluated as what it is, the linear convolution ``x = u * h`` with ``h[n] = a^n``
+(n = 0..T-1), by one zero-padded FFT (:func:`fft_scan`): a constant number of operations whatever T and
+the time constants, no host read, O(T log T) work and O(T) memory under autograd (the scan keeps
+``log2 T`` intermediate copies).  The two agree to float rounding (FFT error ~ eps log2(T) relative to
+the largest response of the channel; tests/test_recursion_fft.py); the CPU keeps the scan, bit for bit.
 """
 
 from __future__ import annotations
 
 import torch
 
+from dtoc.hardware.convolution import conv_length
+
 _NEGLIGIBLE = 1e-30
+
+
+def batched(device: torch.device | str) -> bool:
+    """Whether the recursion on ``device`` is evaluated by FFT (:func:`fft_scan`) instead of the scan: off
+    the CPU (a constant number of kernels and no host read, what a GPU needs; the CPU keeps the scan)."""
+    return torch.device(device).type != "cpu"
+
+
+def fft_scan(u: torch.Tensor, log_a: torch.Tensor) -> torch.Tensor:
+    """:func:`linear_scan` as the linear convolution ``x[n] = sum_{m <= n} a^(n-m) u[m]`` by zero-padded FFT.
+
+    ``a^k = exp(k log_a)`` for k = 0..T-1 (underflows to 0 for fast decays, as the scan's early stop); real
+    inputs use the real FFT.  A constant number of operations and no host read; differentiable w.r.t. ``u``
+    and ``log_a``.  Equal to the scan up to FFT rounding (~ eps log2(nfft) relative to the channel's largest
+    value)."""
+    T = u.shape[-1]
+    if T == 0:
+        return u
+    nfft = conv_length(T, T)[1]
+    rdt = {torch.complex64: torch.float32, torch.complex128: torch.float64}.get(u.dtype, u.dtype)
+    k = torch.arange(T, device=u.device, dtype=rdt)
+    h = torch.exp(log_a * k)  # (..., T): the impulse response a^k
+    if u.is_complex() or h.is_complex():
+        return torch.fft.ifft(torch.fft.fft(u, n=nfft) * torch.fft.fft(h, n=nfft))[..., :T]
+    return torch.fft.irfft(torch.fft.rfft(u, n=nfft) * torch.fft.rfft(h, n=nfft), n=nfft)[..., :T]
 
 
 def linear_scan(u: torch.Tensor, log_a: torch.Tensor) -> torch.Tensor:
@@ -56,7 +91,7 @@ def _pole_scan(g: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
     b = torch.expm1(z) / z
     dg = torch.diff(g, dim=-1)
     u = torch.cat([g[..., :1].expand(torch.broadcast_shapes(g[..., :1].shape, b.shape)), b * dg], dim=-1)
-    return linear_scan(u, z)
+    return fft_scan(u, z) if batched(u.device) else linear_scan(u, z)
 
 
 def exp_response(g: torch.Tensor, dt_s: float, tau_s: torch.Tensor) -> torch.Tensor:

@@ -86,7 +86,8 @@ class PDGConfig:
             (default): 'per_interval' on the CPU, 'batched' on any other device.  The same values up to
             rounding (tests/test_sim_fused.py); docs/simulator.md ("Schedules").
         signal_batches: with the 'batched' schedule, at most this many signal batches per ADC sample
-            count (each bounded by 4 x ``chunk_elems``); None (default): 3.
+            count (each bounded by 4 x ``chunk_elems``, the kernel budget); None (default): 1 (one batch
+            per sample count while the budget holds it).
     """
 
     min_magnitude: float = 1e-6

@@ -22,7 +22,7 @@ from dtoc.sim.pdg_graph import CONJ, IntervalGraph, PDGGraph, build_graph
 from dtoc.sim.pdg_moments import Moments, compute_moments
 from dtoc.sim.pdg_rfsplit import rf_coefficients, rf_split
 from dtoc.sim.pdg_signal import VoxelData, emit_signal, signal_method
-from dtoc.sim.pdg_signal_batch import EmitItem, emit_signal_batched
+from dtoc.sim.pdg_signal_batch import EmitItem, cat_views, emit_signal_batched
 
 
 def complex_dtype(dtype: torch.dtype) -> torch.dtype:
@@ -236,18 +236,67 @@ def _k_path_matrix(graph: PDGGraph):
     return cache["kpath"]
 
 
+def _k_jumps(graph: PDGGraph) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """Pointer jumping over the representative parents (numpy, graph only, cached on the graph).
+
+    A state's start-of-interval k is affine in its representative parent's, ``K_s = a_s K_rep(s) + c_s dM_(n-1)``
+    (a = c = +-1 through a plain or conjugating edge while the parent is transverse, a = +-1, c = 0 while it
+    is longitudinal, a = c = 0 for a state without parent and in the first interval).  Composing the maps
+    in rounds (``v += a_r v[ptr_r]``, ``a_(r+1) = a_r a_r[ptr_r]``, ``ptr_(r+1) = ptr_r[ptr_r]``) reaches every
+    root in ceil(log2 NI) rounds.  Returns (c (S_tot,), the dM row of each state (S_tot,), [(a_r, ptr_r)])."""
+    cache = graph.__dict__.setdefault("_torch_cache", {})
+    if "kjumps" in cache:
+        return cache["kjumps"]
+    ivs = graph.intervals
+    soff = np.concatenate([[0], np.cumsum([iv.n_states for iv in ivs])]).astype(np.int64)
+    a = np.zeros(soff[-1])
+    c = np.zeros(soff[-1])
+    ptr = np.arange(soff[-1], dtype=np.int64)
+    row = np.zeros(soff[-1], dtype=np.int64)
+    for n in range(1, len(ivs)):
+        rep, sl = ivs[n].rep_parent, slice(soff[n], soff[n + 1])
+        sgn = np.where(rep < 0, 0.0, np.where(ivs[n].rep_conj, -1.0, 1.0))
+        a[sl] = sgn
+        c[sl] = sgn * (~ivs[n - 1].is_z[np.maximum(rep, 0)])
+        ptr[sl] = np.where(rep < 0, np.arange(soff[n], soff[n + 1]), soff[n - 1] + np.maximum(rep, 0))
+        row[sl] = n - 1
+    rounds = []
+    while np.any(a != 0):
+        rounds.append((a, ptr))
+        a, ptr = a * a[ptr], ptr[ptr]
+    cache["kjumps"] = (c, row, rounds)
+    return cache["kjumps"]
+
+
+def _k_by_jumps(graph: PDGGraph, dM: torch.Tensor) -> torch.Tensor:
+    """(S_tot, 4) start-of-interval k of all states without the path matrix (:func:`_k_jumps`): ~3 operations
+    per round, ceil(log2 NI) rounds; the same sums as :func:`_k_path_matrix` in another order (rounding)."""
+    c, row, rounds = _k_jumps(graph)
+    dev = dM.device
+    v = dM.index_select(0, torch.as_tensor(row, device=dev)) * torch.as_tensor(c, dtype=dM.dtype, device=dev)[:, None]
+    if rounds:  # one transfer for all rounds
+        A = torch.as_tensor(np.stack([r[0] for r in rounds]), dtype=dM.dtype, device=dev)
+        P = torch.as_tensor(np.stack([r[1] for r in rounds]), device=dev)
+        for r in range(len(rounds)):
+            v = v + A[r][:, None] * v.index_select(0, P[r])
+    return v
+
+
 def _k_and_b_all(
     graph: PDGGraph, C, mom: Moments, vox: VoxelData, bounds_t: np.ndarray, final_state: bool
 ) -> tuple[list, list, torch.Tensor | None, torch.Tensor | None]:
     """Vectorised k recursion: start-of-interval k (list of (S_n, 4)), diffusion b-integrals (list, None where
     unused), with ``final_state`` the k at the end of the last interval, and the b-integrals of all states
-    concatenated (None without diffusion); same values as :func:`_k_and_b`."""
+    concatenated (None without diffusion); same values as :func:`_k_and_b`.  ``C``: the path matrix
+    (:func:`_k_path_matrix`), or None: by pointer jumping (:func:`_k_by_jumps`)."""
     ivs = graph.intervals
     NI = len(ivs)
     dev = mom.I_bound.device
     sizes = [iv.n_states for iv in ivs]
     dM = mom.I_bound[1:] - mom.I_bound[:-1]  # (NI, 4)
-    K_all = torch.as_tensor(C, dtype=dM.dtype, device=dev) @ dM  # (S_tot, 4)
+    K_all = (  # (S_tot, 4)
+        torch.as_tensor(C, dtype=dM.dtype, device=dev) @ dM if C is not None else _k_by_jumps(graph, dM)
+    )
     Ks = list(torch.split(K_all, sizes, 0))
     K_fin = None
     if final_state:
@@ -324,20 +373,29 @@ def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | N
     A0[iv0.eq_index] = tis.mz0.to(cdtype)
     C = _k_path_matrix(graph)
     b_all = None
-    if C is not None:  # all intervals at once: a handful of autograd nodes instead of ~15 per interval
+    use_fused = cfg.batched(device) if fused is None else fused
+    # the batched schedule (a GPU): a constant number of launches per interval; a dummy train (final state,
+    # no autograd) in segments of bounded buffers, so only its row scales F need to fit.  On the CPU the
+    # per-interval path stays (its working set is one interval; the fused buffers were 1.15x slower on
+    # the paper GRE's fwd+bwd and 3x on a long strict dummy train there: memory-bound)
+    fits = use_fused and (
+        _fused_fits(graph, tis.n, cdtype, cfg)
+        if not final_state
+        else (tis.n * 8 * (graph.n_states_total + NI) <= cfg.checkpoint_bytes)
+    )
+    # all intervals at once: a handful of autograd nodes instead of ~15 per interval (with the batched
+    # schedule also above the path matrix's size, by pointer jumping: the long dummy trains)
+    if C is not None or fits:
         Ks, bs, K, b_all = _k_and_b_all(graph, C, mom, vox, bounds_t, final_state)
-        use_fused = cfg.batched(device) if fused is None else fused
-        # the batched schedule (a GPU): a constant number of launches per interval.  On the CPU the
-        # per-interval path stays (its working set is one interval; the fused buffers were 1.15x slower on
-        # the paper GRE's fwd+bwd and 3x on a long strict dummy train there: memory-bound)
-        if use_fused and _fused_fits(graph, tis.n, cdtype, cfg):
+        if fits:
             if not final_state:
                 return _main_loop_fused(p, tis, A0, Ks, b_all, probe), None, None
             with torch.no_grad():
                 plan = fused_plan(graph, A0.device)
                 CT = coefficient_table(graph, ir, tis.b1, cdtype, rf_coefficients)
                 F = scale_rows(graph, bounds_t, tis, b_all).index_select(0, plan.frow)
-                return [], tis.expand(final_amplitudes(graph, plan, A0, F, CT)), K
+                A_end = final_amplitudes(graph, plan, A0, F, CT, max_bytes=cfg.checkpoint_bytes)
+                return [], tis.expand(A_end), K
     steps, rec = make_steps(graph, ir, tis, bounds_t, cdtype, with_signal, rf_coefficients)
     if C is None:
         K = torch.zeros((iv0.n_states, 4), dtype=torch.float64, device=device)
@@ -371,12 +429,15 @@ def main_loop(p: MainPass, with_signal: bool, final_state: bool, probe: dict | N
 
 
 def _fused_fits(graph: PDGGraph, U: int, cdtype: torch.dtype, cfg: PDGConfig) -> bool:
-    """Whether the fused propagation's buffers fit ``cfg.checkpoint_bytes``: the doubled amplitudes of all
-    intervals (2 S x U complex), with autograd also their adjoint and the real row scales and their
-    gradient (about 3 such buffers; the per-interval path keeps ~1 and can recompute instead)."""
+    """Whether the fused propagation's buffers fit ``cfg.checkpoint_bytes``: the mirrored amplitudes of all
+    intervals (2 S x U complex) and the weights of the mirrored edges (2 E x U complex); with autograd also
+    the adjoint, the conjugated weights and the chunked temporaries of dL/dF (about three buffers more;
+    the per-interval path keeps ~1 buffer and can recompute instead)."""
     per = 16 if cdtype == torch.complex128 else 8
-    n_buf = 3 if torch.is_grad_enabled() else 1
-    return n_buf * per * U * 2 * graph.n_states_total <= cfg.checkpoint_bytes
+    grad = torch.is_grad_enabled()
+    rows2 = 2 * (graph.n_states_total + len(graph.intervals))
+    edges2 = 2 * sum(int(iv.edge_parent.size) for iv in graph.intervals[1:])
+    return per * U * (rows2 * (5 if grad else 1) + edges2 * (2 if grad else 1)) <= cfg.checkpoint_bytes
 
 
 def _main_loop_fused(p: MainPass, tis, A0: torch.Tensor, Ks: list, b_all, probe: dict | None) -> list:
@@ -487,7 +548,7 @@ def _tissue_classes(vox, cfg) -> TissueClasses:
 
 _BATCH_ELEMS = 2**21
 _GPU_BATCHES = (
-    3  # the 'batched' schedule: at most this many signal batches per ADC sample count (PDGConfig.signal_batches)
+    1  # the 'batched' schedule: at most this many signal batches per ADC sample count (PDGConfig.signal_batches)
 )
 
 
@@ -509,7 +570,7 @@ def _emitting_k(Ks, steps, graph: PDGGraph | None = None):
         )
     else:
         idx = torch.cat([steps[n].emit + int(offs[n]) for n in emit_n])
-    K_emit = torch.cat(Ks, 0).index_select(0, idx)
+    K_emit = cat_views(Ks, 0).index_select(0, idx)  # K_all itself when Ks are its split
     for n, Kj in zip(emit_n, torch.split(K_emit, [int(steps[n].emit.numel()) for n in emit_n], 0)):
         out[n] = Kj
     return out
@@ -547,17 +608,21 @@ class _SignalBatcher:
     def plan_batches(self, emitting: list[tuple[int, int]], device) -> None:
         """With every interval's number of emitting rows known up front ((n, J) pairs): size the batches of
         each sample count T so that there are at most ``PDGConfig.signal_batches`` of them with the 'batched'
-        schedule (a constant number of operations however long the sequence; default 3), else no limit
+        schedule (a constant number of operations however long the sequence; default 1: as few as the kernel budget allows), else no limit
         (cache-sized 2**21-element batches), never below 2**21 elements nor above the kernel budget."""
         vox = self.vox
         total: dict = {}
+        largest: dict = {}
         for n, J in emitting:
             iv = self.graph.intervals[n]
             T = iv.adc_stop - iv.adc_start
-            total[T] = total.get(T, 0) + vox.n_coils * vox.n * (T + J)
+            cost = vox.n_coils * vox.n * (T + J)
+            total[T] = total.get(T, 0) + cost
+            largest[T] = max(largest.get(T, 0), cost)
         n_max = (self.cfg.signal_batches or _GPU_BATCHES) if self.cfg.batched(device) else 0
         for T, tot in total.items():
-            want = -(-tot // n_max) if n_max > 0 else self.batch_elems
+            # greedy filling (:meth:`add`) closes a batch only above ``want - largest``: at most n_max batches
+            want = (-(-tot // n_max) + (largest[T] if n_max > 1 else 0)) if n_max > 0 else self.batch_elems
             self.batch_for[T] = min(self.budget, max(self.batch_elems, want))
 
     def add(self, n: int, Y: torch.Tensor) -> None:
@@ -619,7 +684,7 @@ def run_main_pass(
     sig = torch.zeros((p.vox.n_coils, N), dtype=cdtype, device=device)
     if pieces:  # one scatter for all pieces (ADC indices from numpy, one transfer)
         idx = np.concatenate([np.arange(start, start + s.shape[1]) for start, s in pieces])
-        sig = sig.index_add(1, torch.as_tensor(idx, device=device), torch.cat([s for _, s in pieces], 1))
+        sig = sig.index_add(1, torch.as_tensor(idx, device=device), cat_views([s for _, s in pieces], 1))
     if N:
         ph = torch.as_tensor(np.exp(-1j * graph.adc_phase_rad), dtype=cdtype, device=device)
         sig = sig * ph[None, :]

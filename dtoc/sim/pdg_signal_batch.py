@@ -37,6 +37,49 @@ from dtoc.sim.pdg_rfsplit import add_rows_, take_rows
 from dtoc.sim.pdg_signal import _DIFF_TAYLOR_MAX, _cis, _decay_phase, _time_factor, _time_key, voxel_factor
 
 
+def cat_views(pieces: list[torch.Tensor], dim: int = 0) -> torch.Tensor:
+    """``torch.cat(pieces, dim)``, with every run of consecutive pieces that are the successive views of one
+    tensor along its first axis (``x.unbind(0)``, or ``torch.split(x, sizes, 0)`` when ``dim`` is 0) taken as
+    one view of that tensor instead: the same values (data movement either way), but one autograd node per
+    run where a cat's backward slices every piece (an operation per interval for the per-interval pieces
+    of a batched pass).  Without a gradient to carry, the plain cat (one operation)."""
+    if not (torch.is_grad_enabled() and any(p.requires_grad for p in pieces)):
+        return torch.cat(pieces, dim)
+    out, i = [], 0
+    while i < len(pieces):
+        i, blk = _view_run(pieces, i, dim)
+        out.append(blk)
+    return out[0] if len(out) == 1 else torch.cat(out, dim)
+
+
+def _view_run(pieces: list[torch.Tensor], i: int, dim: int) -> tuple[int, torch.Tensor]:
+    """(end of the run of views starting at ``i``, the run as one view of their base) (see :func:`cat_views`)."""
+    p, base = pieces[i], pieces[i]._base
+    if base is None or base.dim() == 0 or base.stride(0) <= 0 or base.device != p.device:
+        return i + 1, p
+    st = base.stride(0)
+    k0, rem = divmod(int(p.storage_offset()) - int(base.storage_offset()), st)
+    if rem or k0 < 0:
+        return i + 1, p
+    unbound = base.dim() == p.dim() + 1 and base.shape[1:] == p.shape and base.stride()[1:] == p.stride()
+    split = dim == 0 and base.dim() == p.dim() and base.shape[1:] == p.shape[1:] and base.stride() == p.stride()
+    if not (unbound or split):
+        return i + 1, p
+    j, nxt = i + 1, p.storage_offset() + st * (1 if unbound else p.shape[0])
+    while j < len(pieces):
+        q = pieces[j]
+        same = q._base is base and q.stride() == p.stride() and q.storage_offset() == nxt
+        if not same or (q.shape != p.shape if unbound else q.shape[1:] != p.shape[1:]):
+            break
+        nxt += st * (1 if unbound else q.shape[0])
+        j += 1
+    n = (nxt - p.storage_offset()) // st
+    if j == i + 1 or k0 + n > base.shape[0]:
+        return i + 1, p
+    blk = base.narrow(0, k0, n)
+    return j, (blk.movedim(0, dim).flatten(dim, dim + 1) if unbound else blk)
+
+
 def taylor_orders(xs: np.ndarray, tol: float) -> np.ndarray:
     """Vectorised :func:`dtoc.sim.pdg_signal.taylor_order`: smallest R with x^(R+1) / (R+1)! <= tol (at most 30)."""
     xs = np.asarray(xs, dtype=np.float64)
@@ -215,10 +258,10 @@ def emit_signal_batched(items, mom, vox, graph, bounds_t, cfg, expand=None, prob
     Js = [it.Y.shape[0] for it in items]
     own_np = np.repeat(np.arange(G), Js)
     J = int(own_np.size)
-    Y = torch.cat([it.Y for it in items], 0) if G > 1 else items[0].Y
+    Y = cat_views([it.Y for it in items], 0) if G > 1 else items[0].Y
     if expand is not None:
         Y = expand(Y)
-    Kj = torch.cat([it.Kj for it in items], 0) if G > 1 else items[0].Kj
+    Kj = cat_views([it.Kj for it in items], 0) if G > 1 else items[0].Kj
     tau = np.concatenate([it.iv.tau_s for it in items])
     own = torch.as_tensor(own_np, device=dev)
     batch = _Batch(items, G, Co, T, rdt, cdt, dev, own, own_np, mom, vox, graph, bounds_t, cfg)
