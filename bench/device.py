@@ -185,7 +185,7 @@ def _fmt(v, unit: str = "") -> str:
     return f"{v:.1f}{unit}" if isinstance(v, float) else f"{v}{unit}"
 
 
-def run(selected: list[str] | None, quick: bool, count: bool, devices: list[str]) -> list[dict]:
+def run(selected: list[str] | None, quick: bool, count: bool, devices: list[str], save: str = "") -> list[dict]:
     rows = []
     allj = jobs(quick)
     for key, (label, fn) in allj.items():
@@ -208,6 +208,8 @@ def run(selected: list[str] | None, quick: bool, count: bool, devices: list[str]
             flush=True,
         )
         rows.append(row)
+        if save:  # after every job: a process stopped at its time limit keeps the jobs it finished
+            torch.save(rows, save)
     return rows
 
 
@@ -376,13 +378,12 @@ def main(argv: list[str] | None = None) -> int:
         print(op_table(op_counts("cpu")))
         return 0
     if a.merge:
-        rows = _load_rows(a.merge)
+        rows = _load_rows([p for p in a.merge if Path(p).exists()])
         devices = ["cpu"] + (["cuda"] if any("cuda" in r for r in rows) else [])
     else:
         devices = [d for d in a.devices.split(",") if d] or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
-        rows = run([s for s in a.jobs.split(",") if s] or None, a.quick, not a.no_count, devices)
+        rows = run([s for s in a.jobs.split(",") if s] or None, a.quick, not a.no_count, devices, a.save_rows)
         if a.save_rows:
-            torch.save(rows, a.save_rows)
             return 0
     text = table(rows, devices + ([] if "cuda" in devices else ["cuda-absent"]), a.quick, merged=bool(a.merge))
     if not a.no_count:
