@@ -197,6 +197,7 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
         peak = max(peak, r["peak_mb"] or 0.0)
         total += r["wall_s"]
         row[f"{name}_s"] = r["wall_s"]
+        row[f"{name}_cpu_s"] = r.get("cpu_s")  # (the rows JSON only: wall clock on a shared machine says little)
         return r
 
     r = step("read", [sys.executable, "-m", "bench.public_corpus", "--probe", str(seq)], budgets["read"])

@@ -289,10 +289,23 @@ def solve_warm_start(
         with torch.no_grad():
             return kspace_error_dk(twin.forward_edges(x, moments=False).kspace_rad_per_m, ctx)
 
+    use_moments = weights.moment > 0 and ctx.k0_moment_rad_per_m is not None
+
+    def stop_error(x):  # the first CG's early stop: every ADC sample and every moment the objective holds, in dk
+        with torch.no_grad():
+            r = twin.forward_edges(x, moments=use_moments)
+            e = kspace_error_dk(r.kspace_rad_per_m, ctx)
+            if use_moments and r.moments_rad_per_m is not None:
+                dk = ctx.dk_rad_per_m
+                inv = torch.where(torch.isfinite(dk), 1.0 / dk, torch.zeros_like(dk))
+                m = ((r.moments_rad_per_m - ctx.k0_moment_rad_per_m) * inv[:, None]).norm(dim=0)
+                e = np.concatenate([e, m.cpu().numpy()])
+            return e
+
     if is_affine(twin.hardware):
         x, rep = SV.solve_to_tolerance(
             f, x0, twin.projector, twin.free_t, k_error, k_tol_dk=k_tol_dk, budget=budget,
-            sample_times_s=adc_sample_times_s(twin.ir), progress=progress,
+            sample_times_s=adc_sample_times_s(twin.ir), progress=progress, stop_error=stop_error,
             cuts=np.array([round(r.t_center_s / twin.ir.raster_s) for r in twin.ir.rf if r.excites], dtype=np.int64),
         )  # fmt: skip
         left = budget - rep.evaluations

@@ -271,6 +271,7 @@ def solve_to_tolerance(
     cuts: np.ndarray | None = None,
     progress: Callable[[str, int, int, float], None] | None = None,
     check_every: int = 10,
+    stop_error: Callable[[torch.Tensor], np.ndarray] | None = None,
 ) -> tuple[torch.Tensor, SolveReport]:
     """Minimise the quadratic ``f`` within the limits of ``P`` to a k-space tolerance (module doc).
 
@@ -293,6 +294,8 @@ def solve_to_tolerance(
             limits and its k error evaluated (one forward pass, not counted in ``budget``): when every sample is
             within ``k_tol_dk`` the CG stops there (stop reason ``tolerance``; ``unconstrained_max_dk`` is then
             that iterate's, not a converged optimum's).  0: never.
+        stop_error: ``x -> errors (dk)`` of that check (default ``k_error``): e.g. the ADC samples and the moments
+            before the RF pulses (an echo pathway's k), so that a stop leaves neither above the tolerance.
     Returns:
         (x within the limits (exactly projected), :class:`SolveReport`).
     """
@@ -318,7 +321,7 @@ def solve_to_tolerance(
             try:
                 d, k = _pcg(
                     op, torch.where(act, -g, 0.0), M, torch.zeros_like(x), cg_tol, n_max,
-                    on_iter=_tolerance_check(x, P, k_error, k_tol_dk, check_every) if rnd == 0 else None,
+                    on_iter=_tolerance_check(x, P, stop_error or k_error, k_tol_dk, check_every) if rnd == 0 else None,
                 )  # fmt: skip
             except _Reached as hit:  # every sample within the tolerance: no need to converge further
                 d, k, reached = hit.d, hit.it, True
