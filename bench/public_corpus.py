@@ -2,7 +2,8 @@
 
 Run: ``python -m bench.public_corpus DIR [DIR ...] --girf H.npz [--budget-optimize 120] [--budget 60]``
 -> the section "Public corpus" of docs/foreign.md (between its markers; the rest of the page is
-``bench.foreign``'s).  DIR holds ``.seq`` files as downloaded from public repositories (KomaMRI examples,
+``bench.foreign``'s; ``--merge``: only the rerun files' rows are replaced, their counts recounted, the rest
+kept; ``--rows F`` then ``--render F --merge --commit SHA`` merges rows run elsewhere, e.g. in parallel).  DIR holds ``.seq`` files as downloaded from public repositories (KomaMRI examples,
 pypulseq and Pulseq test/demo outputs, MRzero, JEMRIS, a CEST library, field-camera groups); nothing of it is
 committed.  An optional ``INDEX.tsv`` in DIR (columns path, source_repo, commit, ...) names each file's origin.
 
