@@ -2,7 +2,8 @@
 
 Run: ``python -m bench.public_corpus DIR [DIR ...] --girf H.npz [--budget-optimize 120] [--budget 60]``
 -> the section "Public corpus" of docs/foreign.md (between its markers; the rest of the page is
-``bench.foreign``'s).  DIR holds ``.seq`` files as downloaded from public repositories (KomaMRI examples,
+``bench.foreign``'s; ``--merge``: only the rerun files' rows are replaced, their counts recounted, the rest
+kept; ``--rows F`` then ``--render F --merge --commit SHA`` merges rows run elsewhere, e.g. in parallel).  DIR holds ``.seq`` files as downloaded from public repositories (KomaMRI examples,
 pypulseq and Pulseq test/demo outputs, MRzero, JEMRIS, a CEST library, field-camera groups); nothing of it is
 committed.  An optional ``INDEX.tsv`` in DIR (columns path, source_repo, commit, ...) names each file's origin.
 
@@ -197,6 +198,7 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
         peak = max(peak, r["peak_mb"] or 0.0)
         total += r["wall_s"]
         row[f"{name}_s"] = r["wall_s"]
+        row[f"{name}_cpu_s"] = r.get("cpu_s")  # (the rows JSON only: wall clock on a shared machine says little)
         return r
 
     r = step("read", [sys.executable, "-m", "bench.public_corpus", "--probe", str(seq)], budgets["read"])
@@ -292,6 +294,37 @@ def _rf_use(row: dict) -> str:
     return uses + (" (" + _cell(det[0])[:110] + ("..." if len(det[0]) > 110 else "") + ")" if det else "")
 
 
+def row_line(r: dict, commit: str) -> str:
+    """The table's line of one file's row."""
+    name = Path(r["file"]).name
+    for k in ("check", "predict", "simulate", "result"):  # the file column names the file
+        if isinstance(r.get(k), str):
+            r[k] = r[k].replace(f": {name}: ", ": ", 1).replace(f"{name}: ", "", 1)
+    if r.get("check") == r["result"]:
+        r["check"] = "(as result)"
+    src = Path(r["file"]).parent.name
+    p = r.get("probe") or {}
+    lim = r["limits"]
+    lim_s = f"{lim['gmax']:g} / {lim['smax']:g} ({lim['source']})"
+    pred = _f(r.get("predict_k_dk")) if r.get("predict") == "ok" else _cell(r.get("predict", "-")).split("; ")[0]
+    sim = _f(r.get("simulate_nrmse_pct")) if r.get("simulate") == "ok" else _cell(r.get("simulate", "-")).split("; ")[0]
+    if r["result"].startswith("optimized"):
+        kba = f"{_f(r.get('k_before_dk'))} -> {_f(r.get('k_after_dk'))}"
+        nba = (
+            f"{_f(r.get('nrmse_before_pct'))} -> {_f(r.get('nrmse_after_pct'))}"
+            if r.get("nrmse_before_pct") is not None
+            else "k-space only (no image term)"
+        )
+    else:
+        kba = nba = ""
+    return (
+        f"| {src} | {Path(r['file']).name} | {_cell(_writer_short(r['writer_line']))} | {r['version']} | "
+        f"{p.get('kind') or '-'} | {r['size_kb']:.0f} | {lim_s} | {_cell(r.get('check', '-'))[:140]} | {pred} | {sim} | "
+        f"{_cell(r['result'])[:220]} | {kba} | {nba} | {r['time_s']:.0f} | {r['peak_mb']:.0f} | {_rf_use(r)} | "
+        f"{r.get('commit') or commit} |"
+    )
+
+
 def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: str | None = None) -> str:
     cpu = platform.processor() or platform.machine()
     try:
@@ -357,39 +390,7 @@ def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: s
         "| commit |",
         "|" + "---|" * 17,
     ]
-    lines = []
-    for r in rows:
-        name = Path(r["file"]).name
-        for k in ("check", "predict", "simulate", "result"):  # the file column names the file
-            if isinstance(r.get(k), str):
-                r[k] = r[k].replace(f": {name}: ", ": ", 1).replace(f"{name}: ", "", 1)
-        if r.get("check") == r["result"]:
-            r["check"] = "(as result)"
-        src = Path(r["file"]).parent.name
-        p = r.get("probe") or {}
-        lim = r["limits"]
-        lim_s = f"{lim['gmax']:g} / {lim['smax']:g} ({lim['source']})"
-        pred = _f(r.get("predict_k_dk")) if r.get("predict") == "ok" else _cell(r.get("predict", "-")).split("; ")[0]
-        sim = (
-            _f(r.get("simulate_nrmse_pct"))
-            if r.get("simulate") == "ok"
-            else _cell(r.get("simulate", "-")).split("; ")[0]
-        )
-        if r["result"].startswith("optimized"):
-            kba = f"{_f(r.get('k_before_dk'))} -> {_f(r.get('k_after_dk'))}"
-            nba = (
-                f"{_f(r.get('nrmse_before_pct'))} -> {_f(r.get('nrmse_after_pct'))}"
-                if r.get("nrmse_before_pct") is not None
-                else "k-space only (no image term)"
-            )
-        else:
-            kba = nba = ""
-        lines.append(
-            f"| {src} | {Path(r['file']).name} | {_cell(_writer_short(r['writer_line']))} | {r['version']} | "
-            f"{p.get('kind') or '-'} | {r['size_kb']:.0f} | {lim_s} | {_cell(r.get('check', '-'))[:140]} | {pred} | {sim} | "
-            f"{_cell(r['result'])[:220]} | {kba} | {nba} | {r['time_s']:.0f} | {r['peak_mb']:.0f} | {_rf_use(r)} | "
-            f"{r.get('commit') or commit} |"
-        )
+    lines = [row_line(r, commit) for r in rows]
     return "\n".join(head + lines) + "\n" + END + "\n"
 
 
@@ -402,6 +403,68 @@ def write_section(text: str) -> None:
     else:
         doc = doc.rstrip("\n") + "\n\n" + text
     DOC.write_text(doc if doc.endswith("\n") else doc + "\n")
+
+
+def _cells(line: str) -> list[str]:
+    return [c.strip() for c in line.strip()[1:-1].split("|")]
+
+
+def merge_section(rows: list[dict], commit: str) -> str:
+    """The page's section with these rows in place of the same files' rows (source folder and file name), new
+    files appended, the rest kept as they are; the summary line's counts and the header's commit list recounted
+    over the merged table (the section's other prose is left for the person who ran it)."""
+    doc = DOC.read_text()
+    if BEGIN not in doc or END not in doc:
+        raise SystemExit("--merge: docs/foreign.md has no public-corpus section to merge into")
+    sec = doc[doc.index(BEGIN) : doc.index(END)].splitlines()
+    is_row = [ln.startswith("| ") and not ln.startswith("| source |") for ln in sec]
+    pos = {tuple(_cells(sec[i])[:2]): i for i in range(len(sec)) if is_row[i]}
+    last = max(pos.values())
+    for r in rows:
+        key = (Path(r["file"]).parent.name, Path(r["file"]).name)
+        line = row_line(r, commit)
+        if key in pos:
+            sec[pos[key]] = line
+        else:
+            last += 1
+            sec.insert(last, line)
+            is_row.insert(last, True)
+            pos[key] = last
+    table = [_cells(sec[i]) for i in sorted(pos.values())]
+    res = [c[10] for c in table]
+    n_opt = sum(x.startswith("optimized") for x in res)
+    n_to = sum(
+        x.startswith(("timed out", "stopped at the bench's memory cap")) or bool(re.match(r"exit -\d", x)) for x in res
+    )
+    n_int_opt = sum("internal error" in x for x in res)
+    n_int = sum(any("internal error" in c[j] for j in (7, 8, 9, 10)) for c in table)
+    writers = sorted({_writer_short(c[2]) for c in table})
+    by_commit: dict[str, int] = {}
+    for c in table:
+        by_commit[c[16]] = by_commit.get(c[16], 0) + 1
+    commits = ", ".join(
+        f"{k} ({n} row{'s' if n > 1 else ''})" for k, n in sorted(by_commit.items(), key=lambda x: -x[1])
+    )
+    for i, ln in enumerate(sec):
+        if re.match(r"\d+ files from \d+ writers", ln):
+            sec[i] = re.sub(
+                r"^\d+ files from \d+ writers \([^)]*\): \*\*\d+ optimized\*\*, \d+ refused with one line, \d+ timed out",
+                f"{len(table)} files from {len(writers)} writers ({', '.join(writers)}): **{n_opt} optimized**, "
+                f"{len(table) - n_opt - n_to - n_int_opt} refused with one line, {n_to} timed out",
+                ln,
+            )
+            sec[i] = re.sub(
+                r"\d+ internal errors of optimize \(\d+ files",
+                f"{n_int_opt} internal errors of optimize ({n_int} files",
+                sec[i],
+            )
+        elif ln.startswith("Written by `python -m bench.public_corpus"):
+            sec[i] = re.sub(
+                r" on commits? [0-9a-f?]+(?: \(\d+ rows?\))?(?:, [0-9a-f?]+ \(\d+ rows?\))*",
+                f" on commits {commits}",
+                ln,
+            )
+    return "\n".join(sec) + "\n"
 
 
 def main() -> None:
@@ -421,6 +484,11 @@ def main() -> None:
     ap.add_argument("--commit", default=None, help="with --render: the commit the rows ran on")
     ap.add_argument("--when", default=None, help="with --render: when the rows ran (default: now)")
     ap.add_argument("--girf-label", default=None, help="how the table names the GIRF (default: its file name)")
+    ap.add_argument(
+        "--merge",
+        action="store_true",
+        help="replace only these files' rows in docs/foreign.md's table (and its counts)",
+    )
     a = ap.parse_args()
     budgets = {"read": a.budget, "other": a.budget, "optimize": a.budget_optimize}
     globals()["MEM_CAP_MB"] = 1024 * a.mem_cap_gb  # (the steps' cap, render's header)
@@ -449,6 +517,12 @@ def main() -> None:
 
 
 def _finish(rows: list[dict], a, budgets: dict, commit: str) -> None:
+    if a.merge:
+        text = merge_section(rows, commit)
+        if not a.no_write:
+            write_section(text + END + "\n")
+        print(text)
+        return
     text = render(rows, a.girf_label or a.girf.name, budgets, commit, a.when)
     repos = sorted({r["source_repo"] for r in rows if r.get("source_repo")})
     if repos:

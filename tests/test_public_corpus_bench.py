@@ -53,3 +53,47 @@ def test_a_step_over_the_memory_cap_is_stopped_and_said_so():
     assert _stopped(r, 60.0).startswith("stopped at the bench's memory cap")
     r = run_step([sys.executable, "-c", "print(1)"], 60.0, env, mem_cap_mb=150.0)
     assert not r["mem_capped"] and r["rc"] == 0 and _stopped(r, 60.0) is None
+
+
+def _row(folder: str, name: str, result: str, commit: str) -> dict:
+    return {
+        "file": f"/x/{folder}/{name}", "writer_line": "Created by PyPulseq", "version": "1.5.0", "size_kb": 1.0,
+        "limits": {"gmax": 40.0, "smax": 170.0, "source": "assumed"}, "check": "ok", "predict": "-",
+        "simulate": "-", "result": result, "time_s": 1.0, "peak_mb": 1.0, "commit": commit,
+    }  # fmt: skip
+
+
+def test_merge_replaces_only_the_rerun_files_rows_and_recounts(tmp_path, monkeypatch):
+    """--merge: a rerun file's row replaces its own (same folder and name), a new file is appended, every other
+    line (rows, prose) stays, and the summary line and the commit list are recounted over the merged table."""
+    from bench import public_corpus as pc
+
+    rows = [_row("a", "one.seq", "timed out after 300 s", "aaa1111"), _row("b", "two.seq", "optimized", "bbb2222")]
+    head = [
+        pc.BEGIN,
+        "Written by `python -m bench.public_corpus DIR --girf ...`; run then on commits aaa1111 (1 row), bbb2222 (1 row), "
+        "Some CPU, 2 cores.",
+        "",
+        "2 files from 1 writers (pypulseq): **1 optimized**, 0 refused with one line, 1 timed out, stopped at the "
+        "memory cap or killed by a signal ('exit -9'), 0 internal errors of optimize (0 files with an internal error "
+        "in any step). The files are not committed.",
+        "A paragraph someone wrote by hand.",
+        "",
+        "| source | file | writer | version | kind | size (kB) | limits (mT/m, T/m/s) | check | predict k (dk) "
+        "| simulate NRMSE (%) | result | k before -> after (dk) | NRMSE before -> after (%) | time (s) | peak (MB) "
+        "| RF use | commit |",
+        "|" + "---|" * 17,
+    ]
+    doc = tmp_path / "foreign.md"
+    doc.write_text("# page\n\n" + "\n".join(head + [pc.row_line(r, "?") for r in rows]) + "\n" + pc.END + "\n\nrest\n")
+    monkeypatch.setattr(pc, "DOC", doc)
+    new = [_row("a", "one.seq", "optimized", "ccc3333"), _row("c", "three.seq", "refused: no ADC", "ccc3333")]
+    text = pc.merge_section(new, "ccc3333")
+    pc.write_section(text + pc.END + "\n")
+    out = doc.read_text()
+    lines = [ln for ln in out.splitlines() if ln.startswith("| ") and not ln.startswith("| source")]
+    assert [ln.split(" | ")[1] for ln in lines] == ["one.seq", "two.seq", "three.seq"]
+    assert "optimized" in lines[0] and lines[0].endswith("| ccc3333 |") and lines[1].endswith("| bbb2222 |")
+    assert "3 files from 1 writers (pypulseq): **2 optimized**, 1 refused with one line, 0 timed out" in out
+    assert "on commits ccc3333 (2 rows), bbb2222 (1 row), Some CPU" in out
+    assert "A paragraph someone wrote by hand." in out and out.startswith("# page") and out.endswith("rest\n")

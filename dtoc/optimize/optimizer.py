@@ -289,10 +289,23 @@ def solve_warm_start(
         with torch.no_grad():
             return kspace_error_dk(twin.forward_edges(x, moments=False).kspace_rad_per_m, ctx)
 
+    use_moments = weights.moment > 0 and ctx.k0_moment_rad_per_m is not None
+
+    def stop_error(x):  # the first CG's early stop: every ADC sample and every moment the objective holds, in dk
+        with torch.no_grad():
+            r = twin.forward_edges(x, moments=use_moments)
+            e = kspace_error_dk(r.kspace_rad_per_m, ctx)
+            if use_moments and r.moments_rad_per_m is not None:
+                dk = ctx.dk_rad_per_m
+                inv = torch.where(torch.isfinite(dk), 1.0 / dk, torch.zeros_like(dk))
+                m = ((r.moments_rad_per_m - ctx.k0_moment_rad_per_m) * inv[:, None]).norm(dim=0)
+                e = np.concatenate([e, m.cpu().numpy()])
+            return e
+
     if is_affine(twin.hardware):
         x, rep = SV.solve_to_tolerance(
             f, x0, twin.projector, twin.free_t, k_error, k_tol_dk=k_tol_dk, budget=budget,
-            sample_times_s=adc_sample_times_s(twin.ir), progress=progress,
+            sample_times_s=adc_sample_times_s(twin.ir), progress=progress, stop_error=stop_error,
             cuts=np.array([round(r.t_center_s / twin.ir.raster_s) for r in twin.ir.rf if r.excites], dtype=np.int64),
         )  # fmt: skip
         left = budget - rep.evaluations
@@ -553,6 +566,42 @@ def _pgd(twin, imager, ctx, cfg, x, state, progress, start_it, n_img, lr, checkp
     return x
 
 
+def memo_signal(imager, keep: int = 2):
+    """``imager`` with its ``signal(G, b0, idx)`` remembering its last ``keep`` results by the exact bytes of
+    their inputs (no autograd): the discarding's simulation of the final waveform is the export's "after"
+    simulation of the same waveform (one PDG run of the whole sequence each, the costliest step of a long file
+    with an image term); a waveform that differs in any bit is simulated again.  Returns ``imager``."""
+    if imager is None:
+        return None
+    import hashlib
+    from collections import OrderedDict
+
+    sim = imager.signal
+    memo: OrderedDict = OrderedDict()
+
+    def digest(t) -> bytes:
+        if t is None:
+            return b""
+        a = t.detach().cpu().contiguous().numpy()
+        return hashlib.sha256(a.tobytes()).digest() + repr((a.dtype.str, a.shape)).encode()
+
+    def signal(G, b0, idx):
+        if torch.is_grad_enabled() and (G.requires_grad or (b0 is not None and b0.requires_grad)):
+            return sim(G, b0, idx)
+        key = (idx, digest(G), digest(b0))
+        if key in memo:
+            memo.move_to_end(key)
+            return memo[key].clone()
+        out = sim(G, b0, idx)
+        memo[key] = out.detach()
+        while len(memo) > keep:
+            memo.popitem(last=False)
+        return out
+
+    setattr(imager, "signal", signal)  # noqa: B010 (an instance attribute over the method, this run's imager only)
+    return imager
+
+
 # ---------------------------------------------------------------------------------------------------
 # post-hoc discarding
 # ---------------------------------------------------------------------------------------------------
@@ -563,8 +612,13 @@ def kspace_error_dk(k: torch.Tensor, ctx) -> np.ndarray:
     return ((k - ctx.k0_rad_per_m) * inv[:, None]).norm(dim=0).detach().cpu().numpy()
 
 
-def choose_discard(twin, imager, ctx, edges: torch.Tensor, n_candidates: int = 48):
+def choose_discard(twin, imager, ctx, edges: torch.Tensor, n_candidates: int = 48, floor_dk: float = 0.0):
     """Pick the k-error threshold (dk) that minimises image NRMSE when samples beyond it are dropped.
+
+    ``floor_dk``: samples within it are never dropped (the run's ``k_tol_dk``: on target by the solver's
+    stopping rule; discarding is for the samples the limits leave off it).  When every sample is within it, no
+    candidate is simulated (each is one reconstruction: a non-uniform DFT's operator of a radial or spiral file
+    is built per mask, seconds each).
 
     Returns:
         (keep_mask (N_adc,) bool, threshold_dk (float, inf = keep all), nrmse at that threshold).
@@ -573,7 +627,7 @@ def choose_discard(twin, imager, ctx, edges: torch.Tensor, n_candidates: int = 4
         r = twin.forward_edges(edges, moments=False)
         err = kspace_error_dk(r.kspace_rad_per_m, ctx)
         keep_all = np.ones(err.shape, dtype=bool)
-        if imager is None:
+        if imager is None or (floor_dk > 0 and not bool(np.any(err > floor_dk))):
             return keep_all, math.inf, float("nan")
         sig = imager.signal(r.realized_grad_mT_per_m, r.b0_uT, 0)
         target = imager.targets[0]
@@ -584,6 +638,8 @@ def choose_discard(twin, imager, ctx, edges: torch.Tensor, n_candidates: int = 4
         best = (nrmse(keep_all), math.inf, keep_all)
         qs = np.unique(np.quantile(err, np.linspace(0.5, 1.0, n_candidates)))
         for thr in qs[::-1]:
+            if thr < floor_dk:
+                break
             mask = err <= thr
             if mask.all() or mask.sum() < 0.5 * mask.size:
                 continue

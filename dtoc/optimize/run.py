@@ -588,7 +588,7 @@ def plan_run(
     imager = None
     if with_image:
         phantoms = make_phantoms(ir, cfg, phantom)
-        imager = Imager(ir, phantoms, n_dummies=cfg.n_dummies, dtype=dtype, device=device)
+        imager = O.memo_signal(Imager(ir, phantoms, n_dummies=cfg.n_dummies, dtype=dtype, device=device))
 
     # a long (windowed) sequence keeps only the report's span of its whole-sequence waveforms
     n_wave = None if window is None else plotted_span(ir)[0]
@@ -759,7 +759,7 @@ def discard_stage(plan: Plan, sol: Solution) -> None:
     if plan.cfg.discard and plan.imager is not None and not sol.state.interrupted:
         t0 = time.time()
         assert sol.x is not None
-        sol.keep, sol.thr, _ = O.choose_discard(plan.twin, plan.imager, plan.ctx, sol.x)
+        sol.keep, sol.thr, _ = O.choose_discard(plan.twin, plan.imager, plan.ctx, sol.x, floor_dk=plan.cfg.k_tol_dk)
         sol.stage_times["discard_s"] = time.time() - t0
 
 

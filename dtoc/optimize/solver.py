@@ -160,6 +160,14 @@ class _Stop(Exception):
     pass
 
 
+class _Reached(Exception):
+    """The first CG's iterate, projected, has every sample within the tolerance (:func:`solve_to_tolerance`)."""
+
+    def __init__(self, d: torch.Tensor, it: int):
+        super().__init__()
+        self.d, self.it = d, it
+
+
 class _Quadratic:
     """f, its gradient and Hessian-vector products of a quadratic objective of the free edges."""
 
@@ -262,6 +270,8 @@ def solve_to_tolerance(
     sample_times_s: np.ndarray | None = None,
     cuts: np.ndarray | None = None,
     progress: Callable[[str, int, int, float], None] | None = None,
+    check_every: int = 10,
+    stop_error: Callable[[torch.Tensor], np.ndarray] | None = None,
 ) -> tuple[torch.Tensor, SolveReport]:
     """Minimise the quadratic ``f`` within the limits of ``P`` to a k-space tolerance (module doc).
 
@@ -280,6 +290,12 @@ def solve_to_tolerance(
             'limits-bound' (the caller then runs the projected-gradient path).
         sample_times_s: (N_adc,) sample times, to name the active limit before an unreachable sample.
         cuts: raster-edge indices where k restarts (excitations): the preconditioner's periods.
+        check_every: every this many iterations of the first (unconstrained) CG its iterate is projected onto the
+            limits and its k error evaluated (one forward pass, not counted in ``budget``): when every sample is
+            within ``k_tol_dk`` the CG stops there (stop reason ``tolerance``; ``unconstrained_max_dk`` is then
+            that iterate's, not a converged optimum's).  0: never.
+        stop_error: ``x -> errors (dk)`` of that check (default ``k_error``): e.g. the ADC samples and the moments
+            before the RF pulses (an echo pathway's k), so that a stop leaves neither above the tolerance.
     Returns:
         (x within the limits (exactly projected), :class:`SolveReport`).
     """
@@ -301,11 +317,18 @@ def solve_to_tolerance(
 
             g = q.grad(x)[0] if rnd else q.g0
             n_max = cg_max if rnd == 0 else cg_round_max
-            d, k = _pcg(op, torch.where(act, -g, 0.0), M, torch.zeros_like(x), cg_tol, n_max)
+            reached = False
+            try:
+                d, k = _pcg(
+                    op, torch.where(act, -g, 0.0), M, torch.zeros_like(x), cg_tol, n_max,
+                    on_iter=_tolerance_check(x, P, stop_error or k_error, k_tol_dk, check_every) if rnd == 0 else None,
+                )  # fmt: skip
+            except _Reached as hit:  # every sample within the tolerance: no need to converge further
+                d, k, reached = hit.d, hit.it, True
             rep.cg_iterations += k
             x_unc = x + d
             if rnd == 0:
-                unc_converged = k < n_max
+                unc_converged = k < n_max and not reached
                 err_unc = k_error(x_unc)
                 rep.unconstrained_max_dk = float(err_unc.max())
                 rep.within_limits_unconstrained = bool(P.is_feasible(x_unc.detach().cpu().numpy()))
@@ -350,6 +373,21 @@ def solve_to_tolerance(
     if err_unc is not None:
         rep.unreachable = explain_unreachable(best["x"], err, err_unc, k_tol_dk, P, sample_times_s, unc_converged)
     return best["x"], rep
+
+
+def _tolerance_check(x, P, k_error, k_tol_dk: float, every: int):
+    """``on_iter`` of the first CG: raises :class:`_Reached` when the projected iterate ``x + d`` has every sample
+    within ``k_tol_dk`` (checked every ``every`` iterations)."""
+    n = [0]
+
+    def check(d):
+        n[0] += 1
+        if every > 0 and n[0] % every == 0:
+            err = k_error(P.project(x + d, n_iter=60))
+            if not err.size or bool(np.all(err <= k_tol_dk)):
+                raise _Reached(d, n[0])
+
+    return check
 
 
 def explain_unreachable(x, err, err_unc, k_tol_dk, P, sample_times_s, unc_converged: bool = True) -> Unreachable:
