@@ -80,6 +80,7 @@ def test_quality_of_a_long_sequence_is_streamed_with_the_same_figures(monkeypatc
     from dtoc.optimize.config import load_config
     from dtoc.optimize.limits import EdgeProjector
     from dtoc.optimize.twin import EdgeTwin
+    from dtoc.sim import predict as P
     from dtoc.sim.predict import b0_phase_at_adc_rad
 
     ir = _idle_gre_ir(4, 3000)
@@ -91,7 +92,7 @@ def test_quality_of_a_long_sequence_is_streamed_with_the_same_figures(monkeypatc
     ctx = L.build_context(ir, lim)
     whole = R.quality(twin, None, ctx, ir.grad_mT_per_m)
     assert whole["_b0"] is not None and np.abs(whole["_b0"]).max() > 0
-    monkeypatch.setattr(R, "QUALITY_CHUNK", 2000)  # 13 pieces, the chain's memory (~14 ms) across their borders
+    monkeypatch.setattr(P, "QUALITY_CHUNK", 2000)  # 13 pieces, the chain's memory (~14 ms) across their borders
     n = 5000
     got = R.quality(twin, None, ctx, ir.grad_mT_per_m, waveform_samples=n)
     assert got["_b0"] is None
@@ -103,6 +104,39 @@ def test_quality_of_a_long_sequence_is_streamed_with_the_same_figures(monkeypatc
     phase = b0_phase_at_adc_rad(ir, whole["_b0"])
     assert np.abs(phase).max() > 1e-3
     assert np.allclose(got["_b0_phase_adc"], phase, rtol=0, atol=1e-9 * np.abs(phase).max())
+
+
+def test_predict_of_a_long_sequence_is_streamed_with_the_same_figures(monkeypatch):
+    """`dtoc predict` of a long sequence piece by piece: every figure of the whole path (gradient error max / RMS,
+    k error, B0 peak and phase) to 1e-9; the whole waveforms only when a plot asks for them, then the same."""
+    from dtoc.sim import predict as P
+
+    ir = _idle_gre_ir(4, 3000)
+    taps = -0.05 * np.exp(-np.arange(40) / 8.0)[None].repeat(3, 0)
+    hw = HardwareModel([Lti(taps, 5e-5), Delay(4e-6), B0Eddy(0.5, 3e-3, "x")])
+    whole = P.predict(ir, hw)
+    monkeypatch.setattr(P, "PREDICT_STREAM_MIN", 1000)
+    monkeypatch.setattr(P, "QUALITY_CHUNK", 2000)
+    got = P.predict(ir, hw)
+    assert isinstance(got["_arrays"], P._WholeArrays) and "G" not in got["_arrays"]
+    assert whole["b0_phase_max_rad"] > 1e-3 and whole["k_error_max_dk"] > 1e-3
+
+    def close(a, b):
+        if isinstance(a, dict):
+            assert a.keys() == b.keys()
+            for key in a:
+                if key != "_arrays":
+                    close(a[key], b[key])
+        elif isinstance(a, list):
+            assert len(a) == len(b) and all(close(x, y) is None for x, y in zip(a, b))
+        elif isinstance(a, float):
+            assert b == pytest.approx(a, rel=1e-9, abs=1e-12)
+        else:
+            assert a == b
+
+    close(whole, got)
+    assert np.array_equal(got["_arrays"]["G"], whole["_arrays"]["G"])  # the plot's: realized whole on demand
+    assert np.array_equal(got["_arrays"]["b0"], whole["_arrays"]["b0"])
 
 
 def test_the_reader_holds_the_waveform_once(tmp_path):

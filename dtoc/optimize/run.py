@@ -194,57 +194,34 @@ def quality(
     return out
 
 
-#: fine samples of one piece of :func:`_stream_realization` (6 MB a float64 (3, n) waveform; the overlap-add block of
-#: dtoc.hardware.convolution, so a GIRF spectrum of its size), besides the chain's
-#: memory on either side
-QUALITY_CHUNK = 1 << 18
-
-
 def _stream_realization(twin: EdgeTwin, played) -> Callable[[int], tuple] | None:
-    """The figures' realization of a long sequence piece by piece (:data:`QUALITY_CHUNK` fine samples and the
-    chain's memory, :func:`dtoc.hardware.memory.memory_s`, on either side), k at the ADC samples integrated across
-    the pieces (:func:`dtoc.seq.kspace.kspace_at_streamed`): memory bounded by a piece, not the sequence.  None
-    when it does not apply (a chain that is not affine or whose memory is unbounded: played whole).
+    """The figures' realization of a long sequence piece by piece (:func:`dtoc.sim.predict.realized_pieces`: the
+    chain's memory on either side of each piece), k at the ADC samples integrated across the pieces
+    (:func:`dtoc.seq.kspace.kspace_at_streamed`): memory bounded by a piece, not the sequence.  None when it does
+    not apply (a chain that is not affine or whose memory is unbounded: played whole).
 
     Returns ``f(n)`` -> (the first n demanded and realized fine samples (torch), the B0 term's phase at the ADC
     samples (numpy, rad; None without one) instead of the whole B0 waveform, k (3, N_adc), torch).
     Equal to the whole realization up to the chain's truncation at ``memory_s``'s 1e-6 and rounding; a sequence
     of one piece gives it bit for bit."""
-    from dtoc.hardware.memory import is_affine, memory_s
-    from dtoc.seq.kspace import kspace_at_streamed
+    from dtoc.sim.predict import realized_pieces, stream_kspace, streamable
 
-    hw = None if twin.is_ideal else twin.hardware
-    if not is_affine(hw):
-        return None
-    causal, acausal = memory_s(hw)
-    if not (math.isfinite(causal) and math.isfinite(acausal)):
+    if not streamable(twin):
         return None
     ir = twin.ir
-    M, dt, ch = ir.n_fine, ir.dt_fine_s, QUALITY_CHUNK
-    if M < 3:
-        return None
-    hc, ha = int(math.ceil(causal / dt)) + 2, int(math.ceil(acausal / dt)) + 2
 
     def run(n: int) -> tuple:
         heads_g: list = []
         heads_G: list = []
 
         def pieces():
-            for s in range(0, M - 1, ch):
-                e = min(s + ch, M - 1)  # this piece: samples s .. e (the next one starts at e)
-                lo, hi = max(0, s - hc), min(M, e + 1 + ha)
-                gp = twin.demanded(played[:, lo:hi])
-                Gp, bp = twin.realize(gp)
-                w = Gp[:, s - lo : e + 1 - lo]
-                own = e + 1 if e == M - 1 else e  # samples s .. own - 1 are this piece's own
-                if s < n:
-                    heads_g.append(gp[:, s - lo : min(own, n) - lo].clone())
-                    heads_G.append(w[:, : min(own, n) - s].clone())
-                # a B0 term: its phase integrated beside k, as a fourth channel (dtoc.sim.predict.b0_phase_at_adc_rad)
-                yield s, (w if bp is None else torch.cat([w, bp[None, s - lo : e + 1 - lo]]))
+            for p in realized_pieces(twin, played):
+                if p.s < n:
+                    heads_g.append(p.g[:, : min(p.own, n) - p.s].clone())
+                    heads_G.append(p.G[:, : min(p.own, n) - p.s].clone())
+                yield p.s, p.channels()
 
-        t_rf, uses = [r.t_center_s for r in ir.rf], [r.use for r in ir.rf]
-        kb = kspace_at_streamed(pieces(), M, dt, ir.adc_times_s, t_rf, uses)
+        kb = stream_kspace(ir, pieces())
         phase = None if kb.shape[0] == 3 else -kb[3].cpu().numpy() * 1e-3  # uT = 1e-3 mT, as b0_phase_at_adc_rad
         return torch.cat(heads_g, dim=-1), torch.cat(heads_G, dim=-1), phase, kb[:3]
 
