@@ -134,3 +134,6 @@ def test_the_optimize_estimate_follows_the_window_sizes():
     assert whole[2].startswith("whole solve") and "33 windows" in big[2]
     with pytest.raises(InputError, match="refused; the windowed solve holds less"):
         cost.check_optimize_cost("x", 10**9, 10**6, None)
+    # a long sequence that cannot be windowed: the way out says why instead of offering the windowed solve
+    with pytest.raises(InputError, match=r"refused; a shorter file \(it cannot be solved period by period: no exc\)$"):
+        cost.check_optimize_cost("x", 10**9, 10**6, None, whole_why="no exc")

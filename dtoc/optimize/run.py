@@ -246,26 +246,32 @@ def solver_record(solves: list) -> dict:
     return rec
 
 
+def why_not_windowed(ir, hardware, cfg: OptimizeConfig, free) -> str | None:
+    """Why this sequence cannot be solved period by period (None: it can)."""
+    from dtoc.hardware.memory import is_affine
+
+    if cfg.method not in ("dto", "warmstart"):
+        return f"method {cfg.method!r} has no windowed form"
+    if not is_affine(hardware):
+        return "the hardware chain is not affine (e.g. slew_limit)"
+    if not any(r.excites for r in ir.rf):
+        return "the sequence has no excitation to cut it at"
+    from dtoc.optimize.windowed import DENSE_MAX, period_free_counts
+
+    n = int(period_free_counts(ir, free).max())
+    if n > DENSE_MAX:
+        return f"an excitation period has {n} free variables (> {DENSE_MAX}: long echo trains are solved whole)"
+    return None
+
+
 def _window_plan(ir, hardware, cfg: OptimizeConfig, free, with_image: bool | None) -> dict | None:
     """Whether to solve period by period (:mod:`dtoc.optimize.windowed`) and with which horizon; None = whole.
     'auto' windows a sequence longer than ``window_auto_s`` unless an image term is asked for."""
-    from dtoc.hardware.memory import is_affine, memory_s
+    from dtoc.hardware.memory import memory_s
 
     if cfg.windowed == "off" or (cfg.windowed == "auto" and (ir.duration_s <= cfg.window_auto_s or with_image)):
         return None
-    why = None
-    if cfg.method not in ("dto", "warmstart"):
-        why = f"method {cfg.method!r} has no windowed form"
-    elif not is_affine(hardware):
-        why = "the hardware chain is not affine (e.g. slew_limit)"
-    elif not any(r.excites for r in ir.rf):
-        why = "the sequence has no excitation to cut it at"
-    else:
-        from dtoc.optimize.windowed import DENSE_MAX, period_free_counts
-
-        n = int(period_free_counts(ir, free).max())
-        if n > DENSE_MAX:
-            why = f"an excitation period has {n} free variables (> {DENSE_MAX}: long echo trains are solved whole)"
+    why = why_not_windowed(ir, hardware, cfg, free)
     if why is not None:
         if cfg.windowed == "on":
             raise InputError(f"windowed optimization impossible: {why}")
@@ -625,7 +631,10 @@ def plan_run(
         with_image = ir.geometry is not None  # no grid (non-Cartesian): the k-space term alone
     if not with_image:
         cfg = cfg.model_copy(update={"weights": cfg.weights.model_copy(update={"image": 0.0})})
-    check_run_cost(ir, cfg, free, window, with_image, str(io.base_path or "sequence"), io.notes)
+    whole_why = None  # a long sequence solved whole: why (the refusal's way out must not offer the windowed solve)
+    if window is None and ir.duration_s > cfg.window_auto_s and not with_image and cfg.windowed != "off":
+        whole_why = why_not_windowed(ir, hardware, cfg, free)
+    check_run_cost(ir, cfg, free, window, with_image, str(io.base_path or "sequence"), io.notes, whole_why)
     imager = None
     if with_image:
         phantoms = make_phantoms(ir, cfg, phantom)
@@ -641,7 +650,9 @@ def plan_run(
     )  # fmt: skip
 
 
-def check_run_cost(ir, cfg: OptimizeConfig, free, window: dict | None, with_image: bool, name: str, notes=None):
+def check_run_cost(
+    ir, cfg: OptimizeConfig, free, window: dict | None, with_image: bool, name: str, notes=None, whole_why=None
+):
     """The run's memory and time from its sizes (:func:`dtoc.util.cost.check_optimize_cost`), before any work:
     the windowed plan's window sizes (windows, the most free variables and fine samples of one window) or the
     whole solve, and the image term's simulation with its dummy train; one line refused, one noted."""
@@ -666,7 +677,7 @@ def check_run_cost(ir, cfg: OptimizeConfig, free, window: dict | None, with_imag
         mem, sec = simulation_cost(vox, ir.n_adc_samples, n_ph, n_runs=2 * max(cfg.iters, 1))
         dmem, dsec = dummy_cost(cfg.n_dummies, fine_per_repetition(ir), vox)
         sim = (max(mem, dmem), sec + dsec * n_ph)
-    check_optimize_cost(f"{name}: optimize", ir.grad_mT_per_m.shape[1], ir.n_adc_samples, sizes, sim, notes)
+    check_optimize_cost(f"{name}: optimize", ir.grad_mT_per_m.shape[1], ir.n_adc_samples, sizes, sim, notes, whole_why)
 
 
 def start_solution(plan: Plan, io: RunIO) -> Solution:

@@ -173,12 +173,18 @@ def optimize_cost(n_fine: int, n_adc: int, window: dict | None = None) -> tuple[
 
 
 def check_optimize_cost(
-    what: str, n_fine: int, n_adc: int, window: dict | None, sim: tuple[float, float] = (0.0, 0.0), notes=None
+    what: str,
+    n_fine: int,
+    n_adc: int,
+    window: dict | None,
+    sim: tuple[float, float] = (0.0, 0.0),
+    notes=None,
+    whole_why: str | None = None,
 ) -> tuple[float, float]:
     """Estimate an optimization from its sizes (``sim``: the image term's (bytes, seconds), if any); print one
     line through ``notes`` for a long run (estimated time, peak memory, the machine's available memory) and
-    refuse (InputError, one line with the estimate) one that cannot fit the available memory.  Returns
-    (bytes, seconds)."""
+    refuse (InputError, one line with the estimate) one that cannot fit the available memory; ``whole_why``: why a
+    long sequence is solved whole (its way out then does not offer the windowed solve).  Returns (bytes, seconds)."""
     mem, sec, src = optimize_cost(n_fine, n_adc, window)
     mem, sec = mem + sim[0], sec + sim[1]
     avail = available_memory_bytes()
@@ -186,11 +192,12 @@ def check_optimize_cost(
         f"estimate ({src}): ~{_duration(sec)} and {gib(mem)} peak memory; {gib(avail)} available on this machine "
         "(rough: docs/cli.md, Cost estimates)"
     )
-    way_out = (
-        "the windowed solve holds less (windowed: on in --config)"
-        if window is None
-        else "a shorter file, or fewer free variables per excitation period, or shorter excitation periods"
-    )
+    if window is not None:
+        way_out = "a shorter file, or fewer free variables per excitation period, or shorter excitation periods"
+    elif whole_why:  # the windowed solve would be refused too: say why instead of offering it
+        way_out = f"a shorter file (it cannot be solved period by period: {whole_why})"
+    else:
+        way_out = "the windowed solve holds less (windowed: on in --config)"
     check_fits(f"{what}: {line}", mem, way_out=way_out)
     if notes is not None and (sec >= LONG_RUN_SECONDS or window is not None):
         notes(line)
