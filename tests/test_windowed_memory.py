@@ -191,7 +191,7 @@ def test_whole_windowed_run_memory_does_not_grow_with_the_duration():
     """The whole ``optimize_sequence`` of a 4x longer windowed sequence (12 identical 5 s periods against 3: 0.6 M
     against 0.15 M raster steps) peaks within 1.2x the resident memory (each in its own process, freed arrays
     returned to the system).  Measured 2026-11-27 (2-core Xeon, load ~10): 685 -> 745 MB (1.09x); the parent commit
-    (the base's realization whole in the figures, the reader-independent limit step arrays) 696 -> 883 MB
+    (the base's and the output's realization whole in the figures, two whole-length limit step arrays) 696 -> 883 MB
     (1.27x, ~410 bytes per raster step against ~130 now)."""
     a, b = _run_peak(3, 50_000), _run_peak(12, 50_000)
     assert (a["windows"], b["windows"]) == (3, 12)
