@@ -127,6 +127,13 @@ def test_the_optimize_estimate_follows_the_window_sizes():
     big = cost.optimize_cost(200_000, 1024, win)
     assert big[0] > small[0] + 1e9  # the largest window's dense matrices
     assert cost.optimize_cost(2_000_000, 1024, win)[0] > big[0]  # the whole-sequence arrays
+    # the longest window's own arrays: a minute-long excitation period (6 M fine samples) needs ~24 GB more
+    long_period = cost.optimize_cost(200_000, 1024, {**win, "max_fine": 6_000_000})
+    assert long_period[0] - big[0] == pytest.approx(cost.WINDOW_BYTES_PER_WINDOW_FINE * 5_700_000)
+    assert long_period[0] > 2e10
     assert whole[2].startswith("whole solve") and "33 windows" in big[2]
     with pytest.raises(InputError, match="refused; the windowed solve holds less"):
         cost.check_optimize_cost("x", 10**9, 10**6, None)
+    # a long sequence that cannot be windowed: the way out says why instead of offering the windowed solve
+    with pytest.raises(InputError, match=r"refused; a shorter file \(it cannot be solved period by period: no exc\)$"):
+        cost.check_optimize_cost("x", 10**9, 10**6, None, whole_why="no exc")

@@ -592,8 +592,9 @@ class EdgeProjector:
                 if not fixed[a].any():
                     continue
                 lo[a], hi[a] = self._envelope(e0[a], fixed[a], G, S)
-            self.dlo = np.full((3, n_e - 1), -S)
-            self.dhi = np.full((3, n_e - 1), S)
+            # one bound for every step: read-only views of one value, not two whole-sequence arrays
+            self.dlo = np.broadcast_to(np.float64(-S), (3, n_e - 1))
+            self.dhi = np.broadcast_to(np.float64(S), (3, n_e - 1))
         else:  # oblique: per-sample boxes within the physical limits that hold the base (module docstring)
             alo, ahi = _physical_boxes(e0, fixed, R, G, limits.gmax_mT_per_m, "amplitude", raster_s)
             fixed_pair = fixed[:, 1:] & fixed[:, :-1]

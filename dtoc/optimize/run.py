@@ -148,8 +148,14 @@ def quality(
     ``_G``: the report's panel, :func:`dtoc.optimize.report.plotted_span`) instead of the whole sequence's.
     """
     with torch.no_grad():
-        r = twin.forward(twin.demanded(played), moments=False)
-        g, G, b0, k = r.demanded_grad_mT_per_m, r.realized_grad_mT_per_m, r.b0_uT, r.kspace_rad_per_m
+        n_head = waveform_samples
+        streamed = None if imager is not None or n_head is None else _stream_realization(twin, played)
+        if streamed is None or n_head is None:
+            r = twin.forward(twin.demanded(played), moments=False)
+            g, G, b0, k = r.demanded_grad_mT_per_m, r.realized_grad_mT_per_m, r.b0_uT, r.kspace_rad_per_m
+        else:  # a long sequence without an image: played through the chain piece by piece, never whole
+            g, G, b0_phase, k = streamed(n_head)
+            b0 = None
         dk = ctx.dk_rad_per_m.cpu().numpy()
         ke = metrics.kspace_errors(k, ctx.k0_rad_per_m, dk)
         out = {
@@ -184,7 +190,43 @@ def quality(
         out["_G"] = _head(G, waveform_samples)
         out["_g"] = _head(g, waveform_samples)
         out["_b0"] = None if b0 is None else b0.cpu().numpy()
+        if streamed is not None:
+            out["_b0_phase_adc"] = b0_phase  # the whole B0 waveform is not kept
     return out
+
+
+def _stream_realization(twin: EdgeTwin, played) -> Callable[[int], tuple] | None:
+    """The figures' realization of a long sequence piece by piece (:func:`dtoc.sim.predict.realized_pieces`: the
+    chain's memory on either side of each piece), k at the ADC samples integrated across the pieces
+    (:func:`dtoc.seq.kspace.kspace_at_streamed`): memory bounded by a piece, not the sequence.  None when it does
+    not apply (a chain that is not affine or whose memory is unbounded: played whole).
+
+    Returns ``f(n)`` -> (the first n demanded and realized fine samples (torch), the B0 term's phase at the ADC
+    samples (numpy, rad; None without one) instead of the whole B0 waveform, k (3, N_adc), torch).
+    Equal to the whole realization up to the chain's truncation at ``memory_s``'s 1e-6 and rounding; a sequence
+    of one piece gives it bit for bit."""
+    from dtoc.sim.predict import realized_pieces, stream_kspace, streamable
+
+    if not streamable(twin):
+        return None
+    ir = twin.ir
+
+    def run(n: int) -> tuple:
+        heads_g: list = []
+        heads_G: list = []
+
+        def pieces():
+            for p in realized_pieces(twin, played):
+                if p.s < n:
+                    heads_g.append(p.g[:, : min(p.own, n) - p.s].clone())
+                    heads_G.append(p.G[:, : min(p.own, n) - p.s].clone())
+                yield p.s, p.channels()
+
+        kb = stream_kspace(ir, pieces())
+        phase = None if kb.shape[0] == 3 else -kb[3].cpu().numpy() * 1e-3  # uT = 1e-3 mT, as b0_phase_at_adc_rad
+        return torch.cat(heads_g, dim=-1), torch.cat(heads_G, dim=-1), phase, kb[:3]
+
+    return run
 
 
 def _head(w: torch.Tensor, n: int | None) -> np.ndarray:
@@ -205,26 +247,32 @@ def solver_record(solves: list) -> dict:
     return rec
 
 
+def why_not_windowed(ir, hardware, cfg: OptimizeConfig, free) -> str | None:
+    """Why this sequence cannot be solved period by period (None: it can)."""
+    from dtoc.hardware.memory import is_affine
+
+    if cfg.method not in ("dto", "warmstart"):
+        return f"method {cfg.method!r} has no windowed form"
+    if not is_affine(hardware):
+        return "the hardware chain is not affine (e.g. slew_limit)"
+    if not any(r.excites for r in ir.rf):
+        return "the sequence has no excitation to cut it at"
+    from dtoc.optimize.windowed import DENSE_MAX, period_free_counts
+
+    n = int(period_free_counts(ir, free).max())
+    if n > DENSE_MAX:
+        return f"an excitation period has {n} free variables (> {DENSE_MAX}: long echo trains are solved whole)"
+    return None
+
+
 def _window_plan(ir, hardware, cfg: OptimizeConfig, free, with_image: bool | None) -> dict | None:
     """Whether to solve period by period (:mod:`dtoc.optimize.windowed`) and with which horizon; None = whole.
     'auto' windows a sequence longer than ``window_auto_s`` unless an image term is asked for."""
-    from dtoc.hardware.memory import is_affine, memory_s
+    from dtoc.hardware.memory import memory_s
 
     if cfg.windowed == "off" or (cfg.windowed == "auto" and (ir.duration_s <= cfg.window_auto_s or with_image)):
         return None
-    why = None
-    if cfg.method not in ("dto", "warmstart"):
-        why = f"method {cfg.method!r} has no windowed form"
-    elif not is_affine(hardware):
-        why = "the hardware chain is not affine (e.g. slew_limit)"
-    elif not any(r.excites for r in ir.rf):
-        why = "the sequence has no excitation to cut it at"
-    else:
-        from dtoc.optimize.windowed import DENSE_MAX, period_free_counts
-
-        n = int(period_free_counts(ir, free).max())
-        if n > DENSE_MAX:
-            why = f"an excitation period has {n} free variables (> {DENSE_MAX}: long echo trains are solved whole)"
+    why = why_not_windowed(ir, hardware, cfg, free)
     if why is not None:
         if cfg.windowed == "on":
             raise InputError(f"windowed optimization impossible: {why}")
@@ -584,7 +632,10 @@ def plan_run(
         with_image = ir.geometry is not None  # no grid (non-Cartesian): the k-space term alone
     if not with_image:
         cfg = cfg.model_copy(update={"weights": cfg.weights.model_copy(update={"image": 0.0})})
-    check_run_cost(ir, cfg, free, window, with_image, str(io.base_path or "sequence"), io.notes)
+    whole_why = None  # a long sequence solved whole: why (the refusal's way out must not offer the windowed solve)
+    if window is None and ir.duration_s > cfg.window_auto_s and not with_image and cfg.windowed != "off":
+        whole_why = why_not_windowed(ir, hardware, cfg, free)
+    check_run_cost(ir, cfg, free, window, with_image, str(io.base_path or "sequence"), io.notes, whole_why)
     imager = None
     if with_image:
         phantoms = make_phantoms(ir, cfg, phantom)
@@ -600,7 +651,9 @@ def plan_run(
     )  # fmt: skip
 
 
-def check_run_cost(ir, cfg: OptimizeConfig, free, window: dict | None, with_image: bool, name: str, notes=None):
+def check_run_cost(
+    ir, cfg: OptimizeConfig, free, window: dict | None, with_image: bool, name: str, notes=None, whole_why=None
+):
     """The run's memory and time from its sizes (:func:`dtoc.util.cost.check_optimize_cost`), before any work:
     the windowed plan's window sizes (windows, the most free variables and fine samples of one window) or the
     whole solve, and the image term's simulation with its dummy train; one line refused, one noted."""
@@ -625,7 +678,7 @@ def check_run_cost(ir, cfg: OptimizeConfig, free, window: dict | None, with_imag
         mem, sec = simulation_cost(vox, ir.n_adc_samples, n_ph, n_runs=2 * max(cfg.iters, 1))
         dmem, dsec = dummy_cost(cfg.n_dummies, fine_per_repetition(ir), vox)
         sim = (max(mem, dmem), sec + dsec * n_ph)
-    check_optimize_cost(f"{name}: optimize", ir.grad_mT_per_m.shape[1], ir.n_adc_samples, sizes, sim, notes)
+    check_optimize_cost(f"{name}: optimize", ir.grad_mT_per_m.shape[1], ir.n_adc_samples, sizes, sim, notes, whole_why)
 
 
 def start_solution(plan: Plan, io: RunIO) -> Solution:
@@ -884,7 +937,9 @@ def _write_sidecar(path, ir, after: dict, keep, ctx, model_file, force: bool) ->
     from dtoc.sim.predict import b0_phase_at_adc_rad
 
     b0 = after.get("_b0")
-    phase = np.zeros(ir.n_adc_samples) if b0 is None else b0_phase_at_adc_rad(ir, b0)
+    phase = after.get("_b0_phase_adc")  # streamed (a long sequence): the phase itself
+    if phase is None:
+        phase = np.zeros(ir.n_adc_samples) if b0 is None else b0_phase_at_adc_rad(ir, b0)
     sha = sha256_file(model_file) if isinstance(model_file, (str, os.PathLike)) else None
     arrays = sidecar_arrays(ir, after["_k"], phase, keep, ctx.dk_rad_per_m.cpu().numpy(), sha)
     data = npz_bytes(arrays)

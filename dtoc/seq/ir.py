@@ -113,7 +113,9 @@ class SequenceIR:
         source: the pypulseq Sequence this was read from or built as (the writer copies RF, ADC,
             labels and definitions from it); None for synthetic IRs.
         source_grad_mT_per_m: (3, 2N+1) the demanded gradient of ``source`` as read (the writer rewrites
-            only the blocks whose gradient differs from it); None for synthetic IRs.
+            only the blocks whose gradient differs from it); None for synthetic IRs.  The reader gives the IR's
+            own ``grad_mT_per_m`` array here, not a copy (a whole-sequence waveform, 48 bytes per raster step):
+            an IR's waveform is replaced (:meth:`with_grad`), never written into.
         meta: free-form extra facts (spec name, echo spacing, ...), JSON-serialisable.
     """
 

@@ -41,6 +41,41 @@ def pwl_cumulative(g, dt: float) -> torch.Tensor:
     return torch.cat([zero, inc.cumsum_(dim=-1)], dim=-1)  # in place: one whole-length temporary fewer
 
 
+#: a waveform longer than this many samples (and not part of an autograd graph) is integrated in chunks of it:
+#: the running integral is never held whole (same numbers bit for bit: each chunk's cumulative sum starts from
+#: the last one's end, added to its first increment, the order a whole cumulative sum adds in)
+CUMULATIVE_CHUNK = 1 << 20
+
+
+def _chunked(g: torch.Tensor) -> bool:
+    return g.shape[-1] > CUMULATIVE_CHUNK + 1 and not g.requires_grad
+
+
+def cumulative_at(g, dt: float, m: np.ndarray) -> torch.Tensor:
+    """``pwl_cumulative(g, dt)[..., m]`` without the whole running integral when ``g`` is long and needs no
+    gradient (:data:`CUMULATIVE_CHUNK`): (..., len(m)), the same numbers bit for bit."""
+    g = _as_tensor(g)
+    m = np.asarray(m, dtype=np.int64)
+    if not _chunked(g):
+        return pwl_cumulative(g, dt)[..., torch.as_tensor(m, device=g.device)]
+    out = torch.zeros(g.shape[:-1] + (len(m),), dtype=g.dtype, device=g.device)
+    order = np.argsort(m, kind="stable")
+    ms = m[order]
+    carry = torch.zeros(g.shape[:-1], dtype=g.dtype, device=g.device)
+    M = g.shape[-1]
+    for s in range(0, M - 1, CUMULATIVE_CHUNK):
+        e = min(s + CUMULATIVE_CHUNK, M - 1)  # increments s..e-1: C[s + 1 .. e]
+        inc = 0.5 * dt * (g[..., s + 1 : e + 1] + g[..., s:e])
+        inc[..., 0] += carry
+        inc.cumsum_(dim=-1)
+        a, b = np.searchsorted(ms, [s + 1, e + 1])
+        if b > a:
+            sel = torch.as_tensor(ms[a:b] - (s + 1), device=g.device)
+            out[..., torch.as_tensor(order[a:b], device=g.device)] = inc[..., sel]
+        carry = inc[..., -1].clone()
+    return out
+
+
 def pwl_integral_at(g, dt: float, t_s, cumulative: torch.Tensor | None = None) -> torch.Tensor:
     """Exact integral_0^t of a PWL waveform at arbitrary query times.
 
@@ -54,14 +89,17 @@ def pwl_integral_at(g, dt: float, t_s, cumulative: torch.Tensor | None = None) -
     """
     g = _as_tensor(g)
     M = g.shape[-1]
-    C = pwl_cumulative(g, dt) if cumulative is None else cumulative
     t = np.clip(np.asarray(t_s, dtype=np.float64), 0.0, (M - 1) * dt)
     m = np.clip(np.floor(t / dt + 1e-9).astype(np.int64), 0, max(M - 2, 0))
     tau = torch.as_tensor(t - m * dt, dtype=g.dtype, device=g.device)
     mi = torch.as_tensor(m, device=g.device)
+    if cumulative is None and _chunked(g):  # a long waveform without a graph: its running integral by chunks
+        Cm = cumulative_at(g, dt, m)
+    else:
+        Cm = (pwl_cumulative(g, dt) if cumulative is None else cumulative)[..., mi]
     g0 = g[..., mi]
     g1 = g[..., mi + 1] if M > 1 else g0
-    return C[..., mi] + tau * g0 + 0.5 * tau * tau * (g1 - g0) / dt
+    return Cm + tau * g0 + 0.5 * tau * tau * (g1 - g0) / dt
 
 
 def kspace_at(g_mT_per_m, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_uses: _Seq[str] = ()) -> torch.Tensor:
@@ -79,14 +117,30 @@ def kspace_at(g_mT_per_m, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_use
     """
     g = _as_tensor(g_mT_per_m)
     t = np.asarray(t_s, dtype=np.float64)
-    C = pwl_cumulative(g, dt)
+    C = None if _chunked(g) else pwl_cumulative(g, dt)  # long and without a graph: by chunks, twice
     integ = pwl_integral_at(g, dt, t, cumulative=C)  # (..., 3, Q)
+    events = _k_events(rf_centres_s, rf_uses)
+    i_rf = None if not events else pwl_integral_at(g, dt, np.array([e[0] for e in events]), cumulative=C)
+    return kspace_from_integrals(integ, i_rf, t, rf_centres_s, rf_uses)
+
+
+def _k_events(rf_centres_s, rf_uses) -> list:
     # 'undefined' excites, as in pypulseq's calculate_kspace and Pulseq's calcKspace
-    events = [(tc, u) for tc, u in zip(rf_centres_s, rf_uses) if u in ("excitation", "undefined", "refocusing")]
+    return [(tc, u) for tc, u in zip(rf_centres_s, rf_uses) if u in ("excitation", "undefined", "refocusing")]
+
+
+def kspace_from_integrals(
+    integ: torch.Tensor, i_rf: torch.Tensor | None, t_s, rf_centres_s: _Seq[float] = (), rf_uses: _Seq[str] = ()
+) -> torch.Tensor:
+    """:func:`kspace_at` from the integrals it needs: ``integ`` (..., 3, Q) of the gradient from 0 to each query
+    time ``t_s`` and ``i_rf`` (..., 3, E) to each RF event that resets or negates k (excitation, undefined,
+    refocusing, in the order given; None when there is none)."""
+    t = np.asarray(t_s, dtype=np.float64)
+    events = _k_events(rf_centres_s, rf_uses)
     if not events:
         return GAMMA_RAD_PER_S_PER_MT * integ
+    assert i_rf is not None
     tc = np.array([e[0] for e in events], dtype=np.float64)
-    i_rf = pwl_integral_at(g, dt, tc, cumulative=C)  # (..., 3, E)
     # k right after event j: k_j; k(t) = gamma*(I(t) - I(t_j)) + k_j for t in [t_j, t_{j+1}).
     if all(u != "refocusing" for _, u in events):
         k_after_t = torch.zeros_like(i_rf)  # every event excites: k restarts at 0 (no loop over the events)
@@ -105,8 +159,43 @@ def kspace_at(g_mT_per_m, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_use
     out = GAMMA_RAD_PER_S_PER_MT * integ
     after = seg >= 0
     if after.any():
-        idx = torch.as_tensor(np.where(after)[0], device=g.device)
-        sj = torch.as_tensor(seg[after], device=g.device)
+        idx = torch.as_tensor(np.where(after)[0], device=integ.device)
+        sj = torch.as_tensor(seg[after], device=integ.device)
         val = GAMMA_RAD_PER_S_PER_MT * (integ[..., idx] - i_rf[..., sj]) + k_after_t[..., sj]
         out = out.index_copy(-1, idx, val)
     return out
+
+
+def kspace_at_streamed(chunks, n: int, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_uses: _Seq[str] = ()):
+    """:func:`kspace_at` of a waveform of ``n`` samples given piece by piece, never whole: ``chunks`` yields
+    ``(s, w)`` in time order, ``w`` (..., 3, L) its samples ``s .. s + L - 1``, each piece starting on the last
+    sample of the one before (``s`` = 0 first, the last ending at sample ``n - 1``).  Same formulas; a waveform in
+    one piece gives the numbers of :func:`kspace_at` bit for bit."""
+    t = np.asarray(t_s, dtype=np.float64)
+    events = _k_events(rf_centres_s, rf_uses)
+    tq = np.concatenate([t, np.array([e[0] for e in events], dtype=np.float64)])
+    tq = np.clip(tq, 0.0, (n - 1) * dt)
+    m = np.clip(np.floor(tq / dt + 1e-9).astype(np.int64), 0, max(n - 2, 0))
+    order = np.argsort(m, kind="stable")
+    ms = m[order]
+    out: torch.Tensor | None = None
+    carry = torch.zeros(())
+    for s, w in chunks:
+        if out is None:
+            out = torch.zeros(w.shape[:-1] + (len(tq),), dtype=w.dtype, device=w.device)
+            carry = torch.zeros(w.shape[:-1], dtype=w.dtype, device=w.device)
+        L = w.shape[-1]
+        inc = 0.5 * dt * (w[..., 1:] + w[..., :-1])
+        inc[..., 0] += carry
+        C = torch.cat([carry[..., None], inc.cumsum_(dim=-1)], dim=-1)  # C[s .. s + L - 1]
+        a, b = np.searchsorted(ms, [s, s + L - 1])  # queries whose interval [m, m + 1] lies in this piece
+        if b > a:
+            q = order[a:b]
+            mi = torch.as_tensor(ms[a:b] - s, device=w.device)
+            tau = torch.as_tensor(tq[q] - ms[a:b] * dt, dtype=w.dtype, device=w.device)
+            g0, g1 = w[..., mi], w[..., mi + 1]
+            out[..., torch.as_tensor(q, device=w.device)] = C[..., mi] + tau * g0 + 0.5 * tau * tau * (g1 - g0) / dt
+        carry = C[..., -1].clone()
+    assert out is not None
+    nq = len(t)
+    return kspace_from_integrals(out[..., :nq], out[..., nq:] if events else None, t, rf_centres_s, rf_uses)

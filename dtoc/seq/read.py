@@ -331,7 +331,7 @@ def from_pypulseq(
         adc=adc_events,
         definitions=defs,
         source=seq,
-        source_grad_mT_per_m=np.array(g, dtype=np.float64),
+        source_grad_mT_per_m=g,  # the same array: the IR's waveform is replaced (with_grad), never written into
     )
     _apply_metadata(ir)
     if soft:

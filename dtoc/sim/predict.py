@@ -15,6 +15,9 @@ Figures (all realized minus demanded/nominal, per physical axis x, y, z):
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -40,6 +43,79 @@ def realize(
     return G.double().cpu().numpy(), b0.double().cpu().numpy()
 
 
+#: fine samples of one piece of :func:`realized_pieces` (6 MB a float64 (3, n) waveform; the overlap-add block of
+#: :mod:`dtoc.hardware.convolution`, so a GIRF spectrum of its size), besides the chain's memory on either side
+QUALITY_CHUNK = 1 << 18
+#: :func:`predict` plays a sequence of more fine samples than this piece by piece (its figures; the whole waveforms
+#: only when a plot asks for them)
+PREDICT_STREAM_MIN = 1 << 21
+
+
+def streamable(twin) -> bool:
+    """True when the twin's chain can be played piece by piece with a bounded memory either side (ideal, or affine
+    with a finite :func:`dtoc.hardware.memory.memory_s`), on a grid of at least 3 samples."""
+    from dtoc.hardware.memory import is_affine, memory_s
+
+    hw = None if twin.is_ideal else twin.hardware
+    return is_affine(hw) and all(np.isfinite(memory_s(hw))) and twin.ir.n_fine >= 3
+
+
+@dataclass
+class Piece:
+    """One piece of :func:`realized_pieces`: fine samples ``s .. e`` (``e`` is the next piece's ``s``) of the
+    demanded ``g`` and realized ``G`` (3, e - s + 1) and the B0 term ``b0`` (e - s + 1,) or None; samples
+    ``s .. own - 1`` are this piece's own (the last piece owns its last sample too)."""
+
+    s: int
+    e: int
+    own: int
+    g: torch.Tensor
+    G: torch.Tensor
+    b0: torch.Tensor | None
+
+    def channels(self) -> torch.Tensor:
+        """(3 or 4, L): G, with the B0 term as a fourth channel (integrated like a gradient, the phase's sign and
+        unit as :func:`b0_phase_at_adc_rad`)."""
+        return self.G if self.b0 is None else torch.cat([self.G, self.b0[None]])
+
+
+def realized_pieces(twin, played, chunk: int | None = None) -> Iterator[Piece]:
+    """The demanded waveform ``played`` (3, M) through ``twin``'s chain piece by piece (``chunk`` fine samples,
+    default :data:`QUALITY_CHUNK`), each realized with the chain's memory (:func:`dtoc.hardware.memory.memory_s`)
+    on either side: memory bounded by a piece.  Equal to the whole realization up to the memory's truncation
+    (1e-6 relative) and rounding; one piece is the whole realization.  Only where :func:`streamable`."""
+    from dtoc.hardware.memory import memory_s
+
+    ch = QUALITY_CHUNK if chunk is None else int(chunk)
+    M, dt = twin.ir.n_fine, twin.ir.dt_fine_s
+    causal, acausal = memory_s(None if twin.is_ideal else twin.hardware)
+    hc, ha = int(math.ceil(causal / dt)) + 2, int(math.ceil(acausal / dt)) + 2
+    for s in range(0, M - 1, ch):
+        e = min(s + ch, M - 1)
+        lo, hi = max(0, s - hc), min(M, e + 1 + ha)
+        gp = twin.demanded(played[:, lo:hi])
+        Gp, bp = twin.realize(gp)
+        own = e + 1 if e == M - 1 else e
+        yield Piece(
+            s,
+            e,
+            own,
+            gp[:, s - lo : e + 1 - lo],
+            Gp[:, s - lo : e + 1 - lo],
+            None if bp is None else bp[s - lo : e + 1 - lo],
+        )
+
+
+def stream_kspace(ir: SequenceIR, pieces) -> torch.Tensor:
+    """(C, N_adc) k of ``(s, w)`` pieces (:func:`dtoc.seq.kspace.kspace_at_streamed`) at the IR's ADC samples."""
+    from dtoc.seq.kspace import kspace_at_streamed
+
+    rf = ir.rf
+    return kspace_at_streamed(
+        pieces, ir.n_fine, ir.dt_fine_s, ir.adc_times_s, [r.t_center_s for r in rf], [r.use for r in rf]
+    )
+
+
 def _stats(err: np.ndarray) -> tuple[float, float]:
     if err.size == 0:
         return 0.0, 0.0
@@ -57,43 +133,114 @@ def predict(
     (the optimize manifest's ``kspace_max_error_dk`` when dk is the grid's).
     Also holds (under ``"_arrays"``, not for JSON) the realized waveforms and k for plotting.
     """
+    from dtoc.sim.twin import Twin
+
+    twin = Twin(ir, model.to(device), dtype=torch.float64, device=device)
+    if ir.n_fine > PREDICT_STREAM_MIN and streamable(twin):
+        return _predict_streamed(ir, twin, model, device, reference)
     G, b0 = realize(ir, model, device)
     ref = ir if reference is None else reference
     g = ref.grad_mT_per_m
+    grad_error = {}
+    for a, name in enumerate(AXES):
+        mx, rms = _stats(G[a] - g[a])
+        grad_error[name] = {"max_mT_per_m": mx, "rms_mT_per_m": rms}
+    k0 = k = None
+    phi_max = None
+    if ir.n_adc_samples:
+        k0 = ref.kspace_rad_per_m().numpy()
+        k = ir.kspace_rad_per_m(G).numpy()
+        phi_max = float(np.max(np.abs(b0_phase_at_adc_rad(ir, b0))))
+    out = _record(ir, ref, grad_error, k, k0, phi_max, float(np.max(np.abs(b0))) if b0.size else 0.0)
+    out["_arrays"] = {"G": G, "g": g, "b0": b0, "k": k, "k0": k0}
+    return out
+
+
+class _WholeArrays(dict):
+    """``_arrays`` of a streamed :func:`predict`: k and k0 at once, the whole realized ``G`` and ``b0`` only when
+    asked for (a plot); then realized whole, as the short-sequence path does."""
+
+    def __init__(self, ir, model, device, g, k, k0):
+        super().__init__(g=g, k=k, k0=k0)
+        self._src = (ir, model, device)
+
+    def __missing__(self, key):
+        if key not in ("G", "b0"):
+            raise KeyError(key)
+        G, b0 = realize(*self._src)
+        self.update(G=G, b0=b0)
+        return self[key]
+
+
+def _predict_streamed(ir: SequenceIR, twin, model, device, reference: SequenceIR | None) -> dict[str, Any]:
+    """:func:`predict` of a long sequence, piece by piece (:func:`realized_pieces`): the figures as the whole path
+    computes them (sums of squares and maxima accumulated per piece; k and the B0 phase at the ADC samples
+    integrated across the pieces), never a whole realized waveform."""
+    ref = ir if reference is None else reference
+    g = ref.grad_mT_per_m
+    mx, ss, b0max = np.zeros(3), np.zeros(3), 0.0
+    with torch.no_grad():
+
+        def pieces():
+            nonlocal b0max
+            for p in realized_pieces(twin, ir.grad_mT_per_m):
+                n = p.own - p.s
+                err = p.G[:, :n].double().cpu().numpy() - g[:, p.s : p.own]
+                mx[:] = np.maximum(mx, np.abs(err).max(axis=1))
+                ss[:] += (err**2).sum(axis=1)
+                if p.b0 is not None:
+                    b0max = max(b0max, float(p.b0[:n].abs().max()))
+                yield p.s, p.channels()
+
+        kb = stream_kspace(ir, pieces()).double().cpu().numpy() if ir.n_adc_samples else None
+        if kb is None:  # no ADC: the waveform figures alone
+            for _ in pieces():
+                pass
+    M = ir.n_fine
+    grad_error = {
+        name: {"max_mT_per_m": float(mx[a]), "rms_mT_per_m": float(np.sqrt(ss[a] / M))} for a, name in enumerate(AXES)
+    }
+    k = None if kb is None else kb[:3]
+    k0 = None if kb is None else ref.kspace_rad_per_m().numpy()
+    phi_max = None if kb is None else (float(np.max(np.abs(-kb[3] * 1e-3))) if kb.shape[0] == 4 else 0.0)
+    out = _record(ir, ref, grad_error, k, k0, phi_max, b0max)
+    out["_arrays"] = _WholeArrays(ir, model, device, g, k, k0)
+    return out
+
+
+def _record(ir: SequenceIR, ref: SequenceIR, grad_error: dict, k, k0, phi_max, b0_max: float) -> dict[str, Any]:
+    """The figures of :func:`predict` (the module doc) from the gradient errors, k and k0 at the ADC samples (None
+    without ADC), the largest B0 phase and field."""
     out: dict[str, Any] = {
         "dt_s": ir.dt_fine_s,
         "duration_s": ir.duration_s,
         "n_adc_samples": ir.n_adc_samples,
         "fov_m": list(ir.fov_m) if ir.fov_m else None,
-        "grad_error": {},
+        "grad_error": grad_error,
         "k_error": {},
     }
-    for a, name in enumerate(AXES):
-        mx, rms = _stats(G[a] - g[a])
-        out["grad_error"][name] = {"max_mT_per_m": mx, "rms_mT_per_m": rms}
-    k0 = k = None
-    if ir.n_adc_samples:
-        k0 = ref.kspace_rad_per_m().numpy()
-        k = ir.kspace_rad_per_m(G).numpy()
-        dk = ref.dk_rad_per_m
-        for a, name in enumerate(AXES):
-            mx, rms = _stats(k[a] - k0[a])
-            row = {"max_rad_per_m": mx, "rms_rad_per_m": rms, "max_dk": None, "rms_dk": None}
-            if dk is not None and np.isfinite(dk[a]):
-                row.update(max_dk=mx / dk[a], rms_dk=rms / dk[a])
-            out["k_error"][name] = row
-        kd = [r["max_dk"] for r in out["k_error"].values() if r["max_dk"] is not None]
-        out["k_error_max_dk"] = max(kd) if kd else None
-        phi = b0_phase_at_adc_rad(ir, b0)
-        out["b0_phase_max_rad"] = float(np.max(np.abs(phi)))
+    if k is not None:
+        _k_figures(out, k, k0, ref.dk_rad_per_m)
+        out["b0_phase_max_rad"] = phi_max
         out["epi"] = _epi_offsets(ref, k, k0)
     else:
         out["k_error_max_dk"] = None
         out["b0_phase_max_rad"] = None
         out["epi"] = None
-    out["b0_max_uT"] = float(np.max(np.abs(b0))) if b0.size else 0.0
-    out["_arrays"] = {"G": G, "g": g, "b0": b0, "k": k, "k0": k0}
+    out["b0_max_uT"] = b0_max
     return out
+
+
+def _k_figures(out: dict, k: np.ndarray, k0: np.ndarray, dk) -> None:
+    """``out['k_error']`` per axis and ``out['k_error_max_dk']`` of k against k0 (rad/m; in dk where known)."""
+    for a, name in enumerate(AXES):
+        mx, rms = _stats(k[a] - k0[a])
+        row = {"max_rad_per_m": mx, "rms_rad_per_m": rms, "max_dk": None, "rms_dk": None}
+        if dk is not None and np.isfinite(dk[a]):
+            row.update(max_dk=mx / dk[a], rms_dk=rms / dk[a])
+        out["k_error"][name] = row
+    kd = [r["max_dk"] for r in out["k_error"].values() if r["max_dk"] is not None]
+    out["k_error_max_dk"] = max(kd) if kd else None
 
 
 def is_epi(ir: SequenceIR) -> bool:

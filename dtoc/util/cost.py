@@ -49,16 +49,23 @@ WHOLE_BYTES_PER_FINE = 2.4e3
 WHOLE_BYTES_PER_ADC = 45e3
 WHOLE_SECONDS_PER_FINE = 1.75e-4
 WHOLE_SECONDS_PER_ADC2 = 6.2e-8
-#: windowed solve (one excitation period at a time): the whole-sequence arrays (bytes per fine sample; once
-#: the windowed solve holds only its window's arrays this becomes per fine sample of the largest window), the
-#: dense matrices of the largest window (this many n_free x n_free float64 matrices held at once, with the
-#: cached ones of its structure) and CPU seconds per fine sample.  Measured 2026-11-27 on this project's
-#: 2-core Intel Xeon machine (load ~11): tests/foreign/writers.py mprage(shots=5) (5 s, 985,601 fine samples,
-#: 161 windows of at most 3,924 free variables), KCL 7 T GIRF: 2.29 GB peak RSS, 63 s CPU (234 s wall under
-#: that load); the model: 2.09 GB, 59 s.  Against bench.long (docs/benchmarks.md, 2026-11-25, ~5,700 free
-#: per window): 4 / 16 / 64 / 300 s peaked at 2.24 / 2.56 / 3.89 / 16.05 GB (the model: 3.7 / 4.3 / 6.8 / 19).
-WINDOW_BYTES_PER_FINE = 260
+#: windowed solve (one excitation period at a time): the whole-sequence arrays (bytes per fine sample: the IR's
+#: waveform, the limit envelopes, the masks, the edges, the export's waveform, and what the CLI's allocator keeps),
+#: the dense matrices of the largest window (this many n_free x n_free float64 matrices held at once, with the
+#: cached ones of its structure), the largest window's own arrays (below) and CPU seconds per fine sample.
+#: Measured 2026-11-27 on this project's 2-core Intel Xeon machine, bench.long's MPRAGE-like (KCL 7 T GIRF,
+#: 32/130, at most 3,924 free and 160,681 fine samples a window; load 10-17): 4 / 16 s (788,481 / 3,151,361 fine
+#: samples) peaked at 2.34 / 2.72 GB (31 MB per second of sequence, 160 bytes per fine sample; before the
+#: figures were streamed and the reader's copy dropped: 2.35 / 2.82 GB, 39 MB/s); the model: 2.58 / 2.96 GB.
+#: CPU: mprage(shots=5) (5 s, 985,601 fine samples, 161 windows) 63 s CPU, 2.29 GB (load ~11).
+WINDOW_BYTES_PER_FINE = 160
 WINDOW_DENSE_MATRICES = 12
+#: the window's own arrays, per fine sample of the longest window (its impulse responses over twice its length on
+#: every chain channel, their running integrals, its residual): measured 2026-11-27 on the 2-core Xeon (load ~15,
+#: freed memory returned to the system) on tests/test_windowed.py's idle GRE periods, Lti eddy kernel: 3 periods of
+#: 200,000 / 400,000 fine samples peaked at 1.08 / 1.86 GB, 3.9 KB per fine sample of the window.  An excitation
+#: period of a minute (CEST preparations: 6 M fine samples) needs ~24 GB: refused here before any work
+WINDOW_BYTES_PER_WINDOW_FINE = 3.9e3
 WINDOW_SECONDS_PER_FINE = 5e-5
 #: fixed seconds of a run (reading, the hardware model, the first evaluations)
 RUN_SECONDS = 10.0
@@ -144,8 +151,8 @@ def optimize_cost(n_fine: int, n_adc: int, window: dict | None = None) -> tuple[
 
     ``window``: None (whole solve) or the windowed plan's sizes: ``{"n_windows", "max_free", "max_fine"}``
     (windows, the most free variables of one window, the most fine samples of one window); the windowed
-    memory is the whole-sequence arrays plus the largest window's dense matrices, so it follows the plan's
-    window sizes and not the duration alone."""
+    memory is the whole-sequence arrays plus the largest window's dense matrices and its own arrays, so it
+    follows the plan's window sizes and not the duration alone."""
     n, a = float(n_fine), float(n_adc)
     if window is None:
         mem = PROCESS_BYTES + WHOLE_BYTES_PER_FINE * n + WHOLE_BYTES_PER_ADC * a
@@ -153,6 +160,7 @@ def optimize_cost(n_fine: int, n_adc: int, window: dict | None = None) -> tuple[
         return mem, sec, f"whole solve of {n_fine} fine and {n_adc} ADC samples"
     mf = float(window["max_free"])
     mem = PROCESS_BYTES + WINDOW_BYTES_PER_FINE * n + WINDOW_DENSE_MATRICES * 8.0 * mf * mf
+    mem += WINDOW_BYTES_PER_WINDOW_FINE * float(window.get("max_fine", 0))
     sec = RUN_SECONDS + WINDOW_SECONDS_PER_FINE * n
     return (
         mem,
@@ -165,12 +173,18 @@ def optimize_cost(n_fine: int, n_adc: int, window: dict | None = None) -> tuple[
 
 
 def check_optimize_cost(
-    what: str, n_fine: int, n_adc: int, window: dict | None, sim: tuple[float, float] = (0.0, 0.0), notes=None
+    what: str,
+    n_fine: int,
+    n_adc: int,
+    window: dict | None,
+    sim: tuple[float, float] = (0.0, 0.0),
+    notes=None,
+    whole_why: str | None = None,
 ) -> tuple[float, float]:
     """Estimate an optimization from its sizes (``sim``: the image term's (bytes, seconds), if any); print one
     line through ``notes`` for a long run (estimated time, peak memory, the machine's available memory) and
-    refuse (InputError, one line with the estimate) one that cannot fit the available memory.  Returns
-    (bytes, seconds)."""
+    refuse (InputError, one line with the estimate) one that cannot fit the available memory; ``whole_why``: why a
+    long sequence is solved whole (its way out then does not offer the windowed solve).  Returns (bytes, seconds)."""
     mem, sec, src = optimize_cost(n_fine, n_adc, window)
     mem, sec = mem + sim[0], sec + sim[1]
     avail = available_memory_bytes()
@@ -178,11 +192,12 @@ def check_optimize_cost(
         f"estimate ({src}): ~{_duration(sec)} and {gib(mem)} peak memory; {gib(avail)} available on this machine "
         "(rough: docs/cli.md, Cost estimates)"
     )
-    way_out = (
-        "the windowed solve holds less (windowed: on in --config)"
-        if window is None
-        else "a shorter file, or fewer free variables per excitation period"
-    )
+    if window is not None:
+        way_out = "a shorter file, or fewer free variables per excitation period, or shorter excitation periods"
+    elif whole_why:  # the windowed solve would be refused too: say why instead of offering it
+        way_out = f"a shorter file (it cannot be solved period by period: {whole_why})"
+    else:
+        way_out = "the windowed solve holds less (windowed: on in --config)"
     check_fits(f"{what}: {line}", mem, way_out=way_out)
     if notes is not None and (sec >= LONG_RUN_SECONDS or window is not None):
         notes(line)
