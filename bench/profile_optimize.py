@@ -83,7 +83,7 @@ torch.autograd.grad = wrap("backward (autograd)", torch.autograd.grad)
 import dtoc.seq.load as seqload
 seqload.read_seq = wrap("read .seq (incl. pypulseq import)", seqload.read_seq)
 run._write_outputs = wrap("export + checks", run._write_outputs)
-run._write_checked = wrap("export + checks", run._write_checked)
+run.write_checked = wrap("export + checks", run.write_checked)
 if not json.loads(sys.argv[3]):
     from dtoc.sim import pdg_config
     orig_init = pdg_config.PDGConfig.__init__

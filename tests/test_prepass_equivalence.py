@@ -138,13 +138,13 @@ def test_nominal_integrals_are_pwl_integral_at_bit_for_bit():
 
     from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
     from dtoc.seq.kspace import pwl_integral_at
-    from dtoc.sim.pdg_graph import _nominal_integrals
+    from dtoc.sim.pdg_graph import nominal_integrals
 
     for name in ("gre_paper", "epi_small"):
         ir = load_sequence(REPO / "sequences" / f"{name}.seq")
         t_rf = np.array([0.0] + [r.t_center_s for r in ir.rf] + [ir.duration_s, ir.duration_s + 1e-3, -1e-3])
         t_adc = np.sort(ir.adc_times_s)
-        got = _nominal_integrals(ir, t_rf, t_adc, np.zeros(0))
+        got = nominal_integrals(ir, t_rf, t_adc, np.zeros(0))
         for t, g in zip((t_rf, t_adc), got, strict=False):
             want = (GAMMA_RAD_PER_S_PER_MT * pwl_integral_at(torch.as_tensor(ir.grad_mT_per_m), ir.dt_fine_s, t)).T
             np.testing.assert_array_equal(g, want.numpy())
@@ -155,8 +155,8 @@ def test_packed_keys_order_the_children_as_unique_rows():
     """The RF split merges children by packed parent keys: sorting them gives the same merged states, in the same
     order, with the same inverse as pdg_graph.unique_rows of the explicit (type, +-k, +-tau) rows -- with narrow
     columns (offset), wide ones (ranked) and an all-zero one; and it declines (None) when even ranks cannot fit."""
-    from dtoc.sim.pdg_graph import unique_rows
     from dtoc.sim.pdg_graph_step import packed_parent_keys
+    from dtoc.sim.pdg_rows import unique_rows
 
     rng = np.random.default_rng(3)
     S = 500
@@ -229,7 +229,7 @@ def test_emission_bound_is_never_below_the_exact_emission(monkeypatch):
 def test_add_rows_by_index_is_add_at_bit_for_bit():
     """The children's amplitude sums: one bincount over interleaved real/imaginary parts adds in edge order from
     zero, as np.add.at does (values of very different magnitudes, so a different order would round differently)."""
-    from dtoc.sim.pdg_graph import add_rows_by_index
+    from dtoc.sim.pdg_rows import add_rows_by_index
 
     rng = np.random.default_rng(5)
     E, P, n = 4000, 3, 700

@@ -11,7 +11,7 @@ import pytest
 
 from dtoc.errors import InputError
 from dtoc.optimize.limits import Limits
-from dtoc.optimize.run import _write_checked
+from dtoc.optimize.run import write_checked
 from dtoc.seq import seqtext
 from dtoc.seq.check import check_file
 from dtoc.seq.load import load_sequence
@@ -77,7 +77,7 @@ def test_export_parses_the_written_text_once(tmp_path, parses):
     ir = load_sequence(SMALL)
     parses.clear()
     out = tmp_path / "out.seq"
-    rec = _write_checked(ir, out, False, Limits(72.0, 180.0))
+    rec = write_checked(ir, out, False, Limits(72.0, 180.0))
     assert len(parses) == 1
     alone = check_file(out)  # with the limits the file records (the same 72 / 180)
     assert rec["check_ok"] == alone.ok

@@ -310,7 +310,7 @@ def test_add_rows_equals_complex_index_add(cdtype):
 def test_unique_rows_equals_numpy_unique():
     """The pre-pass merges states with ``unique_rows`` (one lexsort): same rows, same order, same inverse
     as ``np.unique(axis=0)`` (the graph, and so every simulation, is unchanged), negatives and huge keys included."""
-    from dtoc.sim.pdg_graph import unique_rows
+    from dtoc.sim.pdg_rows import unique_rows
 
     rng = np.random.default_rng(3)
     for n in (0, 1, 7, 5000):
@@ -325,7 +325,7 @@ def test_unique_rows_equals_numpy_unique():
 def test_first_max_by_group_equals_lexsort_choice():
     """The representative edge of each merged state (largest amplitude bound, ties to the lowest edge index)
     is the same as the first entry per group of ``np.lexsort((-value, group))``, empty groups -1."""
-    from dtoc.sim.pdg_graph import first_max_by_group
+    from dtoc.sim.pdg_rows import first_max_by_group
 
     rng = np.random.default_rng(4)
     group = rng.integers(0, 40, 600)
@@ -362,7 +362,7 @@ def test_envelopes_per_axis_broadcast_equal_full_bit_for_bit():
 def test_row_sums_by_bincount_equal_add_at_bit_for_bit():
     """The pre-pass's child amplitude sums (dtoc.sim.pdg_graph.add_rows_by_index) equal np.add.at exactly,
     including repeated indices, empty groups and signed zeros."""
-    from dtoc.sim.pdg_graph import add_rows_by_index
+    from dtoc.sim.pdg_rows import add_rows_by_index
 
     rng = np.random.default_rng(5)
     idx = rng.integers(0, 50, 400)
@@ -377,7 +377,7 @@ def test_row_sums_by_bincount_equal_add_at_bit_for_bit():
 def test_top_k_mask_and_dense_rank_equal_the_sorts_they_replace():
     """``top_k_mask`` keeps the same set as ``np.argsort(-score, kind='stable')[:k]`` (ties to the lowest index,
     +inf kept, -1 fillers last); ``dense_rank`` is ``np.unique``'s inverse."""
-    from dtoc.sim.pdg_graph import dense_rank, top_k_mask
+    from dtoc.sim.pdg_rows import dense_rank, top_k_mask
 
     rng = np.random.default_rng(7)
     score = np.round(rng.random(3000), 2)  # many ties

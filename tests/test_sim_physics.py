@@ -459,8 +459,8 @@ def test_presets_order_states():
 def test_rf_split_adjoint_equals_autograd():
     """The hand-written adjoint of the RF split (pdg_rfsplit) gives the generic autograd gradient
     (1e-12) for plain and conjugating edges, repeated parents and children."""
-    from dtoc.sim.pdg_graph import CONJ
     from dtoc.sim.pdg_rfsplit import rf_split
+    from dtoc.sim.pdg_rows import CONJ
 
     rng = np.random.default_rng(1)
     S, V, E, n_out = 7, 5, 20, 6

@@ -973,7 +973,7 @@ def _write_outputs(
         base_sha = (manifest["inputs"].get("base") or {}).get("sha256")
         if base_sha:  # the base it was compiled from (--reference BASE verifies it; dtoc.sim.reference)
             definitions[BASE_HASH_DEFINITION] = base_sha
-        manifest["output"] = _write_checked(ir_out, out, force, limits, definitions, safety, adc_offsets)
+        manifest["output"] = write_checked(ir_out, out, force, limits, definitions, safety, adc_offsets)
     manifest["run_time_s"] = time.time() - t_start
     if manifest_path is not None:
         atomic_write_text(manifest_path, strict_json(manifest), force=force)
@@ -1040,7 +1040,7 @@ def _check_system_limits(ir_out: SequenceIR, limits: Limits) -> None:
         raise LimitError(f"exported waveform fails the validator: {v[0]}; nothing written")
 
 
-def _write_checked(
+def write_checked(
     ir_out: SequenceIR,
     out,
     force: bool,

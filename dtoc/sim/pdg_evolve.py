@@ -30,8 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from dtoc.sim.pdg_graph import CONJ
 from dtoc.sim.pdg_rfsplit import _groups, _split, _split_adjoint, add_rows_
+from dtoc.sim.pdg_rows import CONJ
 
 
 @dataclass

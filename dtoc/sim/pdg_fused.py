@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from dtoc.sim.pdg_graph import CONJ
+from dtoc.sim.pdg_rows import CONJ
 
 
 @dataclass

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dtoc.sim.pdg_rows import CONJ, add_rows_by_index, first_max_by_group, top_k_mask, unique_rows
+
 #: largest packed key range (the keys stay below 2**62)
 _KEY_LIMIT = 2**62
 
@@ -108,7 +110,6 @@ def split_step(
     cap (see :func:`dtoc.sim.pdg_graph.build_graph`).  ``estimate``: (R, P) probe amplitudes -> (R,) amplitude
     estimate (:meth:`dtoc.sim.pdg_graph._Bounds.amp_estimate`).  ``fallback_keys(is_z, k, tau)``: the explicit key rows,
     used when the packed keys do not fit."""
-    from dtoc.sim.pdg_graph import CONJ, add_rows_by_index, first_max_by_group, top_k_mask, unique_rows
 
     S, P = amp_end.shape
     # the three children of every parent, slot-major within the parent (kinds 0-2 or 3-5): slot 1 conjugates

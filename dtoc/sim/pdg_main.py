@@ -18,9 +18,10 @@ from dtoc.seq.ir import SequenceIR
 from dtoc.sim.pdg_config import PDGConfig
 from dtoc.sim.pdg_evolve import make_steps, propagate, run_propagation
 from dtoc.sim.pdg_fused import coefficient_table, final_amplitudes, fused_plan, propagate_fused, scale_rows
-from dtoc.sim.pdg_graph import CONJ, IntervalGraph, PDGGraph, build_graph
+from dtoc.sim.pdg_graph import IntervalGraph, PDGGraph, build_graph
 from dtoc.sim.pdg_moments import Moments, compute_moments
 from dtoc.sim.pdg_rfsplit import rf_coefficients, rf_split
+from dtoc.sim.pdg_rows import CONJ
 from dtoc.sim.pdg_signal import VoxelData, emit_signal, signal_method
 from dtoc.sim.pdg_signal_batch import EmitItem, cat_views, emit_signal_batched
 
