@@ -125,14 +125,15 @@ def test_a_long_run_beyond_memory_is_refused_before_the_projector_and_the_twin(
     capsys, tmp_path, monkeypatch, long_seq, solve
 ):
     """The cost decision needs sizes only (the IR, the free mask, the window plan): nothing of the run's setup
-    (projector, twin, loss context, phantoms, simulations) is built for a file that is refused (issue 36)."""
+    (nominal k for the reachability check, projector, twin, loss context, phantoms, simulations) is built for a
+    file that is refused (issue 36)."""
     import dtoc.optimize.loss as loss
     import dtoc.optimize.run as run
     import dtoc.optimize.windowed as windowed
 
     monkeypatch.setattr(cost, "available_memory_bytes", lambda: 1 << 30)
     for mod, name in ((run, "EdgeProjector"), (run, "EdgeTwin"), (loss, "build_context"), (run, "make_phantoms"),
-                      (run, "Imager"), (run, "quality")):  # fmt: skip
+                      (run, "Imager"), (run, "quality"), (run, "check_area_reachable")):  # fmt: skip
         monkeypatch.setattr(mod, name, _no_work)
     if solve == "whole":  # the Skope EPI's case: a period with more free variables than a dense window holds
         monkeypatch.setattr(windowed, "DENSE_MAX", 100)
