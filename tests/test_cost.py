@@ -120,6 +120,36 @@ def test_a_long_run_beyond_memory_is_refused_before_work(capsys, tmp_path, monke
     assert not out.exists()
 
 
+@pytest.mark.parametrize("solve", ["windowed", "whole"])
+def test_a_long_run_beyond_memory_is_refused_before_the_projector_and_the_twin(
+    capsys, tmp_path, monkeypatch, long_seq, solve
+):
+    """The cost decision needs sizes only (the IR, the free mask, the window plan): nothing of the run's setup
+    (nominal k for the reachability check, projector, twin, loss context, phantoms, simulations) is built for a
+    file that is refused (issue 36)."""
+    import dtoc.optimize.loss as loss
+    import dtoc.optimize.run as run
+    import dtoc.optimize.windowed as windowed
+
+    monkeypatch.setattr(cost, "available_memory_bytes", lambda: 1 << 30)
+    for mod, name in ((run, "EdgeProjector"), (run, "EdgeTwin"), (loss, "build_context"), (run, "make_phantoms"),
+                      (run, "Imager"), (run, "quality"), (run, "check_area_reachable")):  # fmt: skip
+        monkeypatch.setattr(mod, name, _no_work)
+    if solve == "whole":  # the Skope EPI's case: a period with more free variables than a dense window holds
+        monkeypatch.setattr(windowed, "DENSE_MAX", 100)
+    out = tmp_path / "o.seq"
+    argv = ["optimize", long_seq, "--ideal", "--gmax", "32", "--smax", "130", "-o", out, "-q"]
+    code, _, err = run_cli(capsys, *argv)
+    lines = [x for x in err.splitlines() if x.startswith("dtoc: error")]
+    assert WORK not in err and code == 2 and len(lines) == 1, err
+    assert "estimate (" in lines[0] and "refused" in lines[0]
+    if solve == "whole":
+        assert "whole solve of" in lines[0] and "cannot be solved period by period: an excitation period has" in err
+    else:
+        assert "windows of at most" in lines[0]
+    assert not out.exists()
+
+
 def test_the_optimize_estimate_follows_the_window_sizes():
     whole = cost.optimize_cost(200_000, 1024)
     win = {"n_windows": 33, "max_free": 5700, "max_fine": 300_000}

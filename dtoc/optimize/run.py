@@ -608,12 +608,9 @@ def plan_run(
             "nothing to optimize: every gradient sample is held (inside RF blocks, on the slice-select axis, in "
             "soft-delay blocks, or on axes that play no gradient)"
         )
-    projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
-    check_area_reachable(ir, limits)
-    warnings_out = base_limit_warnings(ir, limits) + base_physical_warnings(ir.grad_mT_per_m, ir.dt_fine_s, limits)
-    dtype = torch.float64
-    twin = EdgeTwin(ir, hardware, projector, dtype=dtype, device=device)
-    ctx = L.build_context(ir, limits, dtype=dtype, device=device)
+    # the cost decision from sizes alone (the IR, the free mask, the window plan), before the reachability check
+    # (nominal k over the whole sequence), the projector, the twin, the loss context, the phantoms and the
+    # simulations are built: a run that cannot fit fails in seconds
     from dtoc.sim.phantom import check_phantom_matches
 
     # a given phantom of the wrong dimension: one line, never ignored
@@ -636,6 +633,12 @@ def plan_run(
     if window is None and ir.duration_s > cfg.window_auto_s and not with_image and cfg.windowed != "off":
         whole_why = why_not_windowed(ir, hardware, cfg, free)
     check_run_cost(ir, cfg, free, window, with_image, str(io.base_path or "sequence"), io.notes, whole_why)
+    check_area_reachable(ir, limits)
+    projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
+    warnings_out = base_limit_warnings(ir, limits) + base_physical_warnings(ir.grad_mT_per_m, ir.dt_fine_s, limits)
+    dtype = torch.float64
+    twin = EdgeTwin(ir, hardware, projector, dtype=dtype, device=device)
+    ctx = L.build_context(ir, limits, dtype=dtype, device=device)
     imager = None
     if with_image:
         phantoms = make_phantoms(ir, cfg, phantom)
