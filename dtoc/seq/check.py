@@ -652,10 +652,12 @@ _RULE_RASTER = {"block_raster": "BlockDurationRaster", "rf_raster": "Radiofreque
 def base_timing_violations(seq) -> list[tuple[Violation, int]]:
     """A base's violations of :data:`INHERITED_RULES` (the same rules :func:`check_file` applies to an output, on the
     file's own rasters), each with the number of blocks that fail it the same way.  Those rules depend on a block's
-    events and duration only, so one block of each (events, duration) is checked: seconds for a long protocol."""
+    duration, its RF event's delay and its ADC event only, so one block of each is checked: a second for a protocol
+    of thousands of blocks, RF pulses of many phases included."""
+    rf_delay = {i: float(d[5]) for i, d in seq.rf_library.data.items()}  # (amp, mag, phase, time, center, delay, ..)
     groups: dict = {}
     for k, ev in seq.block_events.items():
-        groups.setdefault((tuple(int(x) for x in ev), float(seq.block_durations[k])), []).append(k)
+        groups.setdefault((float(seq.block_durations[k]), rf_delay.get(int(ev[1])), int(ev[5])), []).append(k)
     sub = copy.copy(seq)  # libraries shared (read only); a block of each kind
     sub.block_events = OrderedDict((ks[0], seq.block_events[ks[0]]) for ks in groups.values())
     sub.block_durations = {ks[0]: seq.block_durations[ks[0]] for ks in groups.values()}
