@@ -38,7 +38,7 @@ from dtoc.optimize.limits import (
 )
 from dtoc.optimize.report import plotted_span
 from dtoc.optimize.twin import EdgeTwin
-from dtoc.seq.check import SafetyChecks, check_file, check_ir_limits
+from dtoc.seq.check import SafetyChecks, base_timing_refusal, check_file, check_ir_limits
 from dtoc.seq.ir import SequenceIR
 from dtoc.seq.seqtext import shared_parse
 from dtoc.seq.system import SystemSpec
@@ -581,6 +581,10 @@ def plan_run(
             f"{base if isinstance(base, (str, os.PathLike)) else 'sequence'}: has no ADC event: nothing to optimize for"
         )
     if io.out is not None:  # the output's Pulseq format: the base written in it and read back before any work
+        version_in = ir.meta.get("format_version") or "1.5.0"
+        why = None if ir.source is None else base_timing_refusal(ir.source, version_in, ir.meta.get("path"))
+        if why:  # a rule the output would inherit unchanged: refused now, not after the optimization
+            raise InputError(f"{base if isinstance(base, (str, os.PathLike)) else io.base_path or 'sequence'}: {why}")
         ir.meta["output_format_version"] = version_str(preflight_write(ir, io.format_version))
     cfg = config if config is not None else load_config(ir.kind, io.config_path)
     O.set_deterministic(cfg.seed, cfg.threads, device)

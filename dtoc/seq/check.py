@@ -27,7 +27,9 @@ Limits are aggregated per (rule, block, axis): one row with the worst value.
 
 from __future__ import annotations
 
+import copy
 import re
+from collections import OrderedDict
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -369,7 +371,7 @@ def _raster_convention(rasters: dict[str, float], system: SystemSpec, out: list[
 
 
 def _event_rules(
-    seq, ir: SequenceIR, system: SystemSpec, out: list[Violation], conventions: bool, adc_segment: int | None
+    seq, ir: SequenceIR | None, system: SystemSpec, out: list[Violation], conventions: bool, adc_segment: int | None
 ) -> None:
     """Events on the file's own rasters and inside their blocks, continuity (format); with ``conventions`` the
     scanner's dead times, ring-down and ADC sample rules (``adc_segment``: the file's MaxAdcSegmentLength, the
@@ -640,6 +642,64 @@ def _adc_sample_rules(
             "no MaxAdcSegmentLength for the interpreter to split it)")  # fmt: skip
 
 
+#: format rules on the timing of events dtoc never changes (block durations, RF and ADC events): an output inherits
+#: a base's violation of them unchanged, so the optimize pre-flight refuses such a base (:func:`base_timing_violations`)
+INHERITED_RULES = ("block_raster", "block_duration", "rf_raster", "adc_raster", "adc_dwell")
+#: the definition that states each inherited rule's raster (None: no raster)
+_RULE_RASTER = {"block_raster": "BlockDurationRaster", "rf_raster": "RadiofrequencyRasterTime"}
+
+
+def base_timing_violations(seq) -> list[tuple[Violation, int]]:
+    """A base's violations of :data:`INHERITED_RULES` (the same rules :func:`check_file` applies to an output, on the
+    file's own rasters), each with the number of blocks that fail it the same way.  Those rules depend on a block's
+    duration, its RF event's delay and its ADC event only, so one block of each is checked: a second for a protocol
+    of thousands of blocks, RF pulses of many phases included."""
+    rf_delay = {i: float(d[5]) for i, d in seq.rf_library.data.items()}  # (amp, mag, phase, time, center, delay, ..)
+    groups: dict = {}
+    for k, ev in seq.block_events.items():
+        groups.setdefault((float(seq.block_durations[k]), rf_delay.get(int(ev[1])), int(ev[5])), []).append(k)
+    sub = copy.copy(seq)  # libraries shared (read only); a block of each kind
+    sub.block_events = OrderedDict((ks[0], seq.block_events[ks[0]]) for ks in groups.values())
+    sub.block_durations = {ks[0]: seq.block_durations[ks[0]] for ks in groups.values()}
+    sub.block_cache, sub.block_trace = {}, OrderedDict()
+    count = {ks[0]: len(ks) for ks in groups.values()}
+    out: list[Violation] = []
+    no_limits = SystemSpec(max_grad_mT_per_m=1.0, max_slew_T_per_m_per_s=1.0)  # (the timing rules use none)
+    _event_rules(sub, None, no_limits, out, False, None)
+    return [(v, count.get(v.block, 1)) for v in out if v.rule in INHERITED_RULES]
+
+
+def base_timing_refusal(seq, version: str, path: str | Path | None = None) -> str | None:
+    """One line naming the base's first violation of :data:`INHERITED_RULES` (the rule, how many blocks, the
+    figures, the raster and whether the file declares it or a reader's default is assumed: ``path``, the file whose
+    [DEFINITIONS] say it; without one, what ``seq`` holds), or None."""
+    found = base_timing_violations(seq)
+    if not found:
+        return None
+    v, _ = found[0]
+    n = sum({w.block: c for w, c in found if w.rule == v.rule}.values())  # blocks (one may fail it twice)
+    name = _RULE_RASTER.get(v.rule)
+    if v.rule == "adc_raster":
+        name = "AdcRasterTime" if "dwell" in v.message else "RadiofrequencyRasterTime"
+    declared = {str(k) for k in (getattr(seq, "definitions", None) or {})}
+    # a pre-1.4 reader fills the rasters it assumes into the definitions: what the file says (its opening section)
+    if path is not None and name is not None and Path(path).is_file():
+        with open(path, "rb") as f:
+            head = f.read(1 << 16).decode("latin-1")
+        declared = {name} if re.search(rf"^\s*{name}\s", head, re.M) else set()
+    where = ""
+    if name is not None and v.limit is not None:
+        how = "declared by the file" if name in declared else "not declared by the file: the readers' default, assumed"
+        where = f", {name} {v.limit:g} {v.unit} {how}"
+    figure = "" if v.value is None else f" ({v.value:g} {v.unit})"
+    return (
+        f"the base itself fails dtoc check's rule {v.rule} (Pulseq format {version}{where}): {n} block(s), first "
+        f"block {v.block}: {v.message}{figure}; dtoc keeps every block duration and RF/ADC timing, so its output "
+        "would fail the same rule, and an interpreter on that raster cannot play the timing the twin optimizes for: "
+        "correct the base and run again"
+    )
+
+
 @dataclass(frozen=True)
 class SafetyChecks:
     """Checks beyond limits and timing, made on the physical axes (docs/scanner.md).
@@ -811,6 +871,9 @@ def _pns_rule(ir: SequenceIR, model, rotation, res: CheckResult) -> None:
 
 __all__ = [
     "RULE_KINDS",
+    "INHERITED_RULES",
+    "base_timing_refusal",
+    "base_timing_violations",
     "file_rasters",
     "Violation",
     "CheckResult",
