@@ -60,6 +60,17 @@ def fingerprint(graph) -> dict:
     return {"structure": h.hexdigest(), "floats": floats, "states": graph.n_states_total}
 
 
+def assert_same_graphs(got: dict, want: dict) -> None:
+    """Each fingerprint of ``got`` equals the recorded one of ``want`` (same keys): states and integer structure
+    bit for bit, every float sum to 1e-12 relative."""
+    for key, fp in got.items():
+        w = want[key]
+        assert fp["states"] == w["states"], key
+        assert fp["structure"] == w["structure"], f"{key}: graph structure changed"
+        for name, vals in w["floats"].items():
+            np.testing.assert_allclose(fp["floats"][name], vals, rtol=1e-12, atol=1e-300, err_msg=f"{key}: {name}")
+
+
 def _cases():
     for name in SEQUENCES:
         ir = load_sequence(REPO / "sequences" / f"{name}.seq")
@@ -87,12 +98,7 @@ def test_prepass_builds_the_recorded_graphs():
     got = {key: fingerprint(g) for key, g in _cases()}
     assert sorted(got) == sorted(want)
     assert sum(w["states"] for w in want.values()) > 50_000  # graphs of real size, not trivial ones
-    for key, fp in got.items():
-        w = want[key]
-        assert fp["states"] == w["states"], key
-        assert fp["structure"] == w["structure"], f"{key}: graph structure changed"
-        for name, vals in w["floats"].items():
-            np.testing.assert_allclose(fp["floats"][name], vals, rtol=1e-12, atol=1e-300, err_msg=f"{key}: {name}")
+    assert_same_graphs(got, want)
 
 
 if __name__ == "__main__":
