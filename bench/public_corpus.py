@@ -360,6 +360,7 @@ C_FILE, C_WRITER, C_CHECK, C_PRED, C_SIM, C_RESULT, C_COMMIT = 1, 2, 7, 8, 9, 10
 CLASSES = (
     ("optimized", lambda x: x.startswith("optimized") and "FAILED" not in x),
     ("optimized, but the output fails a check", lambda x: x.startswith("optimized") and "FAILED" in x),
+    ("internal error", lambda x: "internal error" in x),  # (a reader's internal error reads "refused: internal ...")
     ("refused by the run's cost estimate (memory), before any work", lambda x: "optimize: estimate (" in x),
     ("refused: the base fails a timing rule its output would inherit", lambda x: "the base itself fails" in x),
     (
@@ -370,7 +371,6 @@ CLASSES = (
     ("timed out (the bench's budget)", lambda x: x.startswith("timed out")),
     ("stopped at the bench's memory cap", lambda x: x.startswith("stopped at the bench's memory cap")),
     ("killed by a signal", lambda x: bool(re.match(r"exit -\d", x))),
-    ("internal error", lambda x: "internal error" in x),
     ("other", lambda x: True),
 )
 
@@ -426,7 +426,8 @@ def section(cells: list[list[str]], meta: dict) -> str:
         "check`, `dtoc predict`, `dtoc simulate` and `dtoc optimize`, each step in its own process with a wall-clock "
         f"budget (read, check, predict, simulate {b['other']:.0f} s each; optimize {b['optimize']:.0f} s) and a "
         f"resident-memory cap ({meta['mem_cap_gb']:g} GB; the machine is shared: a step over either is stopped and "
-        "the row says so). Every row is either optimized, refused with one line (the line is the *result*), or "
+        "the row says so; rows run with other budgets: the change log below the table). Every row is either "
+        "optimized, refused with one line (the line is the *result*), or "
         "stopped by the bench; an internal error (exit 3) is a bug. The files are not committed.",
         "",
         "Reproduce (the folder as downloaded, with an optional `INDEX.tsv` naming each file's repository and commit; "
@@ -441,14 +442,14 @@ def section(cells: list[list[str]], meta: dict) -> str:
         "",
         f"**{len(cells)} files from {len(writers)} writers ({', '.join(writers)}): {n['optimized']} optimized, "
         f"{n_ref} refused with one line, {n_stop} stopped by the bench (time or memory), "
-        f"{n['internal error']} internal errors of optimize** ({_plural(n_int, 'file')} with an internal error in "
-        "any step). By class:",
+        f"{n['internal error']} internal errors in the result** (the reader's or optimize's; "
+        f"{_plural(n_int, 'file')} with an internal error in any step). By class:",
         "",
     ]
     for name, _ in CLASSES:
         idx = by_class.get(name, [])
         if idx:
-            head.append(f"- {name}: {len(idx)} ({', '.join(cells[i][C_FILE] for i in idx)})")
+            head.append(f"- {name}: {len(idx)} ({', '.join(f'{cells[i][0]}/{cells[i][C_FILE]}' for i in idx)})")
     head += [
         "",
         "Columns: *version*: the file's `[VERSION]`; *kind*: dtoc's inference (gre, epi, or '-' when neither); "

@@ -85,7 +85,7 @@ def test_merge_replaces_only_the_rerun_files_rows_and_recounts(tmp_path, monkeyp
     assert [ln.split(" | ")[1] for ln in lines] == ["one.seq", "two.seq", "three.seq"]
     assert "optimized" in lines[0] and lines[0].endswith("| ccc3333 |") and lines[1].endswith("| bbb2222 |")
     assert "**3 files from 1 writers (pypulseq): 2 optimized, 1 refused with one line, 0 stopped by the bench" in out
-    assert "- optimized: 2 (one.seq, two.seq)" in out and "timed out" not in out.split("| source |")[0]
+    assert "- optimized: 2 (a/one.seq, b/two.seq)" in out and "timed out" not in out.split("| source |")[0]
     assert "commits ccc3333 (2 rows), bbb2222 (1 row)." in out and "Rows ran 2026-11-26 to 2026-11-27 (UTC)" in out
     assert "GIRF: KCL 7 T." in out  # kept from the section merged into when not given
     assert out.startswith("# page") and out.endswith("notes by hand\n") and out.count(pc.BEGIN) == 1
@@ -112,6 +112,7 @@ def test_a_refusal_is_rendered_whole_without_the_machines_available_memory(tmp_p
     assert "GiB available" not in cell and "more than 75% of the memory available: refused" in cell
     assert "~109 min and 84 GiB peak memory (rough" in cell and pc._cells(line)[13] == "1 (9 / 4 CPU)"
     assert pc.outcome(cell) == "refused by the run's cost estimate (memory), before any work"
+    assert pc.outcome("refused: internal error: ModuleNotFoundError: x") == "internal error"  # (the reader's)
     # an old row of the page, cut and with the memory in it, merged: cleaned, and its class counted
     doc = tmp_path / "foreign.md"
     monkeypatch.setattr(pc, "DOC", doc)
@@ -121,5 +122,5 @@ def test_a_refusal_is_rendered_whole_without_the_machines_available_memory(tmp_p
     out = pc.merge_section([], "?", None, BUDGETS)
     assert (
         "GiB available" not in out
-        and "- refused by the run's cost estimate (memory), before any work: 1 (x.seq)" in out
+        and "- refused by the run's cost estimate (memory), before any work: 1 (cest/x.seq)" in out
     )
