@@ -434,7 +434,7 @@ def section(cells: list[list[str]], meta: dict) -> str:
         "the GIRF: the KCL 7 T Terra 2024 measurement of the shared data, imported as `bench.foreign` does):",
         "",
         "    nice python -m bench.public_corpus DIR --girf KCL2024.npz [--only NAME ...] --rows rows.jsonl",
-        "    python -m bench.public_corpus --render rows.jsonl --merge --girf KCL2024.npz   # into this table",
+        "    python -m bench.public_corpus --render rows.jsonl --merge   # into this table",
         "",
         f"Rows ran {when} (UTC) on {_cpu_name()}, {os.cpu_count()} cores shared with other engineers' jobs "
         f"(times are wall clock under that load; the rows' JSON holds each step's CPU seconds too), Python "
@@ -602,7 +602,7 @@ def main() -> None:
 def _finish(rows: list[dict], a, budgets: dict, commit: str) -> None:
     label = a.girf_label or (a.girf.name if a.girf is not None else None)
     if a.merge:
-        text = merge_section(rows, commit, label, budgets, a.when)
+        text = merge_section(rows, commit, a.girf_label, budgets, a.when)  # (the table's own GIRF label kept)
     else:
         text = render(rows, label or "?", budgets, commit, a.when)
     if not a.no_write:
