@@ -1,9 +1,10 @@
 """Public `.seq` files written by other people's software, through every command: the public-corpus table.
 
-Run: ``python -m bench.public_corpus DIR [DIR ...] --girf H.npz [--budget-optimize 120] [--budget 60]``
+Run: ``python -m bench.public_corpus DIR [DIR ...] --girf H.npz [--budget-optimize 300] [--budget 120]``
 -> the section "Public corpus" of docs/foreign.md (between its markers; the rest of the page is
-``bench.foreign``'s; ``--merge``: only the rerun files' rows are replaced, their counts recounted, the rest
-kept; ``--rows F`` then ``--render F --merge --commit SHA`` merges rows run elsewhere, e.g. in parallel).  DIR holds ``.seq`` files as downloaded from public repositories (KomaMRI examples,
+``bench.foreign``'s and hand-written notes; ``--merge``: only the rerun files' rows are replaced, the rest of the
+table kept, and the section's counts, classes, commits and dates rendered again over the merged table; ``--rows
+F`` then ``--render F --merge`` merges rows run elsewhere, e.g. in parallel).  DIR holds ``.seq`` files as downloaded from public repositories (KomaMRI examples,
 pypulseq and Pulseq test/demo outputs, MRzero, JEMRIS, a CEST library, field-camera groups); nothing of it is
 committed.  An optional ``INDEX.tsv`` in DIR (columns path, source_repo, commit, ...) names each file's origin.
 
@@ -45,7 +46,7 @@ DOC = REPO / "docs" / "foreign.md"
 BEGIN, END = "<!-- public-corpus:begin -->", "<!-- public-corpus:end -->"
 ASSUMED_GMAX, ASSUMED_SMAX = 40.0, 170.0
 #: resident memory at which the bench stops a step (the machine is shared; --mem-cap-gb sets it), MB
-MEM_CAP_MB = 8 * 1024.0
+MEM_CAP_MB = 6 * 1024.0
 
 
 def _probe(path: str) -> None:
@@ -285,13 +286,35 @@ def _cell(s: str) -> str:
     return s.replace("|", "/").replace("\n", " ")
 
 
+def clean_result(s: str) -> str:
+    """A result for the table: whole (never cut: a refusal's way out is at its end), without the machine's
+    available memory (it changes between runs; the row's JSON keeps the message as printed)."""
+    s = re.sub(r"; [\d.]+ [KMGT]iB available on this machine", "", s)
+    return re.sub(
+        r"more than (\d+ ?%) of the [\d.]+ [KMGT]iB available here", r"more than \1 of the memory available", s
+    )
+
+
 def _rf_use(row: dict) -> str:
     p = row.get("probe")
     if not p:
         return "-"
-    det = [n for n in p["notes"] if re.search(r"\bRF\b|refocus|excitation|use", n, re.I)]
     uses = "/".join(p["rf_uses"]) or "no RF"
-    return uses + (" (" + _cell(det[0])[:110] + ("..." if len(det[0]) > 110 else "") + ")" if det else "")
+    notes = " ".join(p["notes"])
+    if re.search(r"states no RF use: detected", notes):
+        return uses + " (detected)"
+    if re.search(r"use 'undefined'", notes):
+        return uses + " (undefined: taken as excitation)"
+    return uses
+
+
+def _time_cell(r: dict) -> str:
+    """All steps' wall time, and the optimize step's own wall and CPU seconds where it ran."""
+    t = f"{r['time_s']:.0f}"
+    if r.get("optimize_s") is not None:
+        cpu = r.get("optimize_cpu_s")
+        t += f" ({r['optimize_s']:.0f}" + ("" if cpu is None else f" / {cpu:.0f} CPU") + ")"
+    return t
 
 
 def row_line(r: dict, commit: str) -> str:
@@ -320,78 +343,155 @@ def row_line(r: dict, commit: str) -> str:
     return (
         f"| {src} | {Path(r['file']).name} | {_cell(_writer_short(r['writer_line']))} | {r['version']} | "
         f"{p.get('kind') or '-'} | {r['size_kb']:.0f} | {lim_s} | {_cell(r.get('check', '-'))[:140]} | {pred} | {sim} | "
-        f"{_cell(r['result'])[:220]} | {kba} | {nba} | {r['time_s']:.0f} | {r['peak_mb']:.0f} | {_rf_use(r)} | "
+        f"{clean_result(_cell(r['result']))} | {kba} | {nba} | {_time_cell(r)} | {r['peak_mb']:.0f} | {_rf_use(r)} | "
         f"{r.get('commit') or commit} |"
     )
 
 
-def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: str | None = None) -> str:
+#: the table's columns (a rendered line has these cells, in this order)
+COLUMNS = (
+    "source", "file", "writer", "version", "kind", "size (kB)", "limits (mT/m, T/m/s)", "check", "predict k (dk)",
+    "simulate NRMSE (%)", "result", "k before -> after (dk)", "NRMSE before -> after (%)",
+    "time (s): all steps (optimize: wall / CPU)", "peak (MB)", "RF use", "commit",
+)  # fmt: skip
+C_FILE, C_WRITER, C_CHECK, C_PRED, C_SIM, C_RESULT, C_COMMIT = 1, 2, 7, 8, 9, 10, 16
+
+#: the outcome classes of the result column, in the order the section lists them: (name, test on the result cell)
+CLASSES = (
+    ("optimized", lambda x: x.startswith("optimized") and "FAILED" not in x),
+    ("optimized, but the output fails a check", lambda x: x.startswith("optimized") and "FAILED" in x),
+    ("internal error", lambda x: "internal error" in x),  # (a reader's internal error reads "refused: internal ...")
+    ("refused by the run's cost estimate (memory), before any work", lambda x: "optimize: estimate (" in x),
+    ("refused: the base fails a timing rule its output would inherit", lambda x: "the base itself fails" in x),
+    (
+        "refused: nothing to optimize (no ADC, or every gradient sample held)",
+        lambda x: "nothing to optimize" in x,
+    ),
+    ("refused: other (the reader, the format, the signature, the limits)", lambda x: x.startswith("refused")),
+    ("timed out (the bench's budget)", lambda x: x.startswith("timed out")),
+    ("stopped at the bench's memory cap", lambda x: x.startswith("stopped at the bench's memory cap")),
+    ("killed by a signal", lambda x: bool(re.match(r"exit -\d", x))),
+    ("other", lambda x: True),
+)
+
+
+def outcome(result: str) -> str:
+    """The class (:data:`CLASSES`) of a result cell."""
+    return next(name for name, test in CLASSES if test(result))
+
+
+def _cpu_name() -> str:
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as f:
             cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu)
     except OSError:
         pass
-    n_opt = sum(r["result"].startswith("optimized") for r in rows)
-    for r in rows:  # rows of an earlier version of this script said "exit 3"
-        for k in ("check", "predict", "simulate", "result"):
-            if isinstance(r.get(k), str) and r[k].startswith("exit 3: "):
-                r[k] = "internal error: " + r[k][len("exit 3: ") :]
-    steps = ("read", "check", "predict", "simulate", "result")
-    n_int = sum(any("internal error" in str(r.get(k, "")) for k in steps) for r in rows)
-    n_int_opt = sum("internal error" in r["result"] for r in rows)
-    n_to = sum(
-        r["result"].startswith(("timed out", "stopped at the bench's memory cap"))
-        or bool(re.match(r"exit -\d", r["result"]))
-        for r in rows
-    )  # (exit -N: killed by signal N, e.g. the kernel's OOM killer before the bench had a memory cap)
-    by_commit: dict[str, int] = {}
-    for r in rows:
-        by_commit[r.get("commit") or commit] = by_commit.get(r.get("commit") or commit, 0) + 1
-    commits = (
-        f"commit {commit}"
-        if len(by_commit) == 1
-        else "commits "
-        + ", ".join(f"{c} ({n} row{'s' if n > 1 else ''})" for c, n in sorted(by_commit.items(), key=lambda x: -x[1]))
+    return cpu
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}{'' if n == 1 else 's'}"
+
+
+def section(cells: list[list[str]], meta: dict) -> str:
+    """The marked section of docs/foreign.md from the table's cells (one list per file, :data:`COLUMNS`): what the
+    table is, how to reproduce it, the counts and the classes (recounted from the cells), the table, the sources.
+    ``meta``: girf, budgets, mem_cap_gb, dates (sorted 'YYYY-MM-DD'), sources (repositories)."""
+    res = [c[C_RESULT] for c in cells]
+    by_class: dict[str, list[int]] = {}
+    for i, x in enumerate(res):
+        by_class.setdefault(outcome(x), []).append(i)
+    n = {name: len(by_class.get(name, [])) for name, _ in CLASSES}
+    n_ref = sum(v for k, v in n.items() if k.startswith("refused"))
+    n_stop = sum(
+        n[k] for k in ("timed out (the bench's budget)", "stopped at the bench's memory cap", "killed by a signal")
     )
-    writers = sorted({_writer_short(r["writer_line"]) for r in rows})
+    n_int = sum(any("internal error" in c[j] for j in (C_CHECK, C_PRED, C_SIM, C_RESULT)) for c in cells)
+    writers = sorted({_writer_short(c[C_WRITER]) for c in cells})
+    by_commit: dict[str, int] = {}
+    for c in cells:
+        by_commit[c[C_COMMIT]] = by_commit.get(c[C_COMMIT], 0) + 1
+    commits = ", ".join(f"{k} ({_plural(v, 'row')})" for k, v in sorted(by_commit.items(), key=lambda x: (-x[1], x[0])))
+    b = meta["budgets"]
+    dates = meta.get("dates") or []
+    when = "-" if not dates else (dates[0] if dates[0] == dates[-1] else f"{dates[0]} to {dates[-1]}")
     head = [
         BEGIN,
         "## Public corpus: files other people's software wrote",
         "",
-        f"Written by `python -m bench.public_corpus DIR --girf ...`; run {when or f'{dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M} UTC'} "
-        f"on {commits}, {cpu}, {os.cpu_count()} cores (shared with other jobs: times are noisy), "
-        f"Python {platform.python_version()}. GIRF: {girf_name}. Budgets per file: read {budgets['read']:.0f} s, "
-        f"check / predict / simulate {budgets['other']:.0f} s each, optimize {budgets['optimize']:.0f} s "
-        f"(a step over its budget is killed: 'timed out'), and {MEM_CAP_MB / 1024:.0f} GB resident per step (the "
-        "machine is shared: a step over it is killed, 'stopped at the bench's memory cap').",
+        "Every `.seq` file of a folder of public example and test files (KomaMRI, JEMRIS, Pulseq MATLAB, pypulseq, "
+        "MRzero, gammaSTAR, a CEST library, a field-camera vendor: the *source* column names the folder, the "
+        "repositories are listed below the table) goes through what a new user would run: dtoc's reader, `dtoc "
+        "check`, `dtoc predict`, `dtoc simulate` and `dtoc optimize`, each step in its own process with a wall-clock "
+        f"budget (read, check, predict, simulate {b['other']:.0f} s each; optimize {b['optimize']:.0f} s) and a "
+        f"resident-memory cap ({meta['mem_cap_gb']:g} GB; the machine is shared: a step over either is stopped and "
+        "the row says so; rows run with other budgets: the change log below the table). Every row is either "
+        "optimized, refused with one line (the line is the *result*), or "
+        "stopped by the bench; an internal error (exit 3) is a bug. The files are not committed.",
         "",
-        f"{len(rows)} files from {len(writers)} writers ({', '.join(writers)}): **{n_opt} optimized**, "
-        f"{len(rows) - n_opt - n_to - n_int_opt} refused with one line, {n_to} timed out, stopped at the memory "
-        f"cap or killed by a signal ('exit -9'), {n_int_opt} internal errors "
-        f"of optimize ({n_int} files with an internal error in any step). "
-        "The files are not committed (public repositories' example and test outputs; the source column names "
-        "the folder, the notes below the repositories).",
+        "Reproduce (the folder as downloaded, with an optional `INDEX.tsv` naming each file's repository and commit; "
+        "the GIRF: the KCL 7 T Terra 2024 measurement of the shared data, imported as `bench.foreign` does):",
+        "",
+        "    nice python -m bench.public_corpus DIR --girf KCL2024.npz [--only NAME ...] --rows rows.jsonl",
+        "    python -m bench.public_corpus --render rows.jsonl --merge   # into this table",
+        "",
+        f"Rows ran {when} (UTC) on {_cpu_name()}, {os.cpu_count()} cores shared with other engineers' jobs "
+        f"(times are wall clock under that load; the rows' JSON holds each step's CPU seconds too), Python "
+        f"{platform.python_version()}; commits {commits}. GIRF: {meta['girf']}.",
+        "",
+        f"**{len(cells)} files from {len(writers)} writers ({', '.join(writers)}): {n['optimized']} optimized, "
+        f"{n_ref} refused with one line, {n_stop} stopped by the bench (time or memory), "
+        f"{n['internal error']} internal errors in the result** (the reader's or optimize's; "
+        f"{_plural(n_int, 'file')} with an internal error in any step). By class:",
+        "",
+    ]
+    for name, _ in CLASSES:
+        idx = by_class.get(name, [])
+        if idx:
+            head.append(f"- {name}: {len(idx)} ({', '.join(f'{cells[i][0]}/{cells[i][C_FILE]}' for i in idx)})")
+    head += [
         "",
         "Columns: *version*: the file's `[VERSION]`; *kind*: dtoc's inference (gre, epi, or '-' when neither); "
         "*limits*: the file's own definitions, or assumed (40 mT/m, 170 T/m/s, raised to the file's own peak + 2 % "
-        "where higher); *check*: `dtoc check` at those limits (its other rules as `dtoc check` applies them to a file "
-        "without a scanner profile); *predict k*: the realized k error of `dtoc predict` "
-        "(max over axes, dk = 2 pi / FOV; '-' where the FOV is unknown); *result*: `dtoc optimize`, with k (max, dk) "
-        "and NRMSE (built-in phantom; 'k-space only' where optimize ran without an image term: no image grid, or a "
-        "long file solved window by window) before -> after from its manifest; *time*: "
-        "all steps together; *peak*: the largest resident set of any step; *RF use*: the uses dtoc took, with the "
-        "reader's note on how; *commit*: the code the row ran on. A file dtoc's reader refuses is refused by "
-        "every command with the same line: "
-        "predict, simulate and optimize are then not run.",
+        "where higher); *check*: `dtoc check` at those limits (no scanner profile: the vendor conventions are not "
+        "checked); *predict k*: the realized k error of `dtoc predict` (max over axes, dk = 2 pi / FOV; '-' where the "
+        "FOV is unknown); *simulate NRMSE*: `dtoc simulate`'s, or its one-line refusal; *result*: `dtoc optimize`, "
+        "its refusal whole, with k (max, dk) and NRMSE (built-in phantom; 'k-space only' without an image term: no "
+        "image grid, or a long file solved window by window) before -> after from its manifest; *time*: all steps "
+        "together, and the optimize step's own wall and CPU seconds; *peak*: the largest resident set of any step; "
+        "*RF use*: the uses dtoc took ('detected': the format states none, detected from each pulse as Pulseq's "
+        "`detectRFuse` does, docs above); *commit*: the code the row ran on. A file dtoc's reader refuses is "
+        "refused by every command with the same line: predict, simulate and optimize are then not run.",
         "",
-        "| source | file | writer | version | kind | size (kB) | limits (mT/m, T/m/s) | check | predict k (dk) "
-        "| simulate NRMSE (%) | result | k before -> after (dk) | NRMSE before -> after (%) | time (s) | peak (MB) | RF use "
-        "| commit |",
-        "|" + "---|" * 17,
+        "| " + " | ".join(COLUMNS) + " |",
+        "|" + "---|" * len(COLUMNS),
     ]
-    lines = [row_line(r, commit) for r in rows]
-    return "\n".join(head + lines) + "\n" + END + "\n"
+    lines = ["| " + " | ".join(c) + " |" for c in cells]
+    tail = []
+    if meta.get("sources"):
+        tail = ["", "Sources (GitHub): " + ", ".join(f"`{x}`" for x in sorted(meta["sources"])) + "."]
+    return "\n".join(head + lines + tail) + "\n" + END + "\n"
+
+
+def render(rows: list[dict], girf_name: str, budgets: dict, commit: str, when: str | None = None) -> str:
+    """The section of these rows alone."""
+    for r in rows:  # rows of an earlier version of this script said "exit 3"
+        for k in ("check", "predict", "simulate", "result"):
+            if isinstance(r.get(k), str) and r[k].startswith("exit 3: "):
+                r[k] = "internal error: " + r[k][len("exit 3: ") :]
+    meta = {
+        "girf": girf_name,
+        "budgets": budgets,
+        "mem_cap_gb": MEM_CAP_MB / 1024,
+        "dates": sorted({(when or _now())[:10]} | {r["date"][:10] for r in rows if r.get("date")}),
+        "sources": {r["source_repo"] for r in rows if r.get("source_repo")},
+    }
+    return section([_cells(row_line(r, commit)) for r in rows], meta)
+
+
+def _now() -> str:
+    return f"{dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M}"
 
 
 def write_section(text: str) -> None:
@@ -409,62 +509,42 @@ def _cells(line: str) -> list[str]:
     return [c.strip() for c in line.strip()[1:-1].split("|")]
 
 
-def merge_section(rows: list[dict], commit: str) -> str:
+def merge_section(rows: list[dict], commit: str, girf_name: str | None, budgets: dict, when: str | None = None) -> str:
     """The page's section with these rows in place of the same files' rows (source folder and file name), new
-    files appended, the rest kept as they are; the summary line's counts and the header's commit list recounted
-    over the merged table (the section's other prose is left for the person who ran it)."""
+    files appended, the others kept (their result cells cleaned as :func:`clean_result` does), and everything else
+    of the section (counts, classes, commits, dates, sources) rendered again over the merged table."""
     doc = DOC.read_text()
     if BEGIN not in doc or END not in doc:
         raise SystemExit("--merge: docs/foreign.md has no public-corpus section to merge into")
     sec = doc[doc.index(BEGIN) : doc.index(END)].splitlines()
-    is_row = [ln.startswith("| ") and not ln.startswith("| source |") for ln in sec]
-    pos = {tuple(_cells(sec[i])[:2]): i for i in range(len(sec)) if is_row[i]}
-    last = max(pos.values())
+    start = next(i for i, ln in enumerate(sec) if ln.startswith("| source |"))
+    cells = []
+    for ln in sec[start + 2 :]:
+        if not ln.startswith("| "):
+            break
+        c = _cells(ln)
+        if len(c) == len(COLUMNS):
+            c[C_RESULT] = clean_result(c[C_RESULT])
+            cells.append(c)
+    pos = {tuple(c[:2]): i for i, c in enumerate(cells)}
     for r in rows:
-        key = (Path(r["file"]).parent.name, Path(r["file"]).name)
-        line = row_line(r, commit)
-        if key in pos:
-            sec[pos[key]] = line
+        c = _cells(row_line(r, commit))
+        if tuple(c[:2]) in pos:
+            cells[pos[tuple(c[:2])]] = c
         else:
-            last += 1
-            sec.insert(last, line)
-            is_row.insert(last, True)
-            pos[key] = last
-    table = [_cells(sec[i]) for i in sorted(pos.values())]
-    res = [c[10] for c in table]
-    n_opt = sum(x.startswith("optimized") for x in res)
-    n_to = sum(
-        x.startswith(("timed out", "stopped at the bench's memory cap")) or bool(re.match(r"exit -\d", x)) for x in res
-    )
-    n_int_opt = sum("internal error" in x for x in res)
-    n_int = sum(any("internal error" in c[j] for j in (7, 8, 9, 10)) for c in table)
-    writers = sorted({_writer_short(c[2]) for c in table})
-    by_commit: dict[str, int] = {}
-    for c in table:
-        by_commit[c[16]] = by_commit.get(c[16], 0) + 1
-    commits = ", ".join(
-        f"{k} ({n} row{'s' if n > 1 else ''})" for k, n in sorted(by_commit.items(), key=lambda x: -x[1])
-    )
-    for i, ln in enumerate(sec):
-        if re.match(r"\d+ files from \d+ writers", ln):
-            sec[i] = re.sub(
-                r"^\d+ files from \d+ writers \([^)]*\): \*\*\d+ optimized\*\*, \d+ refused with one line, \d+ timed out",
-                f"{len(table)} files from {len(writers)} writers ({', '.join(writers)}): **{n_opt} optimized**, "
-                f"{len(table) - n_opt - n_to - n_int_opt} refused with one line, {n_to} timed out",
-                ln,
-            )
-            sec[i] = re.sub(
-                r"\d+ internal errors of optimize \(\d+ files",
-                f"{n_int_opt} internal errors of optimize ({n_int} files",
-                sec[i],
-            )
-        elif ln.startswith("Written by `python -m bench.public_corpus"):
-            sec[i] = re.sub(
-                r" on commits? [0-9a-f?]+(?: \(\d+ rows?\))?(?:, [0-9a-f?]+ \(\d+ rows?\))*",
-                f" on commits {commits}",
-                ln,
-            )
-    return "\n".join(sec) + "\n"
+            pos[tuple(c[:2])] = len(cells)
+            cells.append(c)
+    text = "\n".join(sec)
+    dates = set(re.findall(r"\d{4}-\d\d-\d\d", next((ln for ln in sec if ln.startswith("Rows ran ")), "")))
+    dates |= {(when or _now())[:10]} | {r["date"][:10] for r in rows if r.get("date")}
+    srcs = re.search(r"Sources \(GitHub\): (.*)\.", text)
+    sources = set(re.findall(r"`([^`]+)`", srcs.group(1))) if srcs else set()
+    sources |= {r["source_repo"] for r in rows if r.get("source_repo")}
+    girf = re.search(r"GIRF: (.*)\.$", next((ln for ln in sec if ln.startswith("Rows ran ")), ""))
+    girf_name = girf_name or (girf.group(1) if girf else "?")
+    meta = {"girf": girf_name, "budgets": budgets, "mem_cap_gb": MEM_CAP_MB / 1024, "dates": sorted(dates)}
+    meta["sources"] = sources
+    return section(cells, meta)
 
 
 def main() -> None:
@@ -473,9 +553,9 @@ def main() -> None:
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dirs", nargs="*", type=Path, help="folders of .seq files (searched recursively)")
-    ap.add_argument("--girf", type=Path, required=True, help="GIRF .npz (dtoc girf import ...)")
-    ap.add_argument("--budget-optimize", type=float, default=120.0, help="optimize wall-clock budget per file, s")
-    ap.add_argument("--budget", type=float, default=60.0, help="check / predict / simulate budget per file, s")
+    ap.add_argument("--girf", type=Path, default=None, help="GIRF .npz (dtoc girf import ...); needed to run files")
+    ap.add_argument("--budget-optimize", type=float, default=300.0, help="optimize wall-clock budget per file, s")
+    ap.add_argument("--budget", type=float, default=120.0, help="read / check / predict / simulate budget per file, s")
     ap.add_argument("--mem-cap-gb", type=float, default=MEM_CAP_MB / 1024, help="resident memory that stops a step, GB")
     ap.add_argument("--only", nargs="*", default=None, help="substrings of the paths to run")
     ap.add_argument("--rows", type=Path, default=None, help="also write the rows as JSON lines here")
@@ -496,6 +576,8 @@ def main() -> None:
         rows = [json.loads(ln) for ln in a.render.read_text().splitlines() if ln.strip()]
         _finish(rows, a, budgets, a.commit or "?")
         return
+    if a.girf is None:
+        ap.error("--girf is needed to run files (only --render goes without it)")
     files = sorted({p.resolve() for d in a.dirs for p in (d.rglob("*.seq") if d.is_dir() else [d])})
     if a.only:
         files = [f for f in files if any(s in str(f) for s in a.only)]
@@ -508,6 +590,7 @@ def main() -> None:
             row = run_file(f, a.girf.resolve(), budgets, Path(td), env)
             row["source_repo"] = (idx.get(str(f)) or {}).get("source_repo")
             row["commit"] = commit.strip() or "?"
+            row["date"], row["budgets"] = _now(), {**budgets, "mem_cap_gb": a.mem_cap_gb}
             rows.append(row)
             print(json.dumps({k: v for k, v in row.items() if k != "probe"}), flush=True)
             if a.rows is not None:
@@ -517,16 +600,11 @@ def main() -> None:
 
 
 def _finish(rows: list[dict], a, budgets: dict, commit: str) -> None:
+    label = a.girf_label or (a.girf.name if a.girf is not None else None)
     if a.merge:
-        text = merge_section(rows, commit)
-        if not a.no_write:
-            write_section(text + END + "\n")
-        print(text)
-        return
-    text = render(rows, a.girf_label or a.girf.name, budgets, commit, a.when)
-    repos = sorted({r["source_repo"] for r in rows if r.get("source_repo")})
-    if repos:
-        text = text.replace(END, "Sources (GitHub): " + ", ".join(f"`{x}`" for x in repos) + ".\n" + END)
+        text = merge_section(rows, commit, a.girf_label, budgets, a.when)  # (the table's own GIRF label kept)
+    else:
+        text = render(rows, label or "?", budgets, commit, a.when)
     if not a.no_write:
         write_section(text)
     print(text)

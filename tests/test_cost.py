@@ -150,6 +150,35 @@ def test_a_long_run_beyond_memory_is_refused_before_the_projector_and_the_twin(
     assert not out.exists()
 
 
+class PreflightReached(Exception):
+    pass
+
+
+def _preflight_raises(*_a, **_k):
+    raise PreflightReached("the output format's pre-flight ran")
+
+
+@pytest.mark.parametrize("fits", [False, True])
+def test_the_cost_refusal_comes_before_the_output_formats_preflight(capsys, tmp_path, monkeypatch, long_seq, fits):
+    """The pre-flight (the base written in the output's format and read back: 15 of the 19 s the 187 s CEST
+    protocol took to be refused) waits until the run is known to fit: a run refused by its estimate never reaches
+    it; a run that fits reaches it before any of the run's work (issue 36 point 5)."""
+    import dtoc.optimize.run as run
+
+    monkeypatch.setattr(cost, "available_memory_bytes", lambda: (64 << 30) if fits else (1 << 30))
+    monkeypatch.setattr(run, "preflight_write", _preflight_raises)
+    out = tmp_path / "o.seq"
+    argv = ["optimize", long_seq, "--ideal", "--gmax", "32", "--smax", "130", "-o", out, "-q"]
+    code, err = _optimize_until_work(capsys, monkeypatch, argv)
+    lines = [x for x in err.splitlines() if x.startswith("dtoc: error")]
+    assert len(lines) == 1 and not out.exists(), err
+    if fits:  # the pre-flight still runs, before the first evaluation of the base
+        assert code == 3 and "the output format's pre-flight ran" in lines[0], err
+    else:
+        assert code == 2 and "estimate (" in lines[0] and "refused" in lines[0], err
+        assert "pre-flight" not in err
+
+
 def test_the_optimize_estimate_follows_the_window_sizes():
     whole = cost.optimize_cost(200_000, 1024)
     win = {"n_windows": 33, "max_free": 5700, "max_fine": 300_000}

@@ -122,3 +122,21 @@ def test_gmax_below_readout_amplitude_is_impossible():
     check_area_reachable(ir, Limits(7.5, 500.0))
     with pytest.raises(LimitError, match="7.34"):
         check_area_reachable(ir, Limits(7.0, 500.0))
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 4095, 4096, 4097, 8193, 20_000])
+def test_waveform_extremes_by_pieces_are_the_whole_arrays(monkeypatch, n):
+    """A long waveform's peak amplitude and slew are read in pieces overlapping by one sample (no whole-length
+    temporaries): the same maxima as the whole arrays', a step across a piece border included."""
+    import dtoc.optimize.limits as lim
+
+    rng = np.random.default_rng(n)
+    g = rng.normal(size=(3, n)) * 10
+    if n > 4097:
+        g[1, 4096] = 90.0  # the largest value and (with its neighbours) the largest steps, at a piece border
+    dt = RASTER / 2
+    amp = np.abs(g).max(axis=-1) if n else np.zeros(3)
+    slew = np.abs(np.diff(g, axis=-1)).max(axis=-1) / dt * 1e-3 if n > 1 else np.zeros(3)
+    monkeypatch.setattr(lim, "EXTREMES_CHUNK", 4096)
+    ex = waveform_extremes(g, dt)
+    assert ex["gmax_mT_per_m"] == amp.tolist() and ex["smax_T_per_m_per_s"] == slew.tolist()

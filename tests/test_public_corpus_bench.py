@@ -63,37 +63,64 @@ def _row(folder: str, name: str, result: str, commit: str) -> dict:
     }  # fmt: skip
 
 
+BUDGETS = {"read": 120.0, "other": 120.0, "optimize": 300.0}
+
+
 def test_merge_replaces_only_the_rerun_files_rows_and_recounts(tmp_path, monkeypatch):
     """--merge: a rerun file's row replaces its own (same folder and name), a new file is appended, every other
-    line (rows, prose) stays, and the summary line and the commit list are recounted over the merged table."""
+    row stays, and the section's counts, classes, commits and dates are rendered again over the merged table;
+    the page outside the section's markers (hand-written notes) is untouched."""
     from bench import public_corpus as pc
 
     rows = [_row("a", "one.seq", "timed out after 300 s", "aaa1111"), _row("b", "two.seq", "optimized", "bbb2222")]
-    head = [
-        pc.BEGIN,
-        "Written by `python -m bench.public_corpus DIR --girf ...`; run then on commits aaa1111 (1 row), bbb2222 (1 row), "
-        "Some CPU, 2 cores.",
-        "",
-        "2 files from 1 writers (pypulseq): **1 optimized**, 0 refused with one line, 1 timed out, stopped at the "
-        "memory cap or killed by a signal ('exit -9'), 0 internal errors of optimize (0 files with an internal error "
-        "in any step). The files are not committed.",
-        "A paragraph someone wrote by hand.",
-        "",
-        "| source | file | writer | version | kind | size (kB) | limits (mT/m, T/m/s) | check | predict k (dk) "
-        "| simulate NRMSE (%) | result | k before -> after (dk) | NRMSE before -> after (%) | time (s) | peak (MB) "
-        "| RF use | commit |",
-        "|" + "---|" * 17,
-    ]
     doc = tmp_path / "foreign.md"
-    doc.write_text("# page\n\n" + "\n".join(head + [pc.row_line(r, "?") for r in rows]) + "\n" + pc.END + "\n\nrest\n")
+    sec = pc.render(rows, "KCL 7 T", BUDGETS, "?", when="2026-11-26 10:00")
+    doc.write_text("# page\n\n" + sec + "\nnotes by hand\n")
     monkeypatch.setattr(pc, "DOC", doc)
+    assert "**2 files from 1 writers (pypulseq): 1 optimized, 0 refused with one line, 1 stopped by the bench" in sec
     new = [_row("a", "one.seq", "optimized", "ccc3333"), _row("c", "three.seq", "refused: no ADC", "ccc3333")]
-    text = pc.merge_section(new, "ccc3333")
-    pc.write_section(text + pc.END + "\n")
+    pc.write_section(pc.merge_section(new, "ccc3333", None, BUDGETS, when="2026-11-27 09:00"))
     out = doc.read_text()
     lines = [ln for ln in out.splitlines() if ln.startswith("| ") and not ln.startswith("| source")]
     assert [ln.split(" | ")[1] for ln in lines] == ["one.seq", "two.seq", "three.seq"]
     assert "optimized" in lines[0] and lines[0].endswith("| ccc3333 |") and lines[1].endswith("| bbb2222 |")
-    assert "3 files from 1 writers (pypulseq): **2 optimized**, 1 refused with one line, 0 timed out" in out
-    assert "on commits ccc3333 (2 rows), bbb2222 (1 row), Some CPU" in out
-    assert "A paragraph someone wrote by hand." in out and out.startswith("# page") and out.endswith("rest\n")
+    assert "**3 files from 1 writers (pypulseq): 2 optimized, 1 refused with one line, 0 stopped by the bench" in out
+    assert "- optimized: 2 (a/one.seq, b/two.seq)" in out and "timed out" not in out.split("| source |")[0]
+    assert "commits ccc3333 (2 rows), bbb2222 (1 row)." in out and "Rows ran 2026-11-26 to 2026-11-27 (UTC)" in out
+    assert "GIRF: KCL 7 T." in out  # kept from the section merged into when not given
+    assert out.startswith("# page") and out.endswith("notes by hand\n") and out.count(pc.BEGIN) == 1
+
+
+def test_a_refusal_is_rendered_whole_without_the_machines_available_memory(tmp_path, monkeypatch):
+    """The result cell holds the whole refusal (its way out is at its end), and none of the machine's available
+    memory (it changes between runs: the same file would get another cell); a merged old row is cleaned too."""
+    from bench import public_corpus as pc
+
+    refusal = (
+        "refused: x.seq: optimize: estimate (whole solve of 37451885 fine and 34 ADC samples): ~109 min and 84 GiB "
+        "peak memory; 19.8 GiB available on this machine (rough: docs/cli.md, Cost estimates): needs about 84 GiB of "
+        "memory (estimate, before any work), more than 75% of the 19.8 GiB available here: refused; a shorter file "
+        "(it cannot be solved period by period: the sequence has no excitation to cut it at)"
+    )
+    r = _row("cest", "x.seq", refusal, "ddd4444")
+    r["optimize_s"], r["optimize_cpu_s"] = 9.4, 4.2
+    line = pc.row_line(dict(r), "?")
+    cell = pc._cells(line)[pc.C_RESULT]
+    assert cell.endswith(
+        "a shorter file (it cannot be solved period by period: the sequence has no excitation to cut it at)"
+    )
+    assert "GiB available" not in cell and "more than 75% of the memory available: refused" in cell
+    assert "~109 min and 84 GiB peak memory (rough" in cell and pc._cells(line)[13] == "1 (9 / 4 CPU)"
+    assert pc.outcome(cell) == "refused by the run's cost estimate (memory), before any work"
+    assert pc.outcome("refused: internal error: ModuleNotFoundError: x") == "internal error"  # (the reader's)
+    # an old row of the page, cut and with the memory in it, merged: cleaned, and its class counted
+    doc = tmp_path / "foreign.md"
+    monkeypatch.setattr(pc, "DOC", doc)
+    old = line.replace(cell, pc._cell(refusal[:220]))
+    doc.write_text(pc.render([_row("b", "two.seq", "optimized", "bbb2222")], "G", BUDGETS, "?") + "\n")
+    doc.write_text(doc.read_text().replace(pc.END, old + "\n" + pc.END))
+    out = pc.merge_section([], "?", None, BUDGETS)
+    assert (
+        "GiB available" not in out
+        and "- refused by the run's cost estimate (memory), before any work: 1 (cest/x.seq)" in out
+    )

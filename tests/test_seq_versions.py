@@ -195,13 +195,14 @@ def _stated_use(data: bytes, use: str) -> bytes:
 
 def test_unwritable_in_target_version_fails_fast(tmp_path, capsys, monkeypatch):
     """A 1.5 file stating an RF use a 1.4 reader would not detect, asked for as 1.4.1: one line naming it, exit 2,
-    no output, and the optimization never starts (its first step after the pre-flight is made to fail)."""
+    no output, and the optimization never starts (its first step after the pre-flight, the projector, is made to
+    fail)."""
     import dtoc.optimize.run as run_mod
 
     def no_work(*a, **k):
         raise AssertionError("the optimization started")
 
-    monkeypatch.setattr(run_mod, "free_edges", no_work)
+    monkeypatch.setattr(run_mod, "EdgeProjector", no_work)
     base = tmp_path / "epi_inv.seq"
     base.write_bytes(_stated_use(epi(n=16), "i"))
     ir = read_seq(base)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
 from dtoc.hardware.effects import B0Eddy, Delay, Lti
 from dtoc.hardware.model import HardwareModel
 from dtoc.seq import kspace as K
@@ -45,6 +46,7 @@ def test_chunked_running_integral_is_the_whole_one_bit_for_bit(monkeypatch):
     assert K._chunked(torch.as_tensor(g))
     chunked = K.kspace_at(g, dt, t, tc, uses)
     assert torch.equal(whole, chunked)
+    assert torch.equal(K.kspace_at(g, dt, t), K.pwl_integral_at(g, dt, t) * GAMMA_RAD_PER_S_PER_MT)  # no RF event
     m = np.r_[0, 1, 4095, 4096, 4097, rng.integers(0, n, 500), n - 1]
     assert torch.equal(K.pwl_cumulative(torch.as_tensor(g), dt)[:, m], K.cumulative_at(g, dt, m))
     # a waveform in a graph keeps the whole (differentiable) path

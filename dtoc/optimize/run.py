@@ -42,7 +42,7 @@ from dtoc.seq.check import SafetyChecks, base_timing_refusal, check_file, check_
 from dtoc.seq.ir import SequenceIR
 from dtoc.seq.seqtext import shared_parse
 from dtoc.seq.system import SystemSpec
-from dtoc.seq.versions import version_str
+from dtoc.seq.versions import check_writable, version_str
 from dtoc.seq.write import output_version, preflight_write, seq_bytes_of
 from dtoc.sim import metrics
 from dtoc.sim.imager import Imager
@@ -580,12 +580,12 @@ def plan_run(
         raise InputError(
             f"{base if isinstance(base, (str, os.PathLike)) else 'sequence'}: has no ADC event: nothing to optimize for"
         )
-    if io.out is not None:  # the output's Pulseq format: the base written in it and read back before any work
+    if io.out is not None:  # timing rules the output would inherit (cheap); its format's pre-flight: after the cost
         version_in = ir.meta.get("format_version") or "1.5.0"
         why = None if ir.source is None else base_timing_refusal(ir.source, version_in, ir.meta.get("path"))
         if why:  # a rule the output would inherit unchanged: refused now, not after the optimization
             raise InputError(f"{base if isinstance(base, (str, os.PathLike)) else io.base_path or 'sequence'}: {why}")
-        ir.meta["output_format_version"] = version_str(preflight_write(ir, io.format_version))
+        check_writable(output_version(ir, io.format_version))  # a version dtoc does not write: by name, now
     cfg = config if config is not None else load_config(ir.kind, io.config_path)
     O.set_deterministic(cfg.seed, cfg.threads, device)
     if hardware is None:
@@ -638,6 +638,8 @@ def plan_run(
         whole_why = why_not_windowed(ir, hardware, cfg, free)
     check_run_cost(ir, cfg, free, window, with_image, str(io.base_path or "sequence"), io.notes, whole_why)
     check_area_reachable(ir, limits)
+    if io.out is not None:  # the base written in the output's format and read back: once the run is known to fit
+        ir.meta["output_format_version"] = version_str(preflight_write(ir, io.format_version))
     projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
     warnings_out = base_limit_warnings(ir, limits) + base_physical_warnings(ir.grad_mT_per_m, ir.dt_fine_s, limits)
     dtype = torch.float64

@@ -117,10 +117,15 @@ def kspace_at(g_mT_per_m, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_use
     """
     g = _as_tensor(g_mT_per_m)
     t = np.asarray(t_s, dtype=np.float64)
-    C = None if _chunked(g) else pwl_cumulative(g, dt)  # long and without a graph: by chunks, twice
-    integ = pwl_integral_at(g, dt, t, cumulative=C)  # (..., 3, Q)
     events = _k_events(rf_centres_s, rf_uses)
-    i_rf = None if not events else pwl_integral_at(g, dt, np.array([e[0] for e in events]), cumulative=C)
+    t_rf = np.array([e[0] for e in events], dtype=np.float64)
+    if _chunked(g):  # long and without a graph: one pass of its running integral by chunks for both sets of times
+        both = pwl_integral_at(g, dt, np.concatenate([t, t_rf]))
+        integ, i_rf = both[..., : len(t)], (both[..., len(t) :] if events else None)
+        return kspace_from_integrals(integ, i_rf, t, rf_centres_s, rf_uses)
+    C = pwl_cumulative(g, dt)
+    integ = pwl_integral_at(g, dt, t, cumulative=C)  # (..., 3, Q)
+    i_rf = None if not events else pwl_integral_at(g, dt, t_rf, cumulative=C)
     return kspace_from_integrals(integ, i_rf, t, rf_centres_s, rf_uses)
 
 
