@@ -113,3 +113,24 @@ def test_a_checking_projector_holds_no_whole_length_arrays():
     x[0, 7] = 40.0  # beyond gmax: projected
     y = P.project(x)
     assert P.is_feasible(y, tol=1e-9) and abs(y[0, 7]) <= LIM.gmax_eff_mT_per_m
+
+
+def test_the_write_check_compares_in_pieces_and_names_the_first_difference():
+    """The written text's read-back is compared with the waveform piece by piece (no whole-length difference
+    array); a text that plays another gradient is still refused naming the axis and the time of the largest
+    difference."""
+    from pathlib import Path
+
+    from dtoc.errors import DtocError
+    from dtoc.seq.load import load_sequence
+    from dtoc.seq.write import output_version, seq_bytes_of, verify_written
+
+    ir = load_sequence(Path(__file__).resolve().parents[1] / "sequences" / "epi_esp081.seq")
+    v = output_version(ir)
+    data = seq_bytes_of(ir, verify=False)
+    verify_written(ir, data, v)  # the text plays ir: passes
+    g = ir.grad_mT_per_m.copy()
+    m = int(np.flatnonzero(ir.free_mask[1])[100])
+    g[1, m] += 1.0  # 1 mT/m more than the text plays, at one fine sample on y
+    with pytest.raises(DtocError, match=rf"axis y at {m * ir.dt_fine_s * 1e3:.4f} ms"):
+        verify_written(ir.with_grad(g), data, v)
