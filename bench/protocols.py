@@ -3,8 +3,8 @@ real measured GIRF.
 
 Run: ``python -m bench.protocols [--rows NAME ...] [--timeout S] [--no-write]`` (writes its section of
 docs/benchmarks.md).  Each row is built here (dtoc's own EPI spec, or pypulseq writers: this module's
-multi-slice EPI, the project's TSE / 3D GRE / MPRAGE-like writers of tests/foreign/writers.py), then optimized
-by its own ``python -m dtoc optimize`` process with the default options (the user's command) and the KCL 7 T
+multi-slice EPI, 3D FLASH at 1 mm and ADNI-like MPRAGE; the project's TSE writer of tests/foreign/writers.py),
+then optimized by its own ``python -m dtoc optimize`` process with the default options (the user's command) and the KCL 7 T
 Terra 2024 3x3 GIRF from ``../shared/data`` (docs: docs/optimize.md).  Per row: wall and CPU time, peak RSS
 (``wait4``), the k error before -> after and the image NRMSE from the manifest, the solver's evaluations and stop
 reason (or the windowed solve's windows).  A row that does not finish within ``--timeout`` is reported so, with
@@ -21,6 +21,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 from bench._proc import run_step
 
@@ -84,6 +86,109 @@ def epi_multislice(
     return _bytes(seq)
 
 
+def _gre_train_events(pp, sys_, nx: int, fov_x: float, bw_px_hz: float, prep_s: float, spoil_s: float):
+    """The readout events of a Cartesian 3D GRE: an x readout of ``nx`` samples at ``bw_px_hz`` per pixel (dwell on
+    the 100 ns ADC raster, the flat top on the 10 us gradient raster), its prephaser in ``prep_s`` and a spoiler of
+    one cycle per pixel in ``spoil_s``."""
+    dk = 1 / fov_x
+    dwell = round(1 / (bw_px_hz * nx) / 1e-7) * 1e-7
+    flat = math.ceil(nx * dwell / 1e-5 - 1e-9) * 1e-5
+    gx = pp.make_trapezoid("x", flat_area=nx * dk, flat_time=flat, system=sys_)
+    delay = gx.rise_time + round((flat - nx * dwell) / 2 / 1e-6) * 1e-6
+    adc = pp.make_adc(nx, dwell=dwell, delay=delay, system=sys_)
+    gxpre = pp.make_trapezoid("x", area=-gx.area / 2, duration=prep_s, system=sys_)
+    spoil = pp.make_trapezoid("x", area=nx * dk, duration=spoil_s, system=sys_)
+    return gx, adc, gxpre, spoil
+
+
+def _encode(pp, sys_, ky: float, kz: float, dur_s: float) -> list:
+    """The (y, z) phase-encode trapezoids of areas ``ky``, ``kz`` (1/m) in ``dur_s``; a zero area plays none."""
+    return [pp.make_trapezoid(ax, area=a, duration=dur_s, system=sys_) for ax, a in (("y", ky), ("z", kz)) if a != 0]
+
+
+def gre3d_1mm(
+    nx: int = 256, ny: int = 192, nz: int = 96, tr: float = 6.5e-3, flip_deg: float = 10, bw_px_hz: float = 400
+) -> bytes:
+    """3D spoiled GRE (FLASH-like) at 1 mm isotropic: FOV ``nx`` x ``ny`` x ``nz`` mm, a 1 ms slab-selective sinc over
+    the ``nz`` mm slab, ``ny`` x ``nz`` TRs of ``tr`` (defaults: 256 x 192 x 96, TR 6.5 ms: 119.8 s), RF spoiling
+    117 deg, readout on x at ``bw_px_hz`` Hz/pixel, phase on y (inner loop) and partition on z (outer); a
+    T1-weighted 3D FLASH of about 2 minutes (protocol values assumed, typical of a 3 T T1w 3D GRE)."""
+    import pypulseq as pp
+
+    from tests.foreign.writers import _bytes, _fill, _sinc, _system
+
+    sys_ = _system(pp)
+    seq = pp.Sequence(sys_)
+    fov = (nx * 1e-3, ny * 1e-3, nz * 1e-3)
+    prep, spoil_s = 0.8e-3, 1.2e-3
+    rf, gz, gzr = _sinc(pp, sys_, flip_deg, fov[2], 1e-3)
+    gx, adc, gxpre, spoil = _gre_train_events(pp, sys_, nx, fov[0], bw_px_hz, prep, spoil_s)
+    fill = tr - pp.calc_duration(rf, gz) - prep - spoil_s - pp.calc_duration(gx)
+    if fill < 0:
+        raise ValueError(f"gre3d_1mm: TR {tr * 1e3:g} ms is {-fill * 1e3:.2f} ms too short")
+    dky, dkz = 1 / fov[1], 1 / fov[2]
+    i = 0
+    for kz in (np.arange(nz) - nz // 2) * dkz:
+        for ky in (np.arange(ny) - ny // 2) * dky:
+            phase = math.radians((117 * i * (i + 1) / 2) % 360)  # RF spoiling
+            rf.phase_offset, adc.phase_offset, i = phase, phase, i + 1
+            seq.add_block(rf, gz)
+            seq.add_block(gxpre, *_encode(pp, sys_, ky, kz + gzr.area, prep))
+            seq.add_block(gx, adc)
+            seq.add_block(spoil, *_encode(pp, sys_, -ky, -kz, spoil_s))
+            seq.add_block(_fill(pp, sys_, fill))
+    return _bytes(seq)
+
+
+#: the MPRAGE rows' timing, modelled on the ADNI 3 T protocol (values assumed from it, not a vendor's file): shot TR,
+#: TI (to the train's centre) and echo spacing, s; flip of the train, deg; readout bandwidth, Hz per pixel
+ADNI_LIKE = {"tr_shot": 2.3, "ti": 0.9, "esp": 7.0e-3, "flip_deg": 9.0, "bw_px_hz": 240.0}
+
+
+def mprage_protocol(shots: int = 256, ky_step: int = 1, npar: int = 176, nx: int = 256) -> bytes:
+    """MPRAGE at 1 mm isotropic, modelled on the ADNI 3 T protocol (:data:`ADNI_LIKE`: TR 2300 ms, TI 900 ms, flip
+    9 deg, 256 x 256 x 176 at 1 mm): per shot a 10 ms inversion (block pulse, use 'inversion') and a spoiler,
+    TI to the train's centre, a train of ``npar`` GRE readouts (the partition loop, linear: its centre at TI) at
+    the echo spacing, then the recovery to the shot's TR.  ``shots`` ky lines,
+    every ``ky_step``-th of 256 (2: every other line, as a 2x-undersampled acquisition without reference lines).
+    256 shots: 9.8 min, 128 shots with ``ky_step`` 2: 4.9 min."""
+    import pypulseq as pp
+
+    from tests.foreign.writers import _bytes, _fill, _system
+
+    sys_ = _system(pp)
+    seq = pp.Sequence(sys_)
+    fov = (nx * 1e-3, 0.256, npar * 1e-3)
+    tr_shot, ti, esp = ADNI_LIKE["tr_shot"], ADNI_LIKE["ti"], ADNI_LIKE["esp"]
+    prep, spoil_s = 0.8e-3, 1.2e-3
+    inv = pp.make_block_pulse(flip_angle=math.pi, duration=10e-3, system=sys_, delay=sys_.rf_dead_time, use="inversion")
+    inv_spoil = pp.make_trapezoid("z", area=4 / 1e-3, duration=4e-3, system=sys_)
+    rf = pp.make_block_pulse(
+        flip_angle=math.radians(ADNI_LIKE["flip_deg"]), duration=0.1e-3, system=sys_, delay=sys_.rf_dead_time
+    )
+    gx, adc, gxpre, spoil = _gre_train_events(pp, sys_, nx, fov[0], ADNI_LIKE["bw_px_hz"], prep, spoil_s)
+    fill_es = esp - pp.calc_duration(rf) - prep - spoil_s - pp.calc_duration(gx)
+    t_inv = pp.calc_duration(inv) + pp.calc_duration(inv_spoil)
+    fill_ti = ti - t_inv - (npar // 2) * esp
+    fill_shot = tr_shot - t_inv - fill_ti - npar * esp
+    if min(fill_es, fill_ti, fill_shot) < 0:
+        raise ValueError("mprage_protocol: timing does not fit (esp, ti or tr_shot too short)")
+    dky, dkz = 1 / fov[1], 1 / fov[2]
+    for s in range(shots):
+        ky = (s * ky_step - 128) * dky
+        seq.add_block(inv)
+        seq.add_block(inv_spoil)
+        seq.add_block(_fill(pp, sys_, fill_ti))
+        for kz in (np.arange(npar) - npar // 2) * dkz:
+            seq.add_block(rf)
+            seq.add_block(gxpre, *_encode(pp, sys_, ky, kz, prep))
+            seq.add_block(gx, adc)
+            seq.add_block(spoil, *_encode(pp, sys_, -ky, -kz, spoil_s))
+            seq.add_block(_fill(pp, sys_, fill_es))
+        seq.add_block(_fill(pp, sys_, fill_shot))
+    return _bytes(seq)
+
+
 def _spec_epi(matrix: int, esp_ms: float) -> dict:
     import yaml
 
@@ -102,9 +207,13 @@ ROWS: dict[str, tuple[str, str, list[str]]] = {
     "epi_ms4": ("4-slice ramp-sampled EPI 64, 10 repetitions (~3.2 s, pypulseq)", "epims:64:4:10", PYPULSEQ),
     "epi_labels": ("labelled EPI 64 with 8 repetitions (pypulseq, LIN/SLC/REP)", "epims:64:1:8", PYPULSEQ),
     "tse256": ("TSE 256, ETL 16 (pypulseq)", "tse:256:16", PYPULSEQ),
-    "gre3d_1mm": ("3D GRE 1 mm, 192 x 64 partitions, TR 10 ms (~2 min, pypulseq)", "gre3d:192:64", PYPULSEQ),
-    "mprage5": ("MPRAGE-like 5 min (300 shots, pypulseq)", "mprage:300", PYPULSEQ),
-    "mprage10": ("MPRAGE-like 10 min (600 shots, pypulseq)", "mprage:600", PYPULSEQ),
+    "gre3d_1mm": ("3D FLASH 1 mm, 256 x 192 x 96, TR 6.5 ms (2.0 min, pypulseq)", "gre3d1mm:256:192:96", PYPULSEQ),
+    "mprage5": (
+        "MPRAGE 1 mm ADNI-like, 128 of 256 ky lines x 176 partitions (4.9 min, pypulseq)",
+        "mprage:128:2",
+        PYPULSEQ,
+    ),
+    "mprage10": ("MPRAGE 1 mm ADNI-like, 256 x 256 x 176 (9.8 min, pypulseq)", "mprage:256:1", PYPULSEQ),
 }
 #: the rows of earlier runs (one per name, the latest), rendered together: rows are run one session at a time
 ROWS_FILE = Path(__file__).with_name("protocols_rows.json")
@@ -130,10 +239,10 @@ def make_base(how: str, d: Path) -> Path:
         data = epi_multislice(n=int(a[0]), slices=int(a[1]), reps=int(a[2]))
     elif kind == "tse":
         data = W.tse(n=int(a[0]), etl=int(a[1]))
-    elif kind == "gre3d":
-        data = W.gre3d(n=int(a[0]), nz=int(a[1]), fov=0.001 * int(a[0]), fovz=0.001 * int(a[1]))
+    elif kind == "gre3d1mm":
+        data = gre3d_1mm(nx=int(a[0]), ny=int(a[1]), nz=int(a[2]))
     elif kind == "mprage":
-        data = W.mprage(n=32, nz=4, tr=8e-3, ti=0.4, tr_shot=1.0, shots=int(a[0]))
+        data = mprage_protocol(shots=int(a[0]), ky_step=int(a[1]))
     else:
         raise ValueError(how)
     p.write_bytes(data)
@@ -158,7 +267,8 @@ def run_row(name: str, girf: Path, timeout_s: float, d: Path) -> dict:
         "rc": rc,
     }
     if rc != 0 and not timed_out:
-        row["error"] = err.strip().splitlines()[-1][:200] if err.strip() else f"exit {rc}"
+        last = err.strip().splitlines()[-1].replace(str(base), base.name) if err.strip() else f"exit {rc}"
+        row["error"] = last[:300]  # no machine path (the base lies in a temporary folder)
     if man.exists():
         m = json.loads(man.read_text())
         sv = m.get("solver") or {}

@@ -173,7 +173,8 @@ hw = HardwareModel([Lti(taps, 5e-5), Delay(4e-6)]).frozen()
 cfg = load_config(ir.kind, None).model_copy(update={"gmax_mT_per_m": 32, "smax_T_per_m_per_s": 130, "windowed": "on"})
 res = optimize_sequence(ir, hardware=hw, config=cfg)
 hwm = [int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith("VmHWM")][0]
-print(json.dumps({"peak": hwm, "windows": res.manifest["windowed"]["windows"], "k": res.manifest["after"]["kspace_max_error_dk"]}))
+print(json.dumps({"peak": hwm, "windows": res.manifest["windowed"]["windows"], "k": res.manifest["after"]["kspace_max_error_dk"],
+                  "edges": int(ir.edge_grad_mT_per_m.shape[1])}))
 """
 
 
@@ -192,9 +193,15 @@ def _run_peak(reps: int, idle_edges: int) -> dict:
 def test_whole_windowed_run_memory_does_not_grow_with_the_duration():
     """The whole ``optimize_sequence`` of a 4x longer windowed sequence (12 identical 5 s periods against 3: 0.6 M
     against 0.15 M raster steps) peaks within 1.2x the resident memory (each in its own process, freed arrays
-    returned to the system).  Measured 2026-11-27 (2-core Xeon, load ~10): 685 -> 745 MB (1.09x); the parent commit
-    (the base's and the output's realization whole in the figures, two whole-length limit step arrays) 696 -> 883 MB
-    (1.27x, ~410 bytes per raster step against ~130 now)."""
+    returned to the system), and what it adds per raster step stays under 150 bytes: the waveform (48), the
+    edges and the masks, not the limit envelopes (48) nor Dykstra's copies of them (~150) a projector that only
+    checks feasibility does not need.  Measured 2026-11-27 (2-core Xeon, load ~10): 685 -> 745 MB (1.09x); the
+    parent commit (the base's and the output's realization whole in the figures, two whole-length limit step
+    arrays) 696 -> 883 MB (1.27x, ~410 bytes per raster step against ~130 then); with the envelopes in pieces
+    (load ~12): 707 -> 814 MB (1.15x, 238 bytes per step) before, 676 -> 716 MB (1.06x, 88 bytes per step) after."""
     a, b = _run_peak(3, 50_000), _run_peak(12, 50_000)
     assert (a["windows"], b["windows"]) == (3, 12)
     assert b["peak"] <= 1.2 * a["peak"], (a, b)
+    assert b["edges"] > 3.9 * a["edges"]
+    per_step = (b["peak"] - a["peak"]) / (b["edges"] - a["edges"])
+    assert per_step < 150, (per_step, a, b)

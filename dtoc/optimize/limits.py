@@ -536,6 +536,83 @@ def _physical_error(what: str, axis: str, n: int, value: float, limit: float, ra
     )
 
 
+#: edges per piece of the envelopes and of :meth:`EdgeProjector.is_feasible` (their temporaries: ~100 bytes per edge
+#: of one piece, not of the sequence)
+CHECK_CHUNK = 1 << 18
+
+_BIG = 1e300
+
+
+def _first_in_pieces(n: int, mask_of) -> tuple[int, int] | None:
+    """The first ``(axis, index)`` in ``np.argwhere`` order (lowest axis, then earliest) where ``mask_of(piece)``
+    ((3, len) bool of the indices ``piece``, a slice of ``range(n)``) is True, piece by piece; None if nowhere."""
+    first: list = [None, None, None]
+    for a0 in range(0, n, CHECK_CHUNK):
+        for a, i in np.argwhere(mask_of(slice(a0, min(a0 + CHECK_CHUNK, n)))):
+            if first[a] is None:
+                first[a] = a0 + int(i)
+    return next(((a, first[a]) for a in range(3) if first[a] is not None), None)
+
+
+class _Envelopes:
+    """The exact reachability envelopes of the uniform limits (``|e| <= G``, every step ``<= S``), piece by piece.
+
+    Upper: ``min(G, min_j c_j + S |n - j|)`` over the fixed samples ``j``, lower: ``max(-G, max_j c_j - S |n - j|)``,
+    as forward / backward running extrema of ``c_j -+ S j``.  A piece's running extrema are its own, combined with
+    one carry (the extremum of everything before it, resp. after it) per axis and direction: a minimum or maximum is
+    exact, so the piece's values are those of the whole-sequence sweep, bit for bit, and nothing of the sequence's
+    length is held but the base's edges (shared) and the fixed mask.
+    """
+
+    def __init__(self, c: np.ndarray, fixed: np.ndarray, G: float, S: float):
+        self.c, self.fixed, self.G, self.S = c, fixed, G, S
+        self.rows = [a for a in range(3) if fixed[a].any()]  # the other axes: -G..G throughout
+        n = c.shape[1]
+        starts = list(range(0, n, CHECK_CHUNK))
+        m = np.empty((4, 3, len(starts)))  # each piece's min(c - S j), max(c + S j), min(c + S j), max(c - S j)
+        for p, a0 in enumerate(starts):
+            e = slice(a0, min(a0 + CHECK_CHUNK, n))
+            for a in self.rows:
+                v = self._terms(a, e)
+                m[:, a, p] = [v[0].min(), v[1].max(), v[2].min(), v[3].max()]
+        # carry into piece p: forward over the pieces before it, backward over those after it
+        big = np.full((3, 1), _BIG)
+        self.f_up = np.minimum.accumulate(np.concatenate([big, m[0]], axis=1), axis=1)[:, :-1]
+        self.f_dn = np.maximum.accumulate(np.concatenate([-big, m[1]], axis=1), axis=1)[:, :-1]
+        self.b_up = np.minimum.accumulate(np.concatenate([big, m[2][:, ::-1]], axis=1), axis=1)[:, :-1][:, ::-1]
+        self.b_dn = np.maximum.accumulate(np.concatenate([-big, m[3][:, ::-1]], axis=1), axis=1)[:, :-1][:, ::-1]
+
+    def _terms(self, a: int, e: slice) -> tuple:
+        """(c - S j, c + S j, c + S j, c - S j) on the fixed samples of axis ``a`` in ``e``, +-big elsewhere."""
+        fx, c, Sj = self.fixed[a, e], self.c[a, e], self.S * np.arange(e.start, e.stop)
+        return (
+            np.where(fx, c - Sj, _BIG),
+            np.where(fx, c + Sj, -_BIG),
+            np.where(fx, c + Sj, _BIG),
+            np.where(fx, c - Sj, -_BIG),
+        )
+
+    def piece(self, e: slice) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi), (3, len) each, of the edges ``e`` (``e.start`` a multiple of :data:`CHECK_CHUNK`)."""
+        p = e.start // CHECK_CHUNK
+        ln = e.stop - e.start
+        lo, hi = np.full((3, ln), -self.G), np.full((3, ln), self.G)
+        G, S = self.G, self.S
+        for a in self.rows:
+            fx, c, Sj = self.fixed[a, e], self.c[a, e], S * np.arange(e.start, e.stop)
+            t_fup, t_fdn, t_bup, t_bdn = self._terms(a, e)
+            # forward: min over j<=n of c_j + S(n-j) = S n + min(c_j - S j); backward: min over j>=n of c_j + S(j-n)
+            f_up = np.minimum(np.minimum.accumulate(t_fup), self.f_up[a, p]) + Sj
+            f_dn = np.maximum(np.maximum.accumulate(t_fdn), self.f_dn[a, p]) - Sj
+            b_up = np.minimum(np.minimum.accumulate(t_bup[::-1])[::-1], self.b_up[a, p]) - Sj
+            b_dn = np.maximum(np.maximum.accumulate(t_bdn[::-1])[::-1], self.b_dn[a, p]) + Sj
+            h = np.minimum(np.minimum(f_up, b_up), G)
+            lw = np.maximum(np.maximum(f_dn, b_dn), -G)
+            hi[a] = np.where(fx, c, np.minimum(h, np.where(fx, c, _BIG)))
+            lo[a] = np.where(fx, c, np.maximum(lw, np.where(fx, c, -_BIG)))
+        return lo, hi
+
+
 class EdgeProjector:
     """Projection of raster-edge gradient samples onto the hard-limit set of one sequence.
 
@@ -573,39 +650,49 @@ class EdgeProjector:
         self.step = S
         fixed = ~free
         # fixed samples and fixed-fixed segments must already be within the true limits
-        bad = fixed & (np.abs(e0) > limits.gmax_mT_per_m * (1 + fixed_tol))
-        if bad.any():
-            a, n = np.argwhere(bad)[0]
+        n_e = e0.shape[1]
+        gbad = limits.gmax_mT_per_m * (1 + fixed_tol)
+        hit = _first_in_pieces(n_e, lambda e: fixed[:, e] & (np.abs(e0[:, e]) > gbad))
+        if hit is not None:
+            a, n = hit
             raise LimitError(
                 f"fixed (non-optimizable) gradient on {AXES[a]} at t={n * raster_s * 1e3:.3f} ms is "
                 f"{e0[a, n]:.4g} mT/m, beyond gmax {limits.gmax_mT_per_m:.4g} mT/m"
             )
-        ff = fixed[:, 1:] & fixed[:, :-1]
-        badslew = ff & (np.abs(np.diff(e0, axis=1)) > S_true * (1 + fixed_tol) + 1e-12)
-        if badslew.any():
-            a, n = np.argwhere(badslew)[0]
+        sbad = S_true * (1 + fixed_tol) + 1e-12
+
+        def slews(e: slice) -> np.ndarray:  # the held-held steps from the edges of ``e`` (the last edge has none)
+            f = fixed[:, e.start : e.stop + 1]
+            return (f[:, 1:] & f[:, :-1]) & (np.abs(np.diff(e0[:, e.start : e.stop + 1], axis=1)) > sbad)
+
+        hit = _first_in_pieces(n_e - 1, slews)
+        if hit is not None:
+            a, n = hit
             raise LimitError(
                 f"fixed (non-optimizable) gradient on {AXES[a]} at t={n * raster_s * 1e3:.3f} ms slews "
                 f"{abs(e0[a, n + 1] - e0[a, n]) / raster_s * 1e-3:.4g} T/m/s, beyond smax "
                 f"{limits.smax_T_per_m_per_s:.4g} T/m/s"
             )
         # reachability envelopes (exact distance transform, two sweeps per direction)
-        n_e = e0.shape[1]
         R = limits.R
         self.uniform = R is None  # one step bound S for every segment (else per-segment bounds dlo..dhi)
         tol = 1e-12
+        self._lohi: tuple[np.ndarray, np.ndarray] | None = None  # the whole envelopes, when held (:attr:`lo`)
         if R is None:
-            lo = np.full(e0.shape, -G)
-            hi = np.full(e0.shape, G)
-            lo[fixed] = e0[fixed]
-            hi[fixed] = e0[fixed]
-            for a in range(3):
-                if not fixed[a].any():
-                    continue
-                lo[a], hi[a] = self._envelope(e0[a], fixed[a], G, S)
+            # the envelopes are not held: any piece of them is computed when asked for (:meth:`_box`), from the base
+            # and one carry per piece and axis (:class:`_Envelopes`); the whole arrays only for a projection
+            self._env = _Envelopes(e0, fixed, G, S)
             # one bound for every step: read-only views of one value, not two whole-sequence arrays
             self.dlo = np.broadcast_to(np.float64(-S), (3, n_e - 1))
             self.dhi = np.broadcast_to(np.float64(S), (3, n_e - 1))
+
+            def empty(e: slice) -> np.ndarray:
+                lo_p, hi_p = self._env.piece(e)
+                return free[:, e] & (lo_p > hi_p + tol)
+
+            hit = _first_in_pieces(n_e, empty)
+            if hit is not None:
+                self._empty(*hit)
         else:  # oblique: per-sample boxes within the physical limits that hold the base (module docstring)
             alo, ahi = _physical_boxes(e0, fixed, R, G, limits.gmax_mT_per_m, "amplitude", raster_s)
             fixed_pair = fixed[:, 1:] & fixed[:, :-1]
@@ -620,39 +707,47 @@ class EdgeProjector:
             thin = (lo > hi) & (lo <= hi + tol)
             mid = 0.5 * (lo + hi)
             lo, hi = np.where(thin, mid, lo), np.where(thin, mid, hi)
-        self.lo, self.hi = lo, hi
-        empty = free & (lo > hi + tol)
-        if empty.any():
-            a, n = np.argwhere(empty)[0]
-            raise LimitError(
-                f"no waveform on {AXES[a]} meets gmax {limits.gmax_mT_per_m:.4g} mT/m and smax "
-                f"{limits.smax_T_per_m_per_s:.4g} T/m/s between the fixed samples near t={n * raster_s * 1e3:.3f} ms"
-            )
+            self._lohi = (lo, hi)
+            bad_box = free & (lo > hi + tol)
+            if bad_box.any():
+                self._empty(*np.argwhere(bad_box)[0])
         # free-free neighbour pairs (fixed neighbours are folded into the envelopes)
         self.pair_free = free[:, 1:] & free[:, :-1]
         self.n_edges = n_e
-        self._layout = _Layout.make(free, lo, hi, self.pair_free, self.dlo, self.dhi)
+        self._layout_made: _Layout | None = None  # Dykstra's reordered copies: made on its first use (:attr:`_layout`)
         self._on_device: dict = {}  # the arrays as float64 tensors, per torch device (:meth:`_device_arrays`)
 
-    @staticmethod
-    def _envelope(c: np.ndarray, fixed: np.ndarray, G: float, S: float):
-        n = c.size
-        idx = np.arange(n)
-        big = 1e300
-        # upper: min_j (c_j + S|n-j|), lower: max_j (c_j - S|n-j|), via forward/backward running extrema
-        up = np.where(fixed, c, big)
-        dn = np.where(fixed, c, -big)
-        # forward: min over j<=n of c_j + S(n-j) = S n + min(c_j - S j)
-        f_up = np.minimum.accumulate(np.where(fixed, c - S * idx, big)) + S * idx
-        f_dn = np.maximum.accumulate(np.where(fixed, c + S * idx, -big)) - S * idx
-        # backward: min over j>=n of c_j + S(j-n)
-        b_up = np.minimum.accumulate(np.where(fixed, c + S * idx, big)[::-1])[::-1] - S * idx
-        b_dn = np.maximum.accumulate(np.where(fixed, c - S * idx, -big)[::-1])[::-1] + S * idx
-        hi = np.minimum(np.minimum(f_up, b_up), G)
-        lo = np.maximum(np.maximum(f_dn, b_dn), -G)
-        hi = np.where(fixed, c, np.minimum(hi, up))
-        lo = np.where(fixed, c, np.maximum(lo, dn))
-        return lo, hi
+    def _empty(self, a: int, n: int):
+        lim = self.limits
+        raise LimitError(
+            f"no waveform on {AXES[a]} meets gmax {lim.gmax_mT_per_m:.4g} mT/m and smax "
+            f"{lim.smax_T_per_m_per_s:.4g} T/m/s between the fixed samples near t={n * self.raster_s * 1e3:.3f} ms"
+        )
+
+    @property
+    def lo(self) -> np.ndarray:
+        """(3, N+1) lower reachability envelope (made whole on first use and kept; :meth:`_box` for a piece)."""
+        return self._whole()[0]
+
+    @property
+    def hi(self) -> np.ndarray:
+        """(3, N+1) upper reachability envelope (as :attr:`lo`)."""
+        return self._whole()[1]
+
+    def _whole(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._lohi is None:
+            lo, hi = np.empty(self.base.shape), np.empty(self.base.shape)
+            for a0 in range(0, self.n_edges, CHECK_CHUNK):
+                e = slice(a0, min(a0 + CHECK_CHUNK, self.n_edges))
+                lo[:, e], hi[:, e] = self._env.piece(e)
+            self._lohi = (lo, hi)
+        return self._lohi
+
+    def _box(self, e: slice) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) of the edges ``e`` (a slice): views of the whole envelopes when held, else computed."""
+        if self._lohi is not None:
+            return self._lohi[0][:, e], self._lohi[1][:, e]
+        return self._env.piece(e)
 
     # ---- projection ----------------------------------------------------------------------------
     def project(self, edges, n_iter: int = 30, exact: bool = True):
@@ -682,6 +777,14 @@ class EdgeProjector:
         if is_t:
             return torch.as_tensor(x, dtype=edges.dtype, device=edges.device)
         return x
+
+    @property
+    def _layout(self) -> _Layout:
+        """Dykstra's arrays (the box reordered, the pair sets' bounds: ~150 bytes per edge), made when a projection
+        first needs them: a run whose waveform is already in the set (a windowed solve's) never holds them."""
+        if self._layout_made is None:
+            self._layout_made = _Layout.make(self.free, self.lo, self.hi, self.pair_free, self.dlo, self.dhi)
+        return self._layout_made
 
     def _dykstra(self, x: np.ndarray, n_iter: int) -> np.ndarray:
         return _dykstra(_NP, x, self._layout, self.step if self.uniform else None, n_iter)
@@ -734,13 +837,21 @@ class EdgeProjector:
     def is_feasible(self, x: np.ndarray, tol: float = 1e-9) -> bool:
         """True if ``x`` (3, N+1) meets the margin limits and the fixed values."""
         x = np.asarray(x, dtype=np.float64)
-        if np.any(x < self.lo - tol) or np.any(x > self.hi + tol):
-            return False
-        if self.uniform:
-            d = np.abs(np.diff(x, axis=1))
-            return not np.any(self.pair_free & (d > self.step + tol))
-        d = np.diff(x, axis=1)
-        return not np.any(self.pair_free & ((d > self.dhi + tol) | (d < self.dlo - tol)))
+        for a in range(0, self.n_edges, CHECK_CHUNK):  # in pieces: the temporaries are one piece's, not the sequence's
+            b = min(a + CHECK_CHUNK, self.n_edges)
+            e, s = slice(a, b), slice(a, b - 1 if b == self.n_edges else b)  # the pieces' edges and steps
+            xe = x[:, e]
+            lo, hi = self._box(e)
+            if np.any(xe < lo - tol) or np.any(xe > hi + tol):
+                return False
+            d = np.diff(x[:, a : s.stop + 1], axis=1)
+            if self.uniform:
+                bad = self.pair_free[:, s] & (np.abs(d) > self.step + tol)
+            else:
+                bad = self.pair_free[:, s] & ((d > self.dhi[:, s] + tol) | (d < self.dlo[:, s] - tol))
+            if bad.any():
+                return False
+        return True
 
     def at_limits(self, x: np.ndarray, rtol: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
         """(amplitude, slew) masks of free edges at their bound and free segments at theirs ((3, N+1) and
