@@ -298,9 +298,8 @@ def path_model(twin, ctx, weights, moments: bool):
     r = per_fine[::2].copy()
     r[1:] += 0.25 * per_fine[1::2]
     r[:-1] += 0.25 * per_fine[1::2]
-    rfs = [p for p in ir.rf]
-    cuts = np.array([round(p.t_center_s / ras) for p in rfs if p.excites], dtype=np.int64)
-    flips = np.sort(np.array([p.t_center_s for p in rfs if p.refocuses], dtype=np.float64))
+    cuts = np.array([round(p.t_center_s / ras) for p in ir.rf if p.excites], dtype=np.int64)
+    flips = np.sort(np.array([p.t_center_s for p in ir.rf if p.refocuses], dtype=np.float64))
     sign = 1.0 - 2.0 * (np.searchsorted(flips, np.arange(n) * ras, side="left") % 2)
     return SV.PathModel(cuts=cuts, sign=sign, w=W, r=np.broadcast_to(r, (3, n)).copy())
 
@@ -416,14 +415,18 @@ def robust_warm_start(
     samples exactly instead of spreading the error over all of them (the later discarding then skips
     few samples).  Without active limits the first solve is already exact and no round runs.
 
-    ``iters`` None: each solve to the tolerance ``k_tol_dk`` within ``budget`` evaluations
-    (:func:`solve_warm_start`; its :class:`~dtoc.optimize.solver.SolveReport` appended to ``reports``);
+    ``iters`` None: each solve to the tolerance ``k_tol_dk`` (:func:`solve_warm_start`; its
+    :class:`~dtoc.optimize.solver.SolveReport` appended to ``reports``), all of them within ``budget`` evaluations
+    together (a round gets what the solves before it left; none with fewer than 40 left);
     an integer: the fixed-count algorithm (:func:`warm_start`, ``iters // 2`` per round).
     """
 
+    spent: list = []  # evaluations of the solves so far (the rounds share ``budget`` with the first solve)
+
     def solve(x_init=None, n=iters):
         if iters is None:
-            x, rep = solve_warm_start(twin, ctx, weights, k_tol_dk, budget, state, progress, x_init)
+            x, rep = solve_warm_start(twin, ctx, weights, k_tol_dk, budget - sum(spent), state, progress, x_init)
+            spent.append(rep.evaluations)
             if reports is not None:
                 reports.append(rep)
             return x
@@ -433,6 +436,8 @@ def robust_warm_start(
     for _r in range(rounds):
         if state is not None and state.interrupted:
             break
+        if iters is None and budget - sum(spent) < 40:
+            break  # the budget is spent: no round
         with torch.no_grad():
             err = kspace_error_dk(twin.forward_edges(x, moments=False).kspace_rad_per_m, ctx)
         if err.max() <= scale_dk:
