@@ -131,10 +131,8 @@ KIND_DEFAULTS: dict[str, dict] = {
         "lr": 0.05,
         "iters": 0,
         "n_dummies": default_dummies("gre"),  # shared with dtoc simulate
-        # the fixed count, not the solve to k_tol_dk: the solver's CG reaches the ADC samples' tolerance in ~11
-        # evaluations but leaves the spoiler moments (k before each RF pulse) at ~0.6 dk on a 128-line GRE (its
-        # preconditioner is the ADC samples' integrator; the moments add a rank per TR): NRMSE 0.97 % there
-        "warm_iters": 300,
+        # no warm_iters: the warm start is solved to k_tol_dk, the spoiler moments (k before each RF pulse)
+        # included in the stopping rule (docs/optimize.md, "Solver")
         "robust_rounds": 3,
     },
     "epi": {

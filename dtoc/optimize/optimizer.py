@@ -263,6 +263,47 @@ def constrained_least_squares(
     return x
 
 
+def path_model(twin, ctx, weights, moments: bool):
+    """The :class:`~dtoc.optimize.solver.PathModel` of :func:`linear_objective` on ``twin``'s raster edges: the
+    weight of k at each edge from the ADC samples (``ctx.sample_weight`` included) and, with ``moments``, the
+    moments before the RF pulses there; the RF-period and Tikhonov terms' diagonal; the excitations' cuts and the
+    sign flips at the refocusing pulses.  Units: objective per (mT/m)^2 (the Hessian's, without the GIRF)."""
+    from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
+    from dtoc.optimize import solver as SV
+
+    ir = twin.ir
+    n = twin.free_t.shape[-1]
+    ras = ir.raster_s
+    dk = ctx.dk_rad_per_m.detach().cpu().numpy()
+    inv2 = np.where(np.isfinite(dk), 1.0 / np.where(np.isfinite(dk), dk, 1.0), 0.0) ** 2  # (3,) 1/dk^2
+    ck2 = (GAMMA_RAD_PER_S_PER_MT * ras) ** 2  # (rad/m per mT/m of one edge)^2
+
+    def at(t_s):
+        return np.clip(np.floor(np.asarray(t_s, dtype=np.float64) / ras + 1e-9).astype(np.int64), 0, n - 1)
+
+    w = np.zeros(n)
+    t_adc = adc_sample_times_s(ir)
+    sw = np.ones(t_adc.size) if ctx.sample_weight is None else ctx.sample_weight.detach().cpu().numpy()
+    np.add.at(w, at(t_adc), 2.0 * weights.kspace * sw / max(float(sw.sum()), 1e-12))
+    if moments and ctx.t_moment_s is not None and weights.moment > 0:
+        np.add.at(w, at(ctx.t_moment_s), 2.0 * weights.moment / ctx.t_moment_s.size)
+    W = ck2 * inv2[:, None] * w[None, :]
+    # the RF-period term on G and the Tikhonov term on g, per fine sample; an edge is 1 fine sample and half of
+    # each neighbouring midpoint (edges_to_fine)
+    M = ctx.g0_fine_mT_per_m.shape[-1]
+    rf = ctx.rf_mask.detach().cpu().numpy().astype(np.float64)
+    per_fine = 2.0 * weights.reg / (M * ctx.g_ref_mT_per_m**2) + rf * (
+        2.0 * weights.rf / (max(float(rf.sum()), 1.0) * ctx.g_ref_mT_per_m**2)
+    )
+    r = per_fine[::2].copy()
+    r[1:] += 0.25 * per_fine[1::2]
+    r[:-1] += 0.25 * per_fine[1::2]
+    cuts = np.array([round(p.t_center_s / ras) for p in ir.rf if p.excites], dtype=np.int64)
+    flips = np.sort(np.array([p.t_center_s for p in ir.rf if p.refocuses], dtype=np.float64))
+    sign = 1.0 - 2.0 * (np.searchsorted(flips, np.arange(n) * ras, side="left") % 2)
+    return SV.PathModel(cuts=cuts, sign=sign, w=W, r=np.broadcast_to(r, (3, n)).copy())
+
+
 def solve_warm_start(
     twin,
     ctx,
@@ -285,13 +326,13 @@ def solve_warm_start(
     x0 = twin.base_edges() if x_init is None else x_init.detach().clone()
     f = linear_objective(twin, ctx, weights)
 
-    def k_error(x):
-        with torch.no_grad():
-            return kspace_error_dk(twin.forward_edges(x, moments=False).kspace_rad_per_m, ctx)
-
     use_moments = weights.moment > 0 and ctx.k0_moment_rad_per_m is not None
+    n_adc = int(ctx.k0_rad_per_m.shape[-1])
+    times = adc_sample_times_s(twin.ir)
+    if use_moments:
+        times = np.concatenate([times, np.asarray(ctx.t_moment_s, dtype=np.float64)])
 
-    def stop_error(x):  # the first CG's early stop: every ADC sample and every moment the objective holds, in dk
+    def k_error(x):  # every ADC sample and every moment before an RF pulse the objective holds, in dk
         with torch.no_grad():
             r = twin.forward_edges(x, moments=use_moments)
             e = kspace_error_dk(r.kspace_rad_per_m, ctx)
@@ -305,11 +346,13 @@ def solve_warm_start(
     if is_affine(twin.hardware):
         x, rep = SV.solve_to_tolerance(
             f, x0, twin.projector, twin.free_t, k_error, k_tol_dk=k_tol_dk, budget=budget,
-            sample_times_s=adc_sample_times_s(twin.ir), progress=progress, stop_error=stop_error,
+            sample_times_s=times, progress=progress, n_adc=n_adc,
             cuts=np.array([round(r.t_center_s / twin.ir.raster_s) for r in twin.ir.rf if r.excites], dtype=np.int64),
+            model=path_model(twin, ctx, weights, use_moments) if any(r.refocuses for r in twin.ir.rf) else None,
         )  # fmt: skip
         left = budget - rep.evaluations
-        if rep.stop_reason not in ("tolerance", "interrupted") and rep.achieved_max_dk > k_tol_dk and left >= 40:
+        above = max(rep.achieved_max_dk, rep.moment_max_dk or 0.0) > k_tol_dk
+        if rep.stop_reason not in ("tolerance", "interrupted") and above and left >= 40:
             # above the tolerance (limits active over much of the waveform, or active-set rounds that stopped
             # paying -- a heuristic, not a certificate): CG then projected FISTA from the start (the fixed-count
             # algorithm) on what is left of the budget, with the same rule; kept if it lowers the objective
@@ -324,10 +367,10 @@ def solve_warm_start(
             if float(f(x2)[0].detach()) < float(f(x)[0].detach()):
                 x = x2
                 err = k_error(x)
-                rep.achieved_max_dk = float(err.max()) if err.size else 0.0
+                rep.set_errors(err, n_adc)
                 rep.unreachable = SV.explain_unreachable(
-                    x, err, rep.unconstrained_errors, k_tol_dk, twin.projector, adc_sample_times_s(twin.ir),
-                    rep.unconstrained_converged,
+                    x, err, rep.unconstrained_errors, k_tol_dk, twin.projector, times, rep.unconstrained_converged,
+                    n_adc,
                 )  # fmt: skip
                 # its 'no-gain' stop came after a last 20-iteration descent too slow to matter: 'converged'
                 rep.stop_reason = {"no-gain": "converged"}.get(sub.stop_reason, sub.stop_reason)
@@ -337,8 +380,7 @@ def solve_warm_start(
             f, x0, twin.projector, twin.free_t, budget, state, progress, 0.5 if x_init is None else 0.0,
             k_stop=lambda x: bool(k_error(x).max() <= k_tol_dk), report=rep,
         )  # fmt: skip
-        err = k_error(x)
-        rep.achieved_max_dk = float(err.max()) if err.size else 0.0
+        rep.set_errors(k_error(x), n_adc)
     if state is not None:
         if rep.stop_reason == "interrupted":
             state.interrupted = True
@@ -373,14 +415,18 @@ def robust_warm_start(
     samples exactly instead of spreading the error over all of them (the later discarding then skips
     few samples).  Without active limits the first solve is already exact and no round runs.
 
-    ``iters`` None: each solve to the tolerance ``k_tol_dk`` within ``budget`` evaluations
-    (:func:`solve_warm_start`; its :class:`~dtoc.optimize.solver.SolveReport` appended to ``reports``);
+    ``iters`` None: each solve to the tolerance ``k_tol_dk`` (:func:`solve_warm_start`; its
+    :class:`~dtoc.optimize.solver.SolveReport` appended to ``reports``), all of them within ``budget`` evaluations
+    together (a round gets what the solves before it left; none with fewer than 40 left);
     an integer: the fixed-count algorithm (:func:`warm_start`, ``iters // 2`` per round).
     """
 
+    spent: list = []  # evaluations of the solves so far (the rounds share ``budget`` with the first solve)
+
     def solve(x_init=None, n=iters):
         if iters is None:
-            x, rep = solve_warm_start(twin, ctx, weights, k_tol_dk, budget, state, progress, x_init)
+            x, rep = solve_warm_start(twin, ctx, weights, k_tol_dk, budget - sum(spent), state, progress, x_init)
+            spent.append(rep.evaluations)
             if reports is not None:
                 reports.append(rep)
             return x
@@ -390,6 +436,8 @@ def robust_warm_start(
     for _r in range(rounds):
         if state is not None and state.interrupted:
             break
+        if iters is None and budget - sum(spent) < 40:
+            break  # the budget is spent: no round
         with torch.no_grad():
             err = kspace_error_dk(twin.forward_edges(x, moments=False).kspace_rad_per_m, ctx)
         if err.max() <= scale_dk:
