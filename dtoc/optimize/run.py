@@ -308,11 +308,15 @@ def _active_limits_before(P: EdgeProjector, x: np.ndarray, times_s: np.ndarray) 
 def _unreachable(err, unc, k_tol_dk: float, P: EdgeProjector, x: np.ndarray, times_s: np.ndarray) -> Unreachable:
     """The samples (or moments) above ``k_tol_dk``, named as :func:`dtoc.optimize.solver.explain_unreachable` does:
     'fixed' when their window's unconstrained optimum misses them too (or no free edge reaches them: ``unc`` nan),
-    else 'limits' with the limit active nearest before them."""
+    else 'limits' with the limit active nearest before them, or 'unresolved' when no limit is at its bound before
+    them (the window's ADMM stopped at its residual tolerance: no claim)."""
     idx = np.flatnonzero(err > k_tol_dk)
     u = np.where(np.isnan(unc[idx]), err[idx], unc[idx])
     reason = ["fixed" if v > k_tol_dk else "limits" for v in u]
     lim, lt = _active_limits_before(P, x, times_s[idx])
+    # reachable without the limits but no limit at its bound before it: the window's ADMM stopped at its residual
+    # tolerance short of the constrained optimum (docs/optimize.md): no claim
+    reason = ["unresolved" if r == "limits" and not name else r for r, name in zip(reason, lim)]
     lim = [name if r == "limits" else "" for name, r in zip(lim, reason)]
     lt = np.where([r == "limits" for r in reason], lt, np.nan) if idx.size else lt
     return Unreachable(idx, err[idx], reason, lim, lt, u)
