@@ -94,8 +94,8 @@ def test_goldens_and_short_sequences_stay_whole_many_short_periods_are_windowed(
         ir = load_sequence(path)
         cfg = load_config(ir.kind, None)
         assert _window_plan(ir, hw, cfg, free_edges(ir), None) is None, path
-    # 256 lines of 128 samples in 0.51 s (below window_auto_s): the whole solve is estimated far above the windowed
-    ir = _idle_gre_ir(256, idle_edges=0, r_s=1e-5, n=128, fov_m=0.32)
+    # 256 lines of 256 samples in 0.87 s (below window_auto_s): the whole solve is estimated far above the windowed
+    ir = _idle_gre_ir(256, idle_edges=0, r_s=1e-5, n=256, fov_m=0.32)
     assert ir.duration_s < load_config("gre", None).window_auto_s
     plan = _window_plan(ir, hw, load_config("gre", None), free_edges(ir), None)
     assert plan is not None and "whole solve estimated" in plan["note"]

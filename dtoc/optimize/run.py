@@ -405,8 +405,10 @@ def image_in_loss(cfg: OptimizeConfig) -> bool:
 
 #: 'auto' also windows a sequence shorter than ``window_auto_s`` whose whole solve is estimated at this many seconds
 #: or more (:func:`dtoc.util.cost.optimize_cost`) and at least :data:`WINDOW_AUTO_GAIN` times the windowed solve's
-#: estimate: many short periods (a 256-line GRE or bSSFP of 1-3 s), not the goldens' 16-32 TRs (~10-20 s)
-WINDOW_AUTO_WHOLE_S = 60.0
+#: estimate: many short periods (the corpus's 256-line GREs and bSSFPs of 1-3 s: ~320-380 s), not the goldens'
+#: 16-32 TRs (~13-21 s) nor a 128-line GRE that the whole solve finishes (gre_v15: ~80 s estimated, 0.0022 dk
+#: whole, tighter than the windows' ADMM leaves, docs/optimize.md).  Assumed, not a measured break-even.
+WINDOW_AUTO_WHOLE_S = 120.0
 WINDOW_AUTO_GAIN = 3.0
 
 
