@@ -116,3 +116,12 @@ def test_windowed_solver_line_on_stderr(gre, tmp_path, capsys):
     assert code == 0
     m = json.loads(mp.read_text())
     assert "solver: windowed, " in m["solver"]["summary"] and m["solver"]["summary"] in err
+
+
+def test_a_windowed_run_without_image_weight_simulates_no_image(gre):
+    from dtoc.optimize.run import RunIO, plan_run
+
+    cfg = load_config("gre", None, {"window_auto_s": 0.05, "weights": {"image": 0.0}})
+    plan = plan_run(gre, RunIO(base_path=gre), config=cfg, hardware=_hw())
+    assert plan.window is not None and plan.with_image is False and plan.imager is None
+    assert "no image term" in plan.window["note"]

@@ -447,7 +447,9 @@ def _window_plan(ir, hardware, cfg: OptimizeConfig, free, with_image: bool | Non
     elif cfg.windowed == "on":
         rule = "windowed: on"
     image = "k-space terms only" + (
-        ", the image for the report" if with_image is not False and not image_in_loss(cfg) else ", no image term"
+        ", the image for the report"
+        if with_image is not False and not image_in_loss(cfg) and cfg.weights.image > 0
+        else ", no image term"
     )
     note = (
         f"{'long ' if ir.duration_s > cfg.window_auto_s else ''}sequence ({ir.duration_s:.3g} s; {rule}): optimized "
@@ -812,7 +814,9 @@ def plan_run(
         with_image = False
     if with_image is None:
         with_image = ir.geometry is not None  # no grid (non-Cartesian): the k-space term alone
-        if with_image and window is not None:  # the image for the report only: dropped, not refused, if it cannot fit
+        if with_image and window is not None and cfg.weights.image <= 0:
+            with_image = False  # windowed and no image weight: k-space only (the way to skip the report's simulation)
+        elif with_image and window is not None:  # the image for the report only: dropped, not refused, if it cannot fit
             try:
                 check_run_cost(ir, cfg, free, window, True, str(io.base_path or "sequence"))
             except InputError as e:
