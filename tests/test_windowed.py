@@ -267,15 +267,15 @@ def test_rf_mask_by_bisection_equals_the_comparison():
     assert np.array_equal(got, want)
 
 
-def _idle_gre_ir(reps: int, idle_edges: int = 8000):
-    """``reps`` identical spoiled-GRE periods on a 0.1 ms raster (RF 2 ms, prewinder, 16-sample readout, spoiler),
-    each followed by an idle delay of ``idle_edges`` rasters (0.8 s): a long sequence whose whole-sequence arrays
-    are large and whose windows and period structures are small."""
+def _idle_gre_ir(reps: int, idle_edges: int = 8000, r_s: float = 1e-4, n: int = 16, fov_m: float = 0.032):
+    """``reps`` identical spoiled-GRE periods on a ``r_s`` raster (0.1 ms: RF 2 ms, prewinder, ``n``-sample readout
+    of dwell ``r_s``, spoiler), each followed by an idle delay of ``idle_edges`` rasters (0.8 s): a long sequence
+    whose whole-sequence arrays are large and whose windows and period structures are small."""
     from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
     from dtoc.seq.ir import ADCEvent, RFEvent, SequenceIR, edges_to_fine
 
-    r_s, n, per = 1e-4, 16, 100 + idle_edges
-    gr = 2 * np.pi / 0.032 / (GAMMA_RAD_PER_S_PER_MT * r_s)
+    per = 84 + n + idle_edges
+    gr = 2 * np.pi / fov_m / (GAMMA_RAD_PER_S_PER_MT * r_s)
     e = np.zeros((3, per * reps + 1))
     rf, adc, edges_s = [], [], []
     for r in range(reps):
@@ -285,9 +285,9 @@ def _idle_gre_ir(reps: int, idle_edges: int = 8000):
         e[0, o + 26 + n : o + 36 + n] = 17.6
         e[1, o + 21 : o + 25] = 2 * gr / 4.0
         e[1, o + 26 + n : o + 30 + n] = -2 * gr / 4.0
-        rf.append(RFEvent(3 * r, o * r_s, o * r_s + 1e-3, 2e-3, np.deg2rad(15), 0.0, 0.0, "excitation"))
-        adc.append(ADCEvent(block=3 * r + 1, t_start_s=o * r_s + 2.5e-3, num_samples=n, dwell_s=r_s))
-        edges_s += [o * r_s, o * r_s + 2e-3, (o + 100) * r_s]
+        rf.append(RFEvent(3 * r, o * r_s, o * r_s + 10 * r_s, 20 * r_s, np.deg2rad(15), 0.0, 0.0, "excitation"))
+        adc.append(ADCEvent(block=3 * r + 1, t_start_s=o * r_s + 25 * r_s, num_samples=n, dwell_s=r_s))
+        edges_s += [o * r_s, o * r_s + 20 * r_s, (o + 84 + n) * r_s]
     edges_s.append(per * reps * r_s)
     free = np.zeros((3, 2 * e.shape[1] - 1), bool)
     fe = (np.arange(e.shape[1]) % per) >= 20
@@ -295,7 +295,7 @@ def _idle_gre_ir(reps: int, idle_edges: int = 8000):
     free[:2, ::2] = fe
     return SequenceIR(
         raster_s=r_s, grad_mT_per_m=edges_to_fine(e), block_edges_s=np.array(edges_s), rf=rf, adc=adc,
-        free_mask=free, fov_m=(0.032, 0.032, 0.032), matrix=(n, n), kind="gre", readout_axis=0, phase_axis=1,
+        free_mask=free, fov_m=(fov_m, fov_m, fov_m), matrix=(n, n), kind="gre", readout_axis=0, phase_axis=1,
     )  # fmt: skip
 
 

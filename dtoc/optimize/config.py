@@ -81,10 +81,12 @@ class OptimizeConfig(BaseModel):
         threads: torch threads (fixed for reproducibility).
         checkpoint_every: iterations between checkpoints when a checkpoint path is set.
         windowed: long sequences (docs/optimize.md, "Long sequences"): 'auto' = solve the warm start one
-            excitation period at a time (:mod:`dtoc.optimize.windowed`; k-space terms only, no image term,
-            no discarding) when the sequence is longer than ``window_auto_s``, the hardware chain is
-            affine and no image term is asked for (default); 'on' = always (an error when impossible);
-            'off' = never (the whole sequence in one piece: memory and time grow with its length).
+            excitation period at a time (:mod:`dtoc.optimize.windowed`; k-space terms only, no full-loss stage)
+            when the sequence is longer than ``window_auto_s`` or its whole solve is estimated far costlier than
+            the windowed one (many short periods), the hardware chain is affine, and no image asked for would
+            enter the full loss; an image the optimization does not use (``iters`` 0, warmstart) is kept for the
+            report and the discarding (default); 'on' = always (an error when impossible); 'off' = never (the
+            whole sequence in one piece: memory and time grow with its length).
         window_auto_s: sequence duration above which 'auto' windows, s.
         window_horizon_max_s: cap of the history / lookahead kept around each period, s (default: the
             hardware's memory, :func:`dtoc.hardware.memory.memory_s`, up to this cap).

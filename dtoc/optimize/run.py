@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from dtoc.constants import BASE_HASH_DEFINITION
+from dtoc.constants import AXES, BASE_HASH_DEFINITION
 from dtoc.errors import InputError, LimitError, ValidationFailed
 from dtoc.optimize import loss as L
 from dtoc.optimize import optimizer as O
@@ -37,6 +37,7 @@ from dtoc.optimize.limits import (
     waveform_extremes,
 )
 from dtoc.optimize.report import plotted_span
+from dtoc.optimize.solver import SolveReport, Unreachable
 from dtoc.optimize.twin import EdgeTwin
 from dtoc.seq.check import SafetyChecks, base_timing_refusal, check_file, check_ir_limits
 from dtoc.seq.ir import SequenceIR
@@ -247,6 +248,136 @@ def solver_record(solves: list) -> dict:
     return rec
 
 
+def streamed_k_errors(twin: EdgeTwin, ctx, played) -> tuple[np.ndarray, np.ndarray]:
+    """Per ADC sample and per moment (k just before every RF pulse after the first), the largest axis's k error of
+    the demanded waveform ``played`` (3, 2N+1) against the nominal, dk (axes without a k unit left out): the chain
+    played piece by piece (:func:`dtoc.sim.predict.realized_pieces`), k integrated across the pieces, so memory is
+    bounded by a piece; played whole where the chain cannot be streamed."""
+    from dtoc.seq.kspace import kspace_at_streamed
+    from dtoc.sim.predict import realized_pieces, streamable
+
+    ir = twin.ir
+    t_adc = ir.adc_times_s
+    t_mom = np.array([r.t_center_s - 1e-9 for r in ir.rf[1:]], dtype=np.float64)
+    with torch.no_grad():
+        if streamable(twin):
+            pieces = ((p.s, p.G) for p in realized_pieces(twin, played))
+            k = kspace_at_streamed(
+                pieces, ir.n_fine, ir.dt_fine_s, np.r_[t_adc, t_mom], [r.t_center_s for r in ir.rf],
+                [r.use for r in ir.rf],
+            )  # fmt: skip
+            k_adc, k_mom = k[:, : t_adc.size], k[:, t_adc.size :]
+        else:
+            r = twin.forward(twin.demanded(played), moments=True)
+            k_adc = r.kspace_rad_per_m
+            k_mom = r.moments_rad_per_m if r.moments_rad_per_m is not None else torch.zeros((3, 0))
+    dk = ctx.dk_rad_per_m.cpu().numpy()
+    ax = np.flatnonzero(np.isfinite(dk) & (dk > 0))
+
+    def err(k, k0) -> np.ndarray:
+        if k0 is None or k.shape[1] == 0 or ax.size == 0:
+            return np.zeros(k.shape[1])
+        d = (k.cpu().numpy() - k0.cpu().numpy())[ax] / dk[ax, None]
+        return np.abs(d).max(axis=0)
+
+    return err(k_adc, ctx.k0_rad_per_m), err(k_mom, ctx.k0_moment_rad_per_m)
+
+
+def _active_limits_before(P: EdgeProjector, x: np.ndarray, times_s: np.ndarray) -> tuple[list[str], np.ndarray]:
+    """Per time, the amplitude or slew limit (per axis) at its bound nearest before it in the edges ``x``, and its
+    time (nan, '' if none): one (N+1,) index array at a time, no list of events (a long sequence at its slew limit
+    on every ramp has millions)."""
+    amp, slew_seg = P.at_limits(x)
+    n = P.free.shape[1]
+    best_t = np.full(times_s.size, -np.inf)
+    name = [""] * times_s.size
+    pos = np.clip(np.floor(times_s / P.raster_s + 1e-9).astype(np.int64), 0, n - 1)
+    for kind, m in (("amplitude", amp), ("slew", slew_seg)):
+        for a in range(3):
+            if not m[a].any():
+                continue
+            last = np.maximum.accumulate(np.where(m[a], np.arange(m.shape[1]), -1))
+            i = last[np.minimum(pos, m.shape[1] - 1)]
+            t = np.where(i >= 0, i * P.raster_s, -np.inf)
+            for j in np.flatnonzero(t > best_t):
+                name[j] = f"{kind} {AXES[a]}"
+            best_t = np.maximum(best_t, t)
+    return name, np.where(np.isfinite(best_t), best_t, np.nan)
+
+
+def _unreachable(err, unc, k_tol_dk: float, P: EdgeProjector, x: np.ndarray, times_s: np.ndarray) -> Unreachable:
+    """The samples (or moments) above ``k_tol_dk``, named as :func:`dtoc.optimize.solver.explain_unreachable` does:
+    'fixed' when their window's unconstrained optimum misses them too (or no free edge reaches them: ``unc`` nan),
+    else 'limits' with the limit active nearest before them, or 'unresolved' when no limit is at its bound before
+    them (the window's ADMM stopped at its residual tolerance: no claim)."""
+    idx = np.flatnonzero(err > k_tol_dk)
+    u = np.where(np.isnan(unc[idx]), err[idx], unc[idx])
+    reason = ["fixed" if v > k_tol_dk else "limits" for v in u]
+    lim, lt = _active_limits_before(P, x, times_s[idx])
+    # reachable without the limits but no limit at its bound before it: the window's ADMM stopped at its residual
+    # tolerance short of the constrained optimum (docs/optimize.md): no claim
+    reason = ["unresolved" if r == "limits" and not name else r for r, name in zip(reason, lim)]
+    lim = [name if r == "limits" else "" for name, r in zip(lim, reason)]
+    lt = np.where([r == "limits" for r in reason], lt, np.nan) if idx.size else lt
+    return Unreachable(idx, err[idx], reason, lim, lt, u)
+
+
+def windowed_solver_record(plan: Plan, x: torch.Tensor, fine, st) -> dict:
+    """The manifest's ``solver`` record of a windowed solve, in the whole solve's vocabulary
+    (:class:`dtoc.optimize.solver.SolveReport`): the exported waveform's k error at every ADC sample and moment
+    (streamed: memory bounded by a piece), 'tolerance' when all are within ``k_tol_dk``, else 'converged' (every
+    window at its optimum within the limits; 'rounds' if a window's ADMM stopped at its cap) with the samples and
+    moments above it named: 'fixed' when the window's unconstrained optimum misses them too, else 'limits'."""
+    ir, tol = plan.ir, plan.cfg.k_tol_dk
+    e_adc, e_mom = streamed_k_errors(plan.twin, plan.ctx, fine)
+    P, xe = plan.projector, x.detach().cpu().numpy()
+    nan = np.full(0, np.nan)
+    u_adc = st.unconstrained_adc_dk if st.unconstrained_adc_dk is not None else np.full(e_adc.size, np.nan)
+    u_mom = st.unconstrained_moment_dk[1:] if st.unconstrained_moment_dk is not None else nan
+    if u_mom.size != e_mom.size:
+        u_mom = np.full(e_mom.size, np.nan)
+    t_mom = np.array([r.t_center_s for r in ir.rf[1:]], dtype=np.float64)
+    un = _unreachable(e_adc, u_adc, tol, P, xe, ir.adc_times_s)
+    um = _unreachable(e_mom, u_mom, tol, P, xe, t_mom)
+    um.indices = um.indices + 1  # the moment before RF pulse i (0-based; the first pulse has none)
+    worst = float(max(e_adc.max(initial=0.0), e_mom.max(initial=0.0)))
+    rep = SolveReport(method="windowed", k_tol_dk=tol, achieved_max_dk=worst, unreachable=un)
+    rep.stop_reason = "tolerance" if worst <= tol else ("rounds" if st.admm_capped else "converged")
+    rep.evaluations = st.windows
+    rep.unconstrained_max_dk = float(np.nanmax(np.r_[u_adc, u_mom, 0.0]))
+    rec = rep.as_dict()
+    rec.pop("cg_iterations", None)
+    rec.pop("active_set_rounds", None)
+    rec.pop("fallback_stop_reason", None)
+    rec.pop("evaluations", None)
+    rec.pop("unconstrained_within_limits", None)
+    rec["windows"] = st.windows
+    rec["windows_solved_directly"] = st.direct
+    rec["admm_iterations"] = st.admm_iters
+    rec["windows_admm_at_cap"] = st.admm_capped
+    rec["achieved_max_adc_dk"] = float(e_adc.max(initial=0.0))
+    rec["achieved_max_moment_dk"] = float(e_mom.max(initial=0.0))
+    if st.window_adc_dk is not None and np.isfinite(st.window_adc_dk).any():
+        rec["window_model_max_adc_dk"] = float(np.nanmax(st.window_adc_dk))  # what the windows saw when committing
+    md = um.as_dict()
+    for w in md["worst"]:
+        w["rf_pulse"] = int(w.pop("sample"))
+    rec["unreachable_moments"] = md
+    line = (
+        f"solver: windowed, {rep.stop_reason} after {st.windows} windows ({st.direct} solved directly, "
+        f"{st.admm_iters} ADMM iterations); max k error {worst:.3g} dk (ADC samples {rec['achieved_max_adc_dk']:.3g}, "
+        f"moments {rec['achieved_max_moment_dk']:.3g}; tolerance {tol:g} dk)"
+    )
+    if un.indices.size:
+        line += "; " + un.summary()
+    if um.indices.size:
+        line += "; moments: " + um.summary().replace("samples above", "moments above").replace(
+            "sample ", "before RF pulse "
+        )
+    rec["summary"] = line
+    return rec
+
+
 def why_not_windowed(ir, hardware, cfg: OptimizeConfig, free) -> str | None:
     """Why this sequence cannot be solved period by period (None: it can)."""
     from dtoc.hardware.memory import is_affine
@@ -265,13 +396,36 @@ def why_not_windowed(ir, hardware, cfg: OptimizeConfig, free) -> str | None:
     return None
 
 
+def image_in_loss(cfg: OptimizeConfig) -> bool:
+    """Whether the run's optimization uses the image: its full-loss stage runs (dto / adam-paper with ``iters`` > 0)
+    with an image weight.  Otherwise (warmstart, ``iters`` 0 as for the GRE kind, no image weight) the image is
+    only the report's NRMSE and the discarding's, and a long sequence may be solved period by period."""
+    return cfg.method in ("dto", "adam-paper") and cfg.iters > 0 and cfg.weights.image > 0
+
+
+#: 'auto' also windows a sequence shorter than ``window_auto_s`` whose whole solve is estimated at this many seconds
+#: or more (:func:`dtoc.util.cost.optimize_cost`) and at least :data:`WINDOW_AUTO_GAIN` times the windowed solve's
+#: estimate: many short periods (the corpus's 256-line GREs and bSSFPs of 1-3 s: ~320-380 s), not the goldens'
+#: 16-32 TRs (~13-21 s) nor a 128-line GRE that the whole solve finishes (gre_v15: ~80 s estimated, 0.0022 dk
+#: whole, tighter than the windows' ADMM leaves, docs/optimize.md).  Assumed, not a measured break-even.
+WINDOW_AUTO_WHOLE_S = 120.0
+WINDOW_AUTO_GAIN = 3.0
+
+
 def _window_plan(ir, hardware, cfg: OptimizeConfig, free, with_image: bool | None) -> dict | None:
     """Whether to solve period by period (:mod:`dtoc.optimize.windowed`) and with which horizon; None = whole.
-    'auto' windows a sequence longer than ``window_auto_s`` unless an image term is asked for."""
-    from dtoc.hardware.memory import memory_s
 
-    if cfg.windowed == "off" or (cfg.windowed == "auto" and (ir.duration_s <= cfg.window_auto_s or with_image)):
+    'auto' windows a sequence longer than ``window_auto_s``, or one whose whole solve is estimated to cost far more
+    than the windowed one (:data:`WINDOW_AUTO_WHOLE_S`, :data:`WINDOW_AUTO_GAIN`), unless an image asked for
+    (``with_image`` True) would enter the optimization (:func:`image_in_loss`): the windowed solve has no image
+    term.  An image kept for the report only does not prevent it."""
+    from dtoc.hardware.memory import memory_s
+    from dtoc.optimize.windowed import period_starts
+
+    if cfg.windowed == "off" or (cfg.windowed == "auto" and with_image and image_in_loss(cfg)):
         return None
+    if cfg.windowed == "auto" and ir.duration_s <= cfg.window_auto_s and len(period_starts(ir)) < 3:
+        return None  # short, and nothing to cut: not even estimated
     why = why_not_windowed(ir, hardware, cfg, free)
     if why is not None:
         if cfg.windowed == "on":
@@ -279,16 +433,43 @@ def _window_plan(ir, hardware, cfg: OptimizeConfig, free, with_image: bool | Non
         return None
     causal, acausal = memory_s(hardware)
     cap = cfg.window_horizon_max_s
-    note = (
-        f"long sequence ({ir.duration_s:.3g} s): optimized one excitation period at a time, history "
-        f"{min(causal, cap) * 1e3:.3g} ms / lookahead {min(acausal, cap) * 1e3:.3g} ms (hardware memory "
-        f"{causal * 1e3:.3g} / {acausal * 1e3:.3g} ms); k-space terms only, no image term (docs/optimize.md)"
+    horizon, lookahead = min(causal, cap), min(acausal, cap)
+    sizes = window_sizes(ir, free, horizon, lookahead)
+    rule = f"longer than {cfg.window_auto_s:g} s"
+    if cfg.windowed == "auto" and ir.duration_s <= cfg.window_auto_s:
+        from dtoc.util.cost import optimize_cost
+
+        n_fine, n_adc = ir.grad_mT_per_m.shape[1], ir.n_adc_samples
+        whole_s, win_s = optimize_cost(n_fine, n_adc)[1], optimize_cost(n_fine, n_adc, sizes)[1]
+        if whole_s < WINDOW_AUTO_WHOLE_S or whole_s < WINDOW_AUTO_GAIN * win_s:
+            return None
+        rule = f"{sizes['n_windows']} periods, whole solve estimated ~{whole_s:.0f} s against ~{win_s:.0f} s"
+    elif cfg.windowed == "on":
+        rule = "windowed: on"
+    image = "k-space terms only" + (
+        ", the image for the report"
+        if with_image is not False and not image_in_loss(cfg) and cfg.weights.image > 0
+        else ", no image term"
     )
+    note = (
+        f"{'long ' if ir.duration_s > cfg.window_auto_s else ''}sequence ({ir.duration_s:.3g} s; {rule}): optimized "
+        f"one excitation period at a time, history {horizon * 1e3:.3g} ms / lookahead {lookahead * 1e3:.3g} ms "
+        f"(hardware memory {causal * 1e3:.3g} / {acausal * 1e3:.3g} ms); {image} (docs/optimize.md)"
+    )
+    return {"horizon_s": horizon, "lookahead_s": lookahead, "memory_s": [causal, acausal], "note": note, "sizes": sizes}
+
+
+def window_sizes(ir, free, horizon_s: float, lookahead_s: float) -> dict:
+    """The windowed plan's sizes for :func:`dtoc.util.cost.optimize_cost`: windows, the most free variables and the
+    most fine samples of one window."""
+    from dtoc.optimize.windowed import period_free_counts, plan_windows
+
+    ws = plan_windows(ir, horizon_s, lookahead_s)
+    be = ir.block_edges_s
     return {
-        "horizon_s": min(causal, cap),
-        "lookahead_s": min(acausal, cap),
-        "memory_s": [causal, acausal],
-        "note": note,
+        "n_windows": len(ws),
+        "max_free": int(period_free_counts(ir, free).max()),
+        "max_fine": int(max(be[w.sub[1]] - be[w.sub[0]] for w in ws) / ir.dt_fine_s) + 1 if ws else 0,
     }
 
 
@@ -466,6 +647,7 @@ def optimize_sequence(
         sol.x = warm_start_stage(plan, sol, report)
         if not sol.final:
             sol.x = full_loss_stage(plan, sol, io, report)
+        if not sol.final or plan.window is not None:  # a windowed solve's image kept for the report: discarding too
             discard_stage(plan, sol)
     except KeyboardInterrupt:
         sol.state.interrupted = True
@@ -545,6 +727,7 @@ class Solution:
     extra: dict = dataclasses.field(default_factory=dict)
     resumed_from: dict | None = None
     ckpt_target: Any = None
+    window_stats: Any = None  # the windowed solve's WindowStats (its report is made on the exported waveform)
 
 
 def plan_run(
@@ -623,7 +806,7 @@ def plan_run(
         # a 3D-encoded sequence: the image term when a 3D phantom is given (then not windowed), else k-space only
         with_image = phantom_3d
     window = _window_plan(ir, hardware, cfg, free, with_image)
-    if window is not None:  # long sequence: period by period, k-space terms only
+    if window is not None and image_in_loss(cfg):  # period by period, k-space terms only: no full loss to use it
         if with_image:
             raise InputError(
                 "a windowed (long-sequence) optimization has no image term; give windowed: off in --config"
@@ -631,6 +814,15 @@ def plan_run(
         with_image = False
     if with_image is None:
         with_image = ir.geometry is not None  # no grid (non-Cartesian): the k-space term alone
+        if with_image and window is not None and cfg.weights.image <= 0:
+            with_image = False  # windowed and no image weight: k-space only (the way to skip the report's simulation)
+        elif with_image and window is not None:  # the image for the report only: dropped, not refused, if it cannot fit
+            try:
+                check_run_cost(ir, cfg, free, window, True, str(io.base_path or "sequence"))
+            except InputError as e:
+                with_image = False
+                if io.notes is not None:
+                    io.notes(f"note: no image for the report (k-space figures only): {e}")
     if not with_image:
         cfg = cfg.model_copy(update={"weights": cfg.weights.model_copy(update={"image": 0.0})})
     whole_why = None  # a long sequence solved whole: why (the refusal's way out must not offer the windowed solve)
@@ -670,15 +862,7 @@ def check_run_cost(
 
     sizes = None
     if window is not None:
-        from dtoc.optimize.windowed import period_free_counts, plan_windows
-
-        ws = plan_windows(ir, window["horizon_s"], window["lookahead_s"])
-        be = ir.block_edges_s
-        sizes = {
-            "n_windows": len(ws),
-            "max_free": int(period_free_counts(ir, free).max()),
-            "max_fine": int(max(be[w.sub[1]] - be[w.sub[0]] for w in ws) / ir.dt_fine_s) + 1 if ws else 0,
-        }
+        sizes = window.get("sizes") or window_sizes(ir, free, window["horizon_s"], window["lookahead_s"])
     sim = (0.0, 0.0)
     geo = getattr(ir, "geometry", None)
     if with_image and geo is not None:
@@ -757,7 +941,8 @@ def warm_start_stage(plan: Plan, sol: Solution, report: Callable) -> torch.Tenso
         )
         stage_times["windowed_s"] = time.time() - t0
         extra["windowed"] = {"note": window["note"], "memory_s": window["memory_s"], **wst.as_dict()}
-        sol.final = True
+        sol.window_stats = wst
+        sol.final = True  # no full-loss stage (the discarding still runs when the image is kept: optimize_sequence)
         return torch.as_tensor(e, dtype=plan.dtype, device=plan.device)
     if sol.x is not None:
         return sol.x
@@ -845,6 +1030,8 @@ def export_stage(plan: Plan, sol: Solution, io: RunIO, t_start: float) -> RunOut
         _check_system_limits(ir_out, limits)
         # the exported waveform itself (bit for bit what twin.played(x) gives): no second whole-sequence copy
         after = quality(twin, imager, ctx, fine, keep_mask=keep, waveform_samples=plan.n_wave)
+        if sol.window_stats is not None:  # what the windowed solve achieved against the tolerance, named
+            extra["solver"] = windowed_solver_record(plan, x, fine, sol.window_stats)
         if state.interrupted and sol.ckpt_target is not None:
             done = max([h["it"] for h in state.history if h.get("stage") == "full"] or [sol.start_it])
             save_checkpoint(sol.ckpt_target, x, done, "full", state.history, cfg, force=True)

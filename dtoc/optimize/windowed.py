@@ -55,6 +55,8 @@ SOLVES_KEPT = 32
 #: the per-structure matrices kept, bytes (least recently used dropped beyond it; a structure needs up to ~4 dense
 #: n_free^2 float64 matrices: 1.15 GB at DENSE_MAX)
 STRUCTURES_KEPT_BYTES = 3_000_000_000
+#: ADMM iterations of one window at most
+ADMM_MAX_ITER = 2000
 #: edges farther than this from any non-zero base gradient or ADC sample are held at the base value, s
 PAD_S = 2e-3
 
@@ -83,6 +85,14 @@ class WindowStats:
     horizon_s: float = 0.0
     lookahead_s: float = 0.0
     times_s: dict = field(default_factory=dict)
+    admm_capped: int = 0  # windows whose ADMM stopped at its iteration cap (not converged)
+    #: per ADC sample / per RF pulse (its moment; nan: none), the k error of its window's unconstrained optimum, dk
+    #: (the window's quadratic without the limits: what the free edges could reach there; nan where not solved)
+    unconstrained_adc_dk: np.ndarray | None = None
+    unconstrained_moment_dk: np.ndarray | None = None
+    #: per ADC sample, its k error in its window's model at the committed solution, dk (what the window saw; the whole
+    #: sequence's realization differs by the hardware's memory beyond the horizon and the later windows' changes)
+    window_adc_dk: np.ndarray | None = None
 
     def as_dict(self) -> dict:
         return {
@@ -208,6 +218,24 @@ class _Scales:
         self.rf = math.sqrt(weights.rf / n_rf) / gref
         self.reg = math.sqrt(weights.reg / (3 * ir.n_fine)) / gref
         self.k_axes = np.flatnonzero(inv > 0)
+        # a residual row divided by these is a k error in dk (0: the term is not weighted, no figure)
+        self.k_unit = math.sqrt(weights.kspace / n_adc)
+        self.m_unit = math.sqrt(weights.moment / n_mom)
+
+    def k_errors_dk(self, rd: np.ndarray, n_adc: int, n_mom: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per ADC sample and per moment, the largest axis's k error, dk, of the window's k-space residual rows
+        ``rd`` (:func:`window_residual`'s order: the ADC samples' rows then the moments', axis by axis)."""
+        na = self.k_axes.size
+        out = []
+        for rows, n, unit in (
+            (rd[: na * n_adc], n_adc, self.k_unit),
+            (rd[na * n_adc : na * (n_adc + n_mom)], n_mom, self.m_unit),
+        ):
+            if n == 0 or na == 0 or unit <= 0:
+                out.append(np.full(n, np.nan))
+            else:
+                out.append(np.abs(rows.reshape(na, n)).max(axis=0) / unit)
+        return out[0], out[1]
 
 
 def windowed_warm_start(
@@ -267,6 +295,9 @@ def windowed_warm_start(
     # solve key -> the change of the window's edges; the last SOLVES_KEPT only (memory)
     solved: OrderedDict[str, np.ndarray] = OrderedDict()
     tt = {"setup": 0.0, "jacobian": 0.0, "residual": 0.0, "solve": 0.0}
+    st.unconstrained_adc_dk = np.full(ir.n_adc_samples, np.nan)
+    st.unconstrained_moment_dk = np.full(len(ir.rf), np.nan)
+    st.window_adc_dk = np.full(ir.n_adc_samples, np.nan)
     for wi, w in enumerate(windows):
         t0 = time.time()
         be = ir.block_edges_s
@@ -338,6 +369,13 @@ def windowed_warm_start(
             tt["jacobian"] += time.time() - t0
         t0 = time.time()
         r0n = r0.cpu().numpy()
+        nd = c["J"].shape[0]
+        r0d, r0r = r0n[:nd], r0n[nd:]
+        grad0 = c["J"].T @ r0d + c["S"].T @ r0r
+        d = -(c["Hinv"] @ grad0)  # the window's unconstrained optimum
+        ua, um = sc.k_errors_dk(r0d + c["J"] @ d, len(t_adc), len(t_mom))
+        st.unconstrained_adc_dk[sel_adc] = ua
+        st.unconstrained_moment_dk[w.moment_rf] = um
         # a window whose problem is an earlier one's (same structure; residual to 1e-6 of its largest entry and
         # edges to 1e-4 mT/m: identical repetitions, averages, slices that differ only in RF frequency or labels)
         # takes its change of the edges, if that is within the limits here
@@ -350,20 +388,18 @@ def windowed_warm_start(
                 st.reused += 1
                 tt["solve"] += time.time() - t0
                 edges[:, e0 : e1 + 1] = x_p
+                st.window_adc_dk[sel_adc] = sc.k_errors_dk(r0d + c["J"] @ (x_p[fr] - x_sub[fr]), len(t_adc), 0)[0]
                 if progress is not None:
                     progress("windows", wi + 1, len(windows), float((r0**2).sum()))
                 continue
-        nd = c["J"].shape[0]
-        r0d, r0r = r0n[:nd], r0n[nd:]
-        grad0 = c["J"].T @ r0d + c["S"].T @ r0r
-        d = -(c["Hinv"] @ grad0)
         x_p = x_sub.copy()
         x_p[fr] = x_sub[fr] + d
         if P.is_feasible(x_p[:, rs]):
             st.direct += 1
         else:  # a limit is active: the same quadratic within the limits (ADMM, matrices cached per structure)
-            x_p[:, rs], its = _admm(c, grad0, P, fr_r, x_sub[:, rs])
+            x_p[:, rs], its = _admm(c, grad0, P, fr_r, x_sub[:, rs], max_iter=ADMM_MAX_ITER)
             st.admm_iters += its
+            st.admm_capped += its >= ADMM_MAX_ITER
         if _quadratic(c, r0d, r0r, x_p[fr] - x_sub[fr]) > float(r0n @ r0n):  # never worse than unchanged
             x_p = x_sub
         tt["solve"] += time.time() - t0
@@ -371,6 +407,7 @@ def windowed_warm_start(
         if len(solved) > SOLVES_KEPT:
             solved.popitem(last=False)
         edges[:, e0 : e1 + 1] = x_p
+        st.window_adc_dk[sel_adc] = sc.k_errors_dk(r0d + c["J"] @ (x_p[fr] - x_sub[fr]), len(t_adc), 0)[0]
         if progress is not None:
             progress("windows", wi + 1, len(windows), float((r0**2).sum()))
     st.structures = cache.distinct
