@@ -50,6 +50,10 @@ from dtoc.seq.kspace import kspace_at
 
 #: a period with more free variables than this is not solved densely (the whole-sequence path is used)
 DENSE_MAX = 6000
+#: a period with more than DENSE_MAX free variables is cut into parts of at most this many (the Jacobian's cost grows
+#: with the square of a core's size and its factorisation with the cube: small parts are faster in all; bench rows in
+#: docs/optimize.md, "Long sequences")
+PART_MAX = 1500
 #: solutions of the most recent distinct window problems kept for identical later windows
 SOLVES_KEPT = 32
 #: the per-structure matrices kept, bytes (least recently used dropped beyond it; a structure needs up to ~4 dense
@@ -69,6 +73,8 @@ class Window:
     rf: list[int]  # indices into ir.rf kept in the window (k resets, moments)
     moment_rf: list[int]  # RF pulses whose moment counts here
     rfterm_rf: list[int]  # RF pulses whose G-during-RF counts here
+    #: the core begins an excitation period (False: a part of a long period, k carried in from the part before)
+    starts_period: bool = True
 
 
 @dataclass
@@ -121,12 +127,22 @@ def period_starts(ir: SequenceIR) -> list[int]:
     return [0] + sorted({r.block for r in ir.rf if r.excites} - {0})
 
 
-def plan_windows(ir: SequenceIR, horizon_s: float, lookahead_s: float) -> list[Window]:
-    """Cores = excitation periods (from the block of one exciting pulse to the next's); their windows.
+def plan_windows(
+    ir: SequenceIR,
+    horizon_s: float,
+    lookahead_s: float,
+    free: np.ndarray | None = None,
+    pad_s: float = PAD_S,
+    dense_max: int = DENSE_MAX,
+    part_max: int = PART_MAX,
+) -> list[Window]:
+    """Cores = excitation periods (from the block of one exciting pulse to the next's), a period with more than
+    ``dense_max`` free variables (``free`` given) cut into parts of at most ``part_max`` (:func:`core_blocks`);
+    their windows.
     Linear in the number of events: RF and ADC events are in time order, found per core by bisection."""
     edges = ir.block_edges_s
     nb = len(edges) - 1
-    starts = period_starts(ir)
+    cores = core_blocks(ir, free, pad_s, dense_max, part_max) if free is not None else _period_cores(ir)
     rf_block = np.array([r.block for r in ir.rf], dtype=np.int64)
     adc_block = np.array([a.block for a in ir.adc], dtype=np.int64)
 
@@ -134,8 +150,7 @@ def plan_windows(ir: SequenceIR, horizon_s: float, lookahead_s: float) -> list[W
         return list(range(int(np.searchsorted(blocks, b0)), int(np.searchsorted(blocks, b1))))
 
     out = []
-    for j, b0 in enumerate(starts):
-        b1 = starts[j + 1] if j + 1 < len(starts) else nb
+    for b0, b1, starts_period in cores:
         t0, t1 = edges[b0], edges[b1]
         sb0 = int(max(0, np.searchsorted(edges, t0 - horizon_s, side="right") - 1))
         # the next period's excitation (its moment and G-during-RF depend on this core)
@@ -146,12 +161,65 @@ def plan_windows(ir: SequenceIR, horizon_s: float, lookahead_s: float) -> list[W
         sb1 = int(min(nb, np.searchsorted(edges, t_end - 1e-12, side="left")))
         sb1 = max(sb1, b1)
         in_core = in_blocks(rf_block, b0, b1)
-        first = in_core[0] if (in_core and j > 0 and ir.rf[in_core[0]].excites) else None
+        first = in_core[0] if (in_core and b0 > 0 and ir.rf[in_core[0]].excites) else None
         rf_idx = in_core + nxt[:1]
         own = [i for i in rf_idx if i != first]
         moment = [i for i in own if i > 0]  # the sequence's first pulse has no moment term
-        out.append(Window((b0, b1), (sb0, sb1), in_blocks(adc_block, b0, b1), rf_idx, moment, own))
+        out.append(Window((b0, b1), (sb0, sb1), in_blocks(adc_block, b0, b1), rf_idx, moment, own, starts_period))
     return out
+
+
+def _period_cores(ir: SequenceIR) -> list[tuple[int, int, bool]]:
+    starts = period_starts(ir)
+    return [(b0, b1, True) for b0, b1 in zip(starts, starts[1:] + [len(ir.block_edges_s) - 1])]
+
+
+def _block_counts(free: np.ndarray, act: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Free variables (free edges within activity) of the blocks whose edges are ``[e[i], e[i + 1])``."""
+    return np.array([np.count_nonzero(free[:, a:b] & act[None, a:b]) for a, b in zip(e[:-1], e[1:])], dtype=np.int64)
+
+
+def core_blocks(
+    ir: SequenceIR, free: np.ndarray, pad_s: float = PAD_S, dense_max: int = DENSE_MAX, part_max: int = PART_MAX
+) -> list[tuple[int, int, bool]]:
+    """The cores ``(b0, b1, starts_period)``: every excitation period, one with more than ``dense_max`` free
+    variables cut at block boundaries into parts of at most ``part_max`` (a single larger block is a part of its
+    own; above ``dense_max`` ``why_not_windowed`` refuses it), each cut preferably right after a block holding an RF pulse (the train's
+    refocusing pulses: the moment before a pulse then counts in the core that plays its crusher).  Blocks are
+    counted only in the periods that are cut."""
+    act = active_edges(ir, pad_s)
+    e = np.round(ir.block_edges_s / ir.raster_s).astype(int)
+    periods = _period_cores(ir)
+    n_per = _block_counts(free, act, e[[p[0] for p in periods] + [len(e) - 1]])
+    rf_after = np.zeros(len(e) + 1, dtype=bool)
+    rf_after[np.array([r.block for r in ir.rf], dtype=np.int64) + 1] = True
+    out = []
+    for (b0, b1, _), n in zip(periods, n_per):
+        if n <= dense_max:
+            out.append((b0, b1, True))
+            continue
+        per = _block_counts(free, act, e[b0 : b1 + 1])
+        s = b0
+        while s < b1:
+            cs = np.cumsum(per[s - b0 :])
+            end = s + max(1, int(np.searchsorted(cs, part_max, side="right")))
+            if end < b1:
+                cut = np.flatnonzero(rf_after[s + 1 : end + 1])
+                if cut.size:
+                    end = s + 1 + int(cut[-1])
+            out.append((s, end, s == b0))
+            s = end
+    return out
+
+
+def core_free_counts(
+    ir: SequenceIR, free: np.ndarray, pad_s: float = PAD_S, dense_max: int = DENSE_MAX, part_max: int = PART_MAX
+) -> np.ndarray:
+    """Free variables of every core of :func:`core_blocks` (a value above ``part_max``: a single block)."""
+    act = active_edges(ir, pad_s)
+    e = np.round(ir.block_edges_s / ir.raster_s).astype(int)
+    cores = core_blocks(ir, free, pad_s, dense_max, part_max)
+    return _block_counts(free, act, e[[c[0] for c in cores] + [len(e) - 1]])
 
 
 def active_edges(ir: SequenceIR, pad_s: float) -> np.ndarray:
@@ -190,7 +258,7 @@ def period_free_counts(ir: SequenceIR, free: np.ndarray, pad_s: float = PAD_S) -
     act = active_edges(ir, pad_s)
     edges = ir.block_edges_s
     e = np.round(edges[period_starts(ir) + [len(edges) - 1]] / ir.raster_s).astype(int)
-    return np.array([np.count_nonzero(free[:, a:b] & act[None, a:b]) for a, b in zip(e[:-1], e[1:])], dtype=np.int64)
+    return _block_counts(free, act, e)
 
 
 class _Scales:
@@ -225,6 +293,8 @@ def windowed_warm_start(
     device: str = "cpu",
     progress: Callable | None = None,
     reuse: bool = True,
+    dense_max: int = DENSE_MAX,
+    part_max: int = PART_MAX,
 ) -> tuple[np.ndarray, WindowStats]:
     """Solve the warm start's objective period by period (module doc).
 
@@ -237,16 +307,18 @@ def windowed_warm_start(
         horizon_s / lookahead_s: history kept before / base waveform kept after each core.
         reuse: a window whose problem equals an earlier one's (:func:`_solve_key`) takes its solution
             (``WindowStats.solved_as_one`` lists them).
+        dense_max / part_max: a period with more free variables than ``dense_max`` is cut into parts of at most
+            ``part_max`` (:func:`core_blocks`).
     Returns:
         (3, N+1) edges within the limits, and :class:`WindowStats`.
     Raises:
-        ValueError: a period has more than :data:`DENSE_MAX` free variables.
+        ValueError: a single block has more than ``dense_max`` free variables.
     """
     import time
 
     t_all = time.time()
     st = WindowStats(horizon_s=horizon_s, lookahead_s=lookahead_s)
-    windows = plan_windows(ir, horizon_s, lookahead_s)
+    windows = plan_windows(ir, horizon_s, lookahead_s, free, pad_s, dense_max, part_max)
     st.windows = len(windows)
     dtf = ir.dt_fine_s
     sc = _Scales(ir, weights, ctx)
@@ -267,9 +339,25 @@ def windowed_warm_start(
     # solve key -> the change of the window's edges; the last SOLVES_KEPT only (memory)
     solved: OrderedDict[str, np.ndarray] = OrderedDict()
     tt = {"setup": 0.0, "jacobian": 0.0, "residual": 0.0, "solve": 0.0}
+    # a part of a period (not its first): the realized k at its start, carried from the parts before (rad/m), and
+    # the nominal k at every part's end (the next part's k must stay reachable)
+    k_in = np.zeros(3)
+    part_end = [i for i in range(len(windows) - 1) if not windows[i + 1].starts_period]
+    k_end_nom = _nominal_k(ir, [ir.block_edges_s[windows[i].core[1]] for i in part_end])
+    k_end = dict(zip(part_end, k_end_nom.T))
+    t_rf = np.array([r.t_center_s for r in ir.rf])
     for wi, w in enumerate(windows):
         t0 = time.time()
         be = ir.block_edges_s
+        if not w.starts_period:
+            prev = windows[wi - 1]
+            t_from = be[prev.core[0]] if prev.starts_period else part_reference_s(ir, prev, lookahead_s)
+            k_from = np.zeros(3) if prev.starts_period else k_in
+            t_ref = part_reference_s(ir, w, lookahead_s)
+            k_in = carried_k(
+                ir, hardware, edges, base_fine, free, act, t_from, t_ref, k_from,
+                int(round(be[w.core[0]] / ir.raster_s)), horizon_s, lookahead_s,
+            )  # fmt: skip
         m0 = int(round(be[w.sub[0]] / dtf))
         m1 = int(round(be[w.sub[1]] / dtf))
         e0, e1 = m0 // 2, m1 // 2
@@ -280,8 +368,8 @@ def windowed_warm_start(
         st.max_free = max(st.max_free, n_free)
         if n_free == 0:
             continue
-        if n_free > DENSE_MAX:
-            raise ValueError(f"excitation period {wi} has {n_free} free variables (> {DENSE_MAX})")
+        if n_free > dense_max:
+            raise ValueError(f"window {wi} (one block) has {n_free} free variables (> {dense_max})")
         tsub = be[w.sub[0]]
         x_sub = edges[:, e0 : e1 + 1].copy()
         fine_sub = _played_window(edges, base_fine, free, act, e0, e1, ec0)
@@ -299,6 +387,16 @@ def windowed_warm_start(
         k0 = k0_full[:, sel_adc] if w.adc else np.zeros((3, 0))
         t_mom = t_mom_all[w.moment_rf] - tsub
         mom0 = m0_full[:, w.moment_rf]
+        if not w.starts_period:  # k from the part's reference (a reset there) plus the carried k, signed by the pulses
+            pre = [ir.rf[i] for i in _pulses_between(t_rf, t_ref, be[w.core[0]])]
+            rf_c = [r.t_center_s - tsub for r in pre] + rf_c
+            rf_u = [r.use for r in pre] + rf_u
+            if wi in k_end:  # the part's end: one more k row (weighted as an ADC sample)
+                t_adc = np.r_[t_adc, be[w.core[1]] - tsub]
+                k0 = np.concatenate([k0, k_end[wi][:, None]], axis=1)
+            k0 = k0 - carry_sign(t_adc, rf_c, rf_u)[None, :] * k_in[:, None]
+            mom0 = mom0 - carry_sign(t_mom, rf_c, rf_u)[None, :] * k_in[:, None]
+            rf_c, rf_u = [t_ref - tsub] + rf_c, ["excitation"] + rf_u
         rfm = np.zeros(m1 - m0 + 1, dtype=bool)
         tf = np.arange(m1 - m0 + 1) * dtf
         for i in w.rfterm_rf:
@@ -377,6 +475,74 @@ def windowed_warm_start(
     tt["total"] = time.time() - t_all
     st.times_s = tt
     return edges, st
+
+
+def carry_sign(t_s: np.ndarray, rf_c: list[float], rf_u: list[str]) -> np.ndarray:
+    """(Q,) the factor of the k carried into a part at the query times ``t_s``: -1 per refocusing pulse before
+    the query, 0 after an excitation (or an 'undefined' pulse) -- what :func:`dtoc.seq.kspace.kspace_at` does
+    to k at those events (``rf_c`` window-relative centres, ascending)."""
+    out = np.ones(np.size(t_s))
+    t = np.asarray(t_s, dtype=np.float64)
+    for tc, u in zip(rf_c, rf_u):
+        if u == "refocusing":
+            out[t >= tc] *= -1.0
+        elif u in ("excitation", "undefined"):
+            out[t >= tc] = 0.0
+    return out
+
+
+def part_reference_s(ir: SequenceIR, w: Window, lookahead_s: float) -> float:
+    """The time from which a part of a period integrates its own k (its carried k is the realized k there): one
+    raster step and the hardware's acausal memory before the core's start (a change of the core's first edge moves
+    the waveform from one raster step before it, realized up to ``lookahead_s`` earlier), within the window."""
+    be = ir.block_edges_s
+    return max(be[w.core[0]] - ir.raster_s - lookahead_s, be[w.sub[0]])
+
+
+def _pulses_between(t_rf: np.ndarray, t0: float, t1: float) -> list[int]:
+    """Indices of the pulses whose centres are in ``[t0, t1)`` (``t_rf``: the centres, ascending)."""
+    return list(range(int(np.searchsorted(t_rf, t0, side="left")), int(np.searchsorted(t_rf, t1, side="left"))))
+
+
+def carried_k(
+    ir: SequenceIR,
+    hardware,
+    edges: np.ndarray,
+    base_fine: np.ndarray,
+    free: np.ndarray,
+    act: np.ndarray,
+    t_from: float,
+    t_to: float,
+    k_from: np.ndarray,
+    ec: int,
+    horizon_s: float,
+    lookahead_s: float,
+) -> np.ndarray:
+    """(3,) the realized k (rad/m) at ``t_to`` from the realized k ``k_from`` at ``t_from`` (both in one excitation
+    period): ``k_from`` signed by the pulses between (:func:`carry_sign`) plus the k the waveform adds, realized on
+    ``[t_from - horizon, t_to + lookahead]`` from the committed edges before edge ``ec`` and the base after -- one
+    forward of one part, not of the period."""
+    e0 = max(int(math.floor((t_from - horizon_s) / ir.raster_s + 1e-9)), 0)
+    e1 = min(int(math.ceil((t_to + lookahead_s) / ir.raster_s - 1e-9)), edges.shape[1] - 1)
+    fine = _played_window(edges, base_fine, free, act, e0, e1, ec)
+    g = torch.as_tensor(fine, dtype=torch.float64)[None]
+    with torch.no_grad():
+        G = g if hardware is None else hardware(g, ir.dt_fine_s)[0]
+    t0 = e0 * ir.raster_s
+    t_rf = np.array([r.t_center_s for r in ir.rf])
+    pulses = [ir.rf[i] for i in _pulses_between(t_rf, t_from, t_to)]
+    rf_c = [r.t_center_s - t0 for r in pulses]
+    rf_u = [r.use for r in pulses]
+    t_q = np.array([t_to - t0])
+    k = kspace_at(G[0], ir.dt_fine_s, t_q, [t_from - t0] + rf_c, ["excitation"] + rf_u)[:, 0].numpy()
+    return k + carry_sign(t_q, rf_c, rf_u)[0] * k_from
+
+
+def _nominal_k(ir: SequenceIR, times_s: list[float]) -> np.ndarray:
+    """(3, Q) the nominal k (rad/m) at the given times (the base waveform, every pulse's reset / negation)."""
+    if not times_s:
+        return np.zeros((3, 0))
+    return ir.kspace_rad_per_m(times_s=np.asarray(times_s, dtype=np.float64)).cpu().numpy()
 
 
 def _played_window(
