@@ -146,7 +146,7 @@ KIND_DEFAULTS: dict[str, dict] = {
     # turbo spin echo (an excitation, then refocusing pulses with a readout between them; HASTE too): the k-space
     # warm start is the solution -- k at the ADC samples, the moments before the refocusing pulses (the crushers and
     # the CPMG condition) and G during the pulses -- and the image is the report's (NRMSE), not optimized (as the
-    # GRE); docs/optimize.md ("Sequence kinds")
+    # GRE); docs/optimize.md (the defaults, "Sequence kinds")
     "tse": {
         "weights": {"image": 1.0, "kspace": 1.0, "rf": 1.0, "moment": 1.0},
         "iters": 0,

@@ -346,16 +346,19 @@ def windowed_warm_start(
     k_end_nom = _nominal_k(ir, [ir.block_edges_s[windows[i].core[1]] for i in part_end])
     k_end = dict(zip(part_end, k_end_nom.T))
     t_rf = np.array([r.t_center_s for r in ir.rf])
+    adc_block = np.array([a.block for a in ir.adc], dtype=np.int64)
+    t_ref = 0.0
     for wi, w in enumerate(windows):
         t0 = time.time()
         be = ir.block_edges_s
-        if not w.starts_period:
-            prev = windows[wi - 1]
-            t_from = be[prev.core[0]] if prev.starts_period else part_reference_s(ir, prev, lookahead_s)
-            k_from = np.zeros(3) if prev.starts_period else k_in
-            t_ref = part_reference_s(ir, w, lookahead_s)
+        n_guard = (0, 0)  # a part's guarded ADC rows and moments (first in their blocks)
+        if w.starts_period:  # k of the period's parts counts from its excitation (the sequence's start: none)
+            exc = [i for i in w.rf if ir.rf[i].excites and ir.rf[i].block == w.core[0]]
+            t_ref, k_in = (ir.rf[exc[0]].t_center_s if exc else be[w.core[0]]), np.zeros(3)
+        else:
+            t_from, t_ref = t_ref, part_reference_s(ir, w, lookahead_s, t_ref)
             k_in = carried_k(
-                ir, hardware, edges, base_fine, free, act, t_from, t_ref, k_from,
+                ir, hardware, edges, base_fine, free, act, t_from, t_ref, k_in,
                 int(round(be[w.core[0]] / ir.raster_s)), horizon_s, lookahead_s,
             )  # fmt: skip
         m0 = int(round(be[w.sub[0]] / dtf))
@@ -388,12 +391,39 @@ def windowed_warm_start(
         t_mom = t_mom_all[w.moment_rf] - tsub
         mom0 = m0_full[:, w.moment_rf]
         if not w.starts_period:  # k from the part's reference (a reset there) plus the carried k, signed by the pulses
+            # the samples and moments of the parts before, from the reference on: this core moves their k too
+            # (the hardware's acausal memory); guarded here (their residual held at what is committed: a change
+            # there is penalised, not their remaining error chased), scored in their own windows
+            g_adc = range(int(np.searchsorted(adc_block, w.sub[0])), int(np.searchsorted(adc_block, w.core[0])))
+            # each readout by its first, middle and last sample, weighted as its samples together (the change a
+            # later core makes there is smooth: the chain's acausal tail)
+            sg = [
+                adc_start[i] + j
+                for i in g_adc
+                for j in sorted({0, ir.adc[i].num_samples // 2, ir.adc[i].num_samples - 1})
+                if ir.adc[i].sample_times_s[j] >= t_ref
+            ]
+            row_w = np.ones(t_adc.size)
+            if sg:
+                tg = np.concatenate([ir.adc[i].sample_times_s for i in g_adc])
+                s_all = np.concatenate([np.arange(adc_start[i], adc_start[i + 1]) for i in g_adc])
+                tg = tg[np.searchsorted(s_all, sg)]
+                n_per = np.array([ir.adc[int(np.searchsorted(adc_start, j, side="right")) - 1].num_samples for j in sg])
+                t_adc = np.r_[tg - tsub, t_adc]
+                k0 = np.concatenate([k0_full[:, sg], k0], axis=1)
+                row_w = np.r_[np.sqrt(n_per / 3.0), row_w]
+            g_mom = [i for i in _pulses_between(t_rf, t_ref + 1e-9, be[w.core[0]]) if i > 0]
+            t_mom = np.r_[t_mom_all[g_mom] - tsub, t_mom]
+            mom0 = np.concatenate([m0_full[:, g_mom], mom0], axis=1)
+            n_guard = (len(sg), len(g_mom))
             pre = [ir.rf[i] for i in _pulses_between(t_rf, t_ref, be[w.core[0]])]
             rf_c = [r.t_center_s - tsub for r in pre] + rf_c
             rf_u = [r.use for r in pre] + rf_u
             if wi in k_end:  # the part's end: one more k row (weighted as an ADC sample)
                 t_adc = np.r_[t_adc, be[w.core[1]] - tsub]
                 k0 = np.concatenate([k0, k_end[wi][:, None]], axis=1)
+                row_w = np.r_[row_w, 1.0]
+            sk = sc.k[:, None] * row_w[None, :]  # (3, rows)
             k0 = k0 - carry_sign(t_adc, rf_c, rf_u)[None, :] * k_in[:, None]
             mom0 = mom0 - carry_sign(t_mom, rf_c, rf_u)[None, :] * k_in[:, None]
             rf_c, rf_u = [t_ref - tsub] + rf_c, ["excitation"] + rf_u
@@ -409,7 +439,7 @@ def windowed_warm_start(
 
         residual = window_residual(
             hardware, dtf, torch.as_tensor(fmask), T(fine_sub), T(g0_sub), t_adc, T(k0), t_mom, T(mom0),
-            rf_c, rf_u, rfm, sc, T(sc.k), T(sc.m),
+            rf_c, rf_u, rfm, sc, T(sc.k if w.starts_period else sk), T(sc.m),
         )  # fmt: skip
 
         tt["setup"] += time.time() - t0
@@ -427,15 +457,19 @@ def windowed_warm_start(
             t_mom - tc,
             rfm[2 * (ec0 - e0) :],
             m1 - 2 * ec1,
+            *([] if w.starts_period else [sk]),
         )
         c = cache.get(key)
         if c is None:
             t0 = time.time()
-            c = _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, device)
+            c = _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, device,
+                        None if w.starts_period else sk)  # fmt: skip
             cache.put(key, c)
             tt["jacobian"] += time.time() - t0
         t0 = time.time()
         r0n = r0.cpu().numpy()
+        if any(n_guard):  # guarded rows hold what is committed there: residual 0 now, the change is penalised
+            _zero_guard_rows(r0n, n_guard, len(sc.k_axes), t_adc.size, t_mom.size)
         # a window whose problem is an earlier one's (same structure; residual to 1e-6 of its largest entry and
         # edges to 1e-4 mT/m: identical repetitions, averages, slices that differ only in RF frequency or labels)
         # takes its change of the edges, if that is within the limits here
@@ -491,12 +525,13 @@ def carry_sign(t_s: np.ndarray, rf_c: list[float], rf_u: list[str]) -> np.ndarra
     return out
 
 
-def part_reference_s(ir: SequenceIR, w: Window, lookahead_s: float) -> float:
+def part_reference_s(ir: SequenceIR, w: Window, lookahead_s: float, t_exc: float) -> float:
     """The time from which a part of a period integrates its own k (its carried k is the realized k there): one
     raster step and the hardware's acausal memory before the core's start (a change of the core's first edge moves
-    the waveform from one raster step before it, realized up to ``lookahead_s`` earlier), within the window."""
+    the waveform from one raster step before it, realized up to ``lookahead_s`` earlier), not before its period's
+    excitation ``t_exc`` (k resets there) nor the window's start.  Non-decreasing along a period's parts."""
     be = ir.block_edges_s
-    return max(be[w.core[0]] - ir.raster_s - lookahead_s, be[w.sub[0]])
+    return max(be[w.core[0]] - ir.raster_s - lookahead_s, t_exc, be[w.sub[0]])
 
 
 def _pulses_between(t_rf: np.ndarray, t0: float, t1: float) -> list[int]:
@@ -543,6 +578,16 @@ def _nominal_k(ir: SequenceIR, times_s: list[float]) -> np.ndarray:
     if not times_s:
         return np.zeros((3, 0))
     return ir.kspace_rad_per_m(times_s=np.asarray(times_s, dtype=np.float64)).cpu().numpy()
+
+
+def _zero_guard_rows(r: np.ndarray, n_guard: tuple[int, int], n_axes: int, n_k: int, n_m: int) -> None:
+    """Zero a part's guarded rows in its residual (the window_residual layout: k rows axis by axis over ``n_k``
+    samples, then moment rows axis by axis over ``n_m`` pulses; the guarded ones first in each axis)."""
+    if n_k and n_axes:
+        r[: n_axes * n_k].reshape(n_axes, n_k)[:, : n_guard[0]] = 0.0
+    if n_m and n_axes:
+        off = n_axes * n_k if n_k else 0
+        r[off : off + n_axes * n_m].reshape(n_axes, n_m)[:, : n_guard[1]] = 0.0
 
 
 def _played_window(
@@ -609,7 +654,7 @@ def window_residual(hardware, dtf, fmask_t, fine_t, g0_t, t_adc, k0_t, t_mom, mo
         parts = []
         if t_adc.size and ka.numel():
             k = kspace_at(G, dtf, t_adc, rf_c, rf_u)
-            parts.append(((k - k0_t) * sk_t[:, None])[:, ka].flatten(1))
+            parts.append(((k - k0_t) * (sk_t if sk_t.dim() == 2 else sk_t[:, None]))[:, ka].flatten(1))
         if t_mom.size and ka.numel():
             mm = kspace_at(G, dtf, t_mom, rf_c, rf_u)
             parts.append(((mm - mom0_t) * sm_t[:, None])[:, ka].flatten(1))
@@ -646,11 +691,13 @@ def _structure_key(*parts) -> str:
     return h.hexdigest()
 
 
-def _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, device) -> dict:
+def _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, device, k_scale=None) -> dict:
     """The structure's Jacobian J (dense rows, :mod:`dtoc.optimize.window_jacobian`), change-penalty rows S
-    (sparse), the normal matrix ``J^T J + S^T S`` and its inverse."""
+    (sparse), the normal matrix ``J^T J + S^T S`` and its inverse.  ``k_scale``: (3, rows) weights of the k rows
+    (a part's guarded samples), else ``sc.k`` per axis."""
     R = WJ.impulse_responses(hardware, dtf, fmask.shape[1], dtype, device)
-    J = WJ.lti_jacobian(R, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc.k_axes, sc.k, sc.m, sc.rf)
+    ks = sc.k if k_scale is None else k_scale
+    J = WJ.lti_jacobian(R, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc.k_axes, ks, sc.m, sc.rf)
     S = WJ.reg_rows(fr, fmask, sc.reg)
     H = J.T @ J + (S.T @ S).toarray()
     return {"J": J, "S": S, "Hinv": _spd_inverse(H), "normal": H}
