@@ -144,7 +144,7 @@ def test_a_long_run_beyond_memory_is_refused_before_the_projector_and_the_twin(
     assert WORK not in err and code == 2 and len(lines) == 1, err
     assert "estimate (" in lines[0] and "refused" in lines[0]
     if solve == "whole":
-        assert "whole solve of" in lines[0] and "cannot be solved period by period: an excitation period has" in err
+        assert "whole solve of" in lines[0] and "cannot be solved period by period: a single block has" in err
     else:
         assert "windows of at most" in lines[0]
     assert not out.exists()

@@ -143,6 +143,15 @@ KIND_DEFAULTS: dict[str, dict] = {
         "iters": 2,
         "n_dummies": default_dummies("epi"),
     },
+    # turbo spin echo (an excitation, then refocusing pulses with a readout between them; HASTE too): the k-space
+    # warm start is the solution -- k at the ADC samples, the moments before the refocusing pulses (the crushers and
+    # the CPMG condition) and G during the pulses -- and the image is the report's (NRMSE), not optimized (as the
+    # GRE); docs/optimize.md (the defaults, "Sequence kinds")
+    "tse": {
+        "weights": {"image": 1.0, "kspace": 1.0, "rf": 1.0, "moment": 1.0},
+        "iters": 0,
+        "n_dummies": default_dummies("tse"),
+    },
 }
 
 PAPER_RESTARTS = [500, 1500, 3000, 5000, 7500, 10500, 14000, 18000]
@@ -162,7 +171,7 @@ def load_config(kind: str | None, path: str | Path | None = None, overrides: dic
     """Build the run configuration.
 
     Args:
-        kind: sequence kind ('gre', 'epi' or None) selecting the built-in defaults.
+        kind: sequence kind ('gre', 'epi', 'tse' or None) selecting the built-in defaults.
         path: optional YAML file with any :class:`OptimizeConfig` fields (``weights`` as a mapping).
         overrides: command-line values (``None`` entries are ignored).
     Raises:

@@ -116,7 +116,8 @@ def lti_jacobian(
         fr: (3, Ne) free edges; fmask: (3, W) fine samples that follow the edges.
         t_adc, t_mom: window-relative query times, s.  rf_c, rf_u: window-relative RF centres and uses.
         rfm: (W,) fine samples under the RF pulses whose G-during-RF counts.
-        k_axes: axes scored in k; k_scale, m_scale: (3,) row weights (1/dk and term weights); rf_scale.
+        k_axes: axes scored in k; k_scale, m_scale: (3,) row weights (1/dk and term weights), ``k_scale`` also
+            (3, len(t_adc)) per row; rf_scale.
     Returns:
         (rows, n_free) float64, columns in ``np.flatnonzero(fr.ravel())`` order.
     """
@@ -140,7 +141,8 @@ def lti_jacobian(
             for s in range(0, np.size(tq), _CHUNK):
                 sl = slice(s, s + _CHUNK)
                 out[:, sl] = _integrals(R[a], C[a], W, dt_s, tq[sl], n, w) + np.einsum("qe,ben->bqn", A[sl], I_ev)
-            out *= GAMMA_RAD_PER_S_PER_MT * np.asarray(scale)[:, None, None]
+            sc_ = np.asarray(scale)
+            out *= GAMMA_RAD_PER_S_PER_MT * (sc_[:, :, None] if sc_.ndim == 2 else sc_[:, None, None])
             parts.append(out[ka].reshape(-1, n.shape[0]))
         if p_rf.size:
             idx = p_rf[:, None, None] - n[None] + W  # (P, n_a, 3)

@@ -50,6 +50,10 @@ from dtoc.seq.kspace import kspace_at
 
 #: a period with more free variables than this is not solved densely (the whole-sequence path is used)
 DENSE_MAX = 6000
+#: a period with more than DENSE_MAX free variables is cut into parts of at most this many (the Jacobian's cost grows
+#: with the square of a core's size and its factorisation with the cube: small parts are faster in all; bench rows in
+#: docs/optimize.md, "Long sequences")
+PART_MAX = 1500
 #: solutions of the most recent distinct window problems kept for identical later windows
 SOLVES_KEPT = 32
 #: the per-structure matrices kept, bytes (least recently used dropped beyond it; a structure needs up to ~4 dense
@@ -71,6 +75,8 @@ class Window:
     rf: list[int]  # indices into ir.rf kept in the window (k resets, moments)
     moment_rf: list[int]  # RF pulses whose moment counts here
     rfterm_rf: list[int]  # RF pulses whose G-during-RF counts here
+    #: the core begins an excitation period (False: a part of a long period, k carried in from the part before)
+    starts_period: bool = True
 
 
 @dataclass
@@ -131,12 +137,22 @@ def period_starts(ir: SequenceIR) -> list[int]:
     return [0] + sorted({r.block for r in ir.rf if r.excites} - {0})
 
 
-def plan_windows(ir: SequenceIR, horizon_s: float, lookahead_s: float) -> list[Window]:
-    """Cores = excitation periods (from the block of one exciting pulse to the next's); their windows.
+def plan_windows(
+    ir: SequenceIR,
+    horizon_s: float,
+    lookahead_s: float,
+    free: np.ndarray | None = None,
+    pad_s: float = PAD_S,
+    dense_max: int = DENSE_MAX,
+    part_max: int = PART_MAX,
+) -> list[Window]:
+    """Cores = excitation periods (from the block of one exciting pulse to the next's), a period with more than
+    ``dense_max`` free variables (``free`` given) cut into parts of at most ``part_max`` (:func:`core_blocks`);
+    their windows.
     Linear in the number of events: RF and ADC events are in time order, found per core by bisection."""
     edges = ir.block_edges_s
     nb = len(edges) - 1
-    starts = period_starts(ir)
+    cores = core_blocks(ir, free, pad_s, dense_max, part_max) if free is not None else _period_cores(ir)
     rf_block = np.array([r.block for r in ir.rf], dtype=np.int64)
     adc_block = np.array([a.block for a in ir.adc], dtype=np.int64)
 
@@ -144,8 +160,7 @@ def plan_windows(ir: SequenceIR, horizon_s: float, lookahead_s: float) -> list[W
         return list(range(int(np.searchsorted(blocks, b0)), int(np.searchsorted(blocks, b1))))
 
     out = []
-    for j, b0 in enumerate(starts):
-        b1 = starts[j + 1] if j + 1 < len(starts) else nb
+    for b0, b1, starts_period in cores:
         t0, t1 = edges[b0], edges[b1]
         sb0 = int(max(0, np.searchsorted(edges, t0 - horizon_s, side="right") - 1))
         # the next period's excitation (its moment and G-during-RF depend on this core)
@@ -156,12 +171,65 @@ def plan_windows(ir: SequenceIR, horizon_s: float, lookahead_s: float) -> list[W
         sb1 = int(min(nb, np.searchsorted(edges, t_end - 1e-12, side="left")))
         sb1 = max(sb1, b1)
         in_core = in_blocks(rf_block, b0, b1)
-        first = in_core[0] if (in_core and j > 0 and ir.rf[in_core[0]].excites) else None
+        first = in_core[0] if (in_core and b0 > 0 and ir.rf[in_core[0]].excites) else None
         rf_idx = in_core + nxt[:1]
         own = [i for i in rf_idx if i != first]
         moment = [i for i in own if i > 0]  # the sequence's first pulse has no moment term
-        out.append(Window((b0, b1), (sb0, sb1), in_blocks(adc_block, b0, b1), rf_idx, moment, own))
+        out.append(Window((b0, b1), (sb0, sb1), in_blocks(adc_block, b0, b1), rf_idx, moment, own, starts_period))
     return out
+
+
+def _period_cores(ir: SequenceIR) -> list[tuple[int, int, bool]]:
+    starts = period_starts(ir)
+    return [(b0, b1, True) for b0, b1 in zip(starts, starts[1:] + [len(ir.block_edges_s) - 1])]
+
+
+def _block_counts(free: np.ndarray, act: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Free variables (free edges within activity) of the blocks whose edges are ``[e[i], e[i + 1])``."""
+    return np.array([np.count_nonzero(free[:, a:b] & act[None, a:b]) for a, b in zip(e[:-1], e[1:])], dtype=np.int64)
+
+
+def core_blocks(
+    ir: SequenceIR, free: np.ndarray, pad_s: float = PAD_S, dense_max: int = DENSE_MAX, part_max: int = PART_MAX
+) -> list[tuple[int, int, bool]]:
+    """The cores ``(b0, b1, starts_period)``: every excitation period, one with more than ``dense_max`` free
+    variables cut at block boundaries into parts of at most ``part_max`` (a single larger block is a part of its
+    own; above ``dense_max`` ``why_not_windowed`` refuses it), each cut preferably right after a block holding an RF pulse (the train's
+    refocusing pulses: the moment before a pulse then counts in the core that plays its crusher).  Blocks are
+    counted only in the periods that are cut."""
+    act = active_edges(ir, pad_s)
+    e = np.round(ir.block_edges_s / ir.raster_s).astype(int)
+    periods = _period_cores(ir)
+    n_per = _block_counts(free, act, e[[p[0] for p in periods] + [len(e) - 1]])
+    rf_after = np.zeros(len(e) + 1, dtype=bool)
+    rf_after[np.array([r.block for r in ir.rf], dtype=np.int64) + 1] = True
+    out = []
+    for (b0, b1, _), n in zip(periods, n_per):
+        if n <= dense_max:
+            out.append((b0, b1, True))
+            continue
+        per = _block_counts(free, act, e[b0 : b1 + 1])
+        s = b0
+        while s < b1:
+            cs = np.cumsum(per[s - b0 :])
+            end = s + max(1, int(np.searchsorted(cs, part_max, side="right")))
+            if end < b1:
+                cut = np.flatnonzero(rf_after[s + 1 : end + 1])
+                if cut.size:
+                    end = s + 1 + int(cut[-1])
+            out.append((s, end, s == b0))
+            s = end
+    return out
+
+
+def core_free_counts(
+    ir: SequenceIR, free: np.ndarray, pad_s: float = PAD_S, dense_max: int = DENSE_MAX, part_max: int = PART_MAX
+) -> np.ndarray:
+    """Free variables of every core of :func:`core_blocks` (a value above ``part_max``: a single block)."""
+    act = active_edges(ir, pad_s)
+    e = np.round(ir.block_edges_s / ir.raster_s).astype(int)
+    cores = core_blocks(ir, free, pad_s, dense_max, part_max)
+    return _block_counts(free, act, e[[c[0] for c in cores] + [len(e) - 1]])
 
 
 def active_edges(ir: SequenceIR, pad_s: float) -> np.ndarray:
@@ -200,7 +268,7 @@ def period_free_counts(ir: SequenceIR, free: np.ndarray, pad_s: float = PAD_S) -
     act = active_edges(ir, pad_s)
     edges = ir.block_edges_s
     e = np.round(edges[period_starts(ir) + [len(edges) - 1]] / ir.raster_s).astype(int)
-    return np.array([np.count_nonzero(free[:, a:b] & act[None, a:b]) for a, b in zip(e[:-1], e[1:])], dtype=np.int64)
+    return _block_counts(free, act, e)
 
 
 class _Scales:
@@ -253,6 +321,8 @@ def windowed_warm_start(
     device: str = "cpu",
     progress: Callable | None = None,
     reuse: bool = True,
+    dense_max: int = DENSE_MAX,
+    part_max: int = PART_MAX,
 ) -> tuple[np.ndarray, WindowStats]:
     """Solve the warm start's objective period by period (module doc).
 
@@ -265,16 +335,18 @@ def windowed_warm_start(
         horizon_s / lookahead_s: history kept before / base waveform kept after each core.
         reuse: a window whose problem equals an earlier one's (:func:`_solve_key`) takes its solution
             (``WindowStats.solved_as_one`` lists them).
+        dense_max / part_max: a period with more free variables than ``dense_max`` is cut into parts of at most
+            ``part_max`` (:func:`core_blocks`).
     Returns:
         (3, N+1) edges within the limits, and :class:`WindowStats`.
     Raises:
-        ValueError: a period has more than :data:`DENSE_MAX` free variables.
+        ValueError: a single block has more than ``dense_max`` free variables.
     """
     import time
 
     t_all = time.time()
     st = WindowStats(horizon_s=horizon_s, lookahead_s=lookahead_s)
-    windows = plan_windows(ir, horizon_s, lookahead_s)
+    windows = plan_windows(ir, horizon_s, lookahead_s, free, pad_s, dense_max, part_max)
     st.windows = len(windows)
     dtf = ir.dt_fine_s
     sc = _Scales(ir, weights, ctx)
@@ -298,9 +370,28 @@ def windowed_warm_start(
     st.unconstrained_adc_dk = np.full(ir.n_adc_samples, np.nan)
     st.unconstrained_moment_dk = np.full(len(ir.rf), np.nan)
     st.window_adc_dk = np.full(ir.n_adc_samples, np.nan)
+    # a part of a period (not its first): the realized k at its start, carried from the parts before (rad/m), and
+    # the nominal k at every part's end (the next part's k must stay reachable)
+    k_in = np.zeros(3)
+    part_end = [i for i in range(len(windows) - 1) if not windows[i + 1].starts_period]
+    k_end_nom = _nominal_k(ir, [ir.block_edges_s[windows[i].core[1]] for i in part_end])
+    k_end = dict(zip(part_end, k_end_nom.T))
+    t_rf = np.array([r.t_center_s for r in ir.rf])
+    adc_block = np.array([a.block for a in ir.adc], dtype=np.int64)
+    t_ref = 0.0
     for wi, w in enumerate(windows):
         t0 = time.time()
         be = ir.block_edges_s
+        n_guard = (0, 0)  # a part's guarded ADC rows and moments (first in their blocks)
+        if w.starts_period:  # k of the period's parts counts from its excitation (the sequence's start: none)
+            exc = [i for i in w.rf if ir.rf[i].excites and ir.rf[i].block == w.core[0]]
+            t_ref, k_in = (ir.rf[exc[0]].t_center_s if exc else be[w.core[0]]), np.zeros(3)
+        else:
+            t_from, t_ref = t_ref, part_reference_s(ir, w, lookahead_s, t_ref)
+            k_in = carried_k(
+                ir, hardware, edges, base_fine, free, act, t_from, t_ref, k_in,
+                int(round(be[w.core[0]] / ir.raster_s)), horizon_s, lookahead_s,
+            )  # fmt: skip
         m0 = int(round(be[w.sub[0]] / dtf))
         m1 = int(round(be[w.sub[1]] / dtf))
         e0, e1 = m0 // 2, m1 // 2
@@ -311,8 +402,8 @@ def windowed_warm_start(
         st.max_free = max(st.max_free, n_free)
         if n_free == 0:
             continue
-        if n_free > DENSE_MAX:
-            raise ValueError(f"excitation period {wi} has {n_free} free variables (> {DENSE_MAX})")
+        if n_free > dense_max:
+            raise ValueError(f"window {wi} (one block) has {n_free} free variables (> {dense_max})")
         tsub = be[w.sub[0]]
         x_sub = edges[:, e0 : e1 + 1].copy()
         fine_sub = _played_window(edges, base_fine, free, act, e0, e1, ec0)
@@ -330,6 +421,43 @@ def windowed_warm_start(
         k0 = k0_full[:, sel_adc] if w.adc else np.zeros((3, 0))
         t_mom = t_mom_all[w.moment_rf] - tsub
         mom0 = m0_full[:, w.moment_rf]
+        if not w.starts_period:  # k from the part's reference (a reset there) plus the carried k, signed by the pulses
+            # the samples and moments of the parts before, from the reference on: this core moves their k too
+            # (the hardware's acausal memory); guarded here (their residual held at what is committed: a change
+            # there is penalised, not their remaining error chased), scored in their own windows
+            g_adc = range(int(np.searchsorted(adc_block, w.sub[0])), int(np.searchsorted(adc_block, w.core[0])))
+            # each readout by its first, middle and last sample, weighted as its samples together (the change a
+            # later core makes there is smooth: the chain's acausal tail)
+            sg = [
+                adc_start[i] + j
+                for i in g_adc
+                for j in sorted({0, ir.adc[i].num_samples // 2, ir.adc[i].num_samples - 1})
+                if ir.adc[i].sample_times_s[j] >= t_ref
+            ]
+            row_w = np.ones(t_adc.size)
+            if sg:
+                tg = np.concatenate([ir.adc[i].sample_times_s for i in g_adc])
+                s_all = np.concatenate([np.arange(adc_start[i], adc_start[i + 1]) for i in g_adc])
+                tg = tg[np.searchsorted(s_all, sg)]
+                n_per = np.array([ir.adc[int(np.searchsorted(adc_start, j, side="right")) - 1].num_samples for j in sg])
+                t_adc = np.r_[tg - tsub, t_adc]
+                k0 = np.concatenate([k0_full[:, sg], k0], axis=1)
+                row_w = np.r_[np.sqrt(n_per / 3.0), row_w]
+            g_mom = [i for i in _pulses_between(t_rf, t_ref + 1e-9, be[w.core[0]]) if i > 0]
+            t_mom = np.r_[t_mom_all[g_mom] - tsub, t_mom]
+            mom0 = np.concatenate([m0_full[:, g_mom], mom0], axis=1)
+            n_guard = (len(sg), len(g_mom))
+            pre = [ir.rf[i] for i in _pulses_between(t_rf, t_ref, be[w.core[0]])]
+            rf_c = [r.t_center_s - tsub for r in pre] + rf_c
+            rf_u = [r.use for r in pre] + rf_u
+            if wi in k_end:  # the part's end: one more k row (weighted as an ADC sample)
+                t_adc = np.r_[t_adc, be[w.core[1]] - tsub]
+                k0 = np.concatenate([k0, k_end[wi][:, None]], axis=1)
+                row_w = np.r_[row_w, 1.0]
+            sk = sc.k[:, None] * row_w[None, :]  # (3, rows)
+            k0 = k0 - carry_sign(t_adc, rf_c, rf_u)[None, :] * k_in[:, None]
+            mom0 = mom0 - carry_sign(t_mom, rf_c, rf_u)[None, :] * k_in[:, None]
+            rf_c, rf_u = [t_ref - tsub] + rf_c, ["excitation"] + rf_u
         rfm = np.zeros(m1 - m0 + 1, dtype=bool)
         tf = np.arange(m1 - m0 + 1) * dtf
         for i in w.rfterm_rf:
@@ -342,7 +470,7 @@ def windowed_warm_start(
 
         residual = window_residual(
             hardware, dtf, torch.as_tensor(fmask), T(fine_sub), T(g0_sub), t_adc, T(k0), t_mom, T(mom0),
-            rf_c, rf_u, rfm, sc, T(sc.k), T(sc.m),
+            rf_c, rf_u, rfm, sc, T(sc.k if w.starts_period else sk), T(sc.m),
         )  # fmt: skip
 
         tt["setup"] += time.time() - t0
@@ -360,22 +488,28 @@ def windowed_warm_start(
             t_mom - tc,
             rfm[2 * (ec0 - e0) :],
             m1 - 2 * ec1,
+            *([] if w.starts_period else [sk]),
         )
         c = cache.get(key)
         if c is None:
             t0 = time.time()
-            c = _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, device)
+            c = _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, device,
+                        None if w.starts_period else sk)  # fmt: skip
             cache.put(key, c)
             tt["jacobian"] += time.time() - t0
         t0 = time.time()
         r0n = r0.cpu().numpy()
+        if any(n_guard):  # guarded rows hold what is committed there: residual 0 now, the change is penalised
+            _zero_guard_rows(r0n, n_guard, len(sc.k_axes), t_adc.size, t_mom.size)
         nd = c["J"].shape[0]
         r0d, r0r = r0n[:nd], r0n[nd:]
         grad0 = c["J"].T @ r0d + c["S"].T @ r0r
         d = -(c["Hinv"] @ grad0)  # the window's unconstrained optimum
-        ua, um = sc.k_errors_dk(r0d + c["J"] @ d, len(t_adc), len(t_mom))
-        st.unconstrained_adc_dk[sel_adc] = ua
-        st.unconstrained_moment_dk[w.moment_rf] = um
+        # the core's own rows (a part's guarded rows come first, its end row last: not the core's samples)
+        core_adc = slice(n_guard[0], n_guard[0] + len(sel_adc))
+        ua, um = sc.k_errors_dk(r0d + c["J"] @ d, t_adc.size, t_mom.size)
+        st.unconstrained_adc_dk[sel_adc] = ua[core_adc]
+        st.unconstrained_moment_dk[w.moment_rf] = um[n_guard[1] :]
         # a window whose problem is an earlier one's (same structure; residual to 1e-6 of its largest entry and
         # edges to 1e-4 mT/m: identical repetitions, averages, slices that differ only in RF frequency or labels)
         # takes its change of the edges, if that is within the limits here
@@ -388,7 +522,9 @@ def windowed_warm_start(
                 st.reused += 1
                 tt["solve"] += time.time() - t0
                 edges[:, e0 : e1 + 1] = x_p
-                st.window_adc_dk[sel_adc] = sc.k_errors_dk(r0d + c["J"] @ (x_p[fr] - x_sub[fr]), len(t_adc), 0)[0]
+                st.window_adc_dk[sel_adc] = sc.k_errors_dk(r0d + c["J"] @ (x_p[fr] - x_sub[fr]), t_adc.size, 0)[0][
+                    core_adc
+                ]
                 if progress is not None:
                     progress("windows", wi + 1, len(windows), float((r0**2).sum()))
                 continue
@@ -407,13 +543,92 @@ def windowed_warm_start(
         if len(solved) > SOLVES_KEPT:
             solved.popitem(last=False)
         edges[:, e0 : e1 + 1] = x_p
-        st.window_adc_dk[sel_adc] = sc.k_errors_dk(r0d + c["J"] @ (x_p[fr] - x_sub[fr]), len(t_adc), 0)[0]
+        st.window_adc_dk[sel_adc] = sc.k_errors_dk(r0d + c["J"] @ (x_p[fr] - x_sub[fr]), t_adc.size, 0)[0][core_adc]
         if progress is not None:
             progress("windows", wi + 1, len(windows), float((r0**2).sum()))
     st.structures = cache.distinct
     tt["total"] = time.time() - t_all
     st.times_s = tt
     return edges, st
+
+
+def carry_sign(t_s: np.ndarray, rf_c: list[float], rf_u: list[str]) -> np.ndarray:
+    """(Q,) the factor of the k carried into a part at the query times ``t_s``: -1 per refocusing pulse before
+    the query, 0 after an excitation (or an 'undefined' pulse) -- what :func:`dtoc.seq.kspace.kspace_at` does
+    to k at those events (``rf_c`` window-relative centres, ascending)."""
+    out = np.ones(np.size(t_s))
+    t = np.asarray(t_s, dtype=np.float64)
+    for tc, u in zip(rf_c, rf_u):
+        if u == "refocusing":
+            out[t >= tc] *= -1.0
+        elif u in ("excitation", "undefined"):
+            out[t >= tc] = 0.0
+    return out
+
+
+def part_reference_s(ir: SequenceIR, w: Window, lookahead_s: float, t_exc: float) -> float:
+    """The time from which a part of a period integrates its own k (its carried k is the realized k there): one
+    raster step and the hardware's acausal memory before the core's start (a change of the core's first edge moves
+    the waveform from one raster step before it, realized up to ``lookahead_s`` earlier), not before its period's
+    excitation ``t_exc`` (k resets there) nor the window's start.  Non-decreasing along a period's parts."""
+    be = ir.block_edges_s
+    return max(be[w.core[0]] - ir.raster_s - lookahead_s, t_exc, be[w.sub[0]])
+
+
+def _pulses_between(t_rf: np.ndarray, t0: float, t1: float) -> list[int]:
+    """Indices of the pulses whose centres are in ``[t0, t1)`` (``t_rf``: the centres, ascending)."""
+    return list(range(int(np.searchsorted(t_rf, t0, side="left")), int(np.searchsorted(t_rf, t1, side="left"))))
+
+
+def carried_k(
+    ir: SequenceIR,
+    hardware,
+    edges: np.ndarray,
+    base_fine: np.ndarray,
+    free: np.ndarray,
+    act: np.ndarray,
+    t_from: float,
+    t_to: float,
+    k_from: np.ndarray,
+    ec: int,
+    horizon_s: float,
+    lookahead_s: float,
+) -> np.ndarray:
+    """(3,) the realized k (rad/m) at ``t_to`` from the realized k ``k_from`` at ``t_from`` (both in one excitation
+    period): ``k_from`` signed by the pulses between (:func:`carry_sign`) plus the k the waveform adds, realized on
+    ``[t_from - horizon, t_to + lookahead]`` from the committed edges before edge ``ec`` and the base after -- one
+    forward of one part, not of the period."""
+    e0 = max(int(math.floor((t_from - horizon_s) / ir.raster_s + 1e-9)), 0)
+    e1 = min(int(math.ceil((t_to + lookahead_s) / ir.raster_s - 1e-9)), edges.shape[1] - 1)
+    fine = _played_window(edges, base_fine, free, act, e0, e1, ec)
+    g = torch.as_tensor(fine, dtype=torch.float64)[None]
+    with torch.no_grad():
+        G = g if hardware is None else hardware(g, ir.dt_fine_s)[0]
+    t0 = e0 * ir.raster_s
+    t_rf = np.array([r.t_center_s for r in ir.rf])
+    pulses = [ir.rf[i] for i in _pulses_between(t_rf, t_from, t_to)]
+    rf_c = [r.t_center_s - t0 for r in pulses]
+    rf_u = [r.use for r in pulses]
+    t_q = np.array([t_to - t0])
+    k = kspace_at(G[0], ir.dt_fine_s, t_q, [t_from - t0] + rf_c, ["excitation"] + rf_u)[:, 0].numpy()
+    return k + carry_sign(t_q, rf_c, rf_u)[0] * k_from
+
+
+def _nominal_k(ir: SequenceIR, times_s: list[float]) -> np.ndarray:
+    """(3, Q) the nominal k (rad/m) at the given times (the base waveform, every pulse's reset / negation)."""
+    if not times_s:
+        return np.zeros((3, 0))
+    return ir.kspace_rad_per_m(times_s=np.asarray(times_s, dtype=np.float64)).cpu().numpy()
+
+
+def _zero_guard_rows(r: np.ndarray, n_guard: tuple[int, int], n_axes: int, n_k: int, n_m: int) -> None:
+    """Zero a part's guarded rows in its residual (the window_residual layout: k rows axis by axis over ``n_k``
+    samples, then moment rows axis by axis over ``n_m`` pulses; the guarded ones first in each axis)."""
+    if n_k and n_axes:
+        r[: n_axes * n_k].reshape(n_axes, n_k)[:, : n_guard[0]] = 0.0
+    if n_m and n_axes:
+        off = n_axes * n_k if n_k else 0
+        r[off : off + n_axes * n_m].reshape(n_axes, n_m)[:, : n_guard[1]] = 0.0
 
 
 def _played_window(
@@ -480,7 +695,7 @@ def window_residual(hardware, dtf, fmask_t, fine_t, g0_t, t_adc, k0_t, t_mom, mo
         parts = []
         if t_adc.size and ka.numel():
             k = kspace_at(G, dtf, t_adc, rf_c, rf_u)
-            parts.append(((k - k0_t) * sk_t[:, None])[:, ka].flatten(1))
+            parts.append(((k - k0_t) * (sk_t if sk_t.dim() == 2 else sk_t[:, None]))[:, ka].flatten(1))
         if t_mom.size and ka.numel():
             mm = kspace_at(G, dtf, t_mom, rf_c, rf_u)
             parts.append(((mm - mom0_t) * sm_t[:, None])[:, ka].flatten(1))
@@ -517,11 +732,13 @@ def _structure_key(*parts) -> str:
     return h.hexdigest()
 
 
-def _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, device) -> dict:
+def _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, device, k_scale=None) -> dict:
     """The structure's Jacobian J (dense rows, :mod:`dtoc.optimize.window_jacobian`), change-penalty rows S
-    (sparse), the normal matrix ``J^T J + S^T S`` and its inverse."""
+    (sparse), the normal matrix ``J^T J + S^T S`` and its inverse.  ``k_scale``: (3, rows) weights of the k rows
+    (a part's guarded samples), else ``sc.k`` per axis."""
     R = WJ.impulse_responses(hardware, dtf, fmask.shape[1], dtype, device)
-    J = WJ.lti_jacobian(R, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc.k_axes, sc.k, sc.m, sc.rf)
+    ks = sc.k if k_scale is None else k_scale
+    J = WJ.lti_jacobian(R, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc.k_axes, ks, sc.m, sc.rf)
     S = WJ.reg_rows(fr, fmask, sc.reg)
     H = J.T @ J + (S.T @ S).toarray()
     return {"J": J, "S": S, "Hinv": _spd_inverse(H), "normal": H}

@@ -108,7 +108,7 @@ class SequenceIR:
         definitions: the file's [DEFINITIONS] (values as strings or numbers).
         fov_m: field of view per axis (x, y, z), m, when known.
         matrix: image matrix (readout, phase[, partition]) when known.
-        kind: 'gre', 'epi' or None: selects defaults of later stages.
+        kind: 'gre', 'epi', 'tse' or None: selects defaults of later stages.
         readout_axis / phase_axis: physical axis index (0, 1, 2) of readout / phase encoding, when known.
         source: the pypulseq Sequence this was read from or built as (the writer copies RF, ADC,
             labels and definitions from it); None for synthetic IRs.

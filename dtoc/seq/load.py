@@ -282,7 +282,8 @@ def _note_kind(ir: SequenceIR, notes: list) -> None:
 
 def _guess_kind(ir: SequenceIR) -> str | None:
     """'epi' when an excitation is followed by several readouts of alternating readout polarity, 'gre' when
-    every excitation has one readout; None otherwise."""
+    every excitation has one readout, 'tse' (turbo / fast spin echo, HASTE) when an excitation is followed by a
+    train of refocusing pulses with a readout between them (:func:`_is_spin_echo_train`); None otherwise."""
     import numpy as np
 
     exc = sorted(r.t_center_s for r in ir.rf if r.excites)
@@ -297,4 +298,25 @@ def _guess_kind(ir: SequenceIR) -> str | None:
     sign = np.sign(np.interp(mid, ir.t_fine_s, ir.grad_mT_per_m[ro]))
     if per.max() > 1 and np.mean(sign[1:] * sign[:-1] < 0) > 0.5:
         return "epi"
+    if _is_spin_echo_train(ir, exc, t_adc):
+        return "tse"
     return None
+
+
+def _is_spin_echo_train(ir: SequenceIR, exc: list[float], t_adc) -> bool:
+    """An excitation followed by at least two refocusing pulses (Pulseq use 'refocusing') with a readout
+    (ADC event) in every interval between consecutive refocusing pulses of the train and after its last one --
+    in most of the excitation periods that hold a refocusing pulse."""
+    import numpy as np
+
+    t_ref = np.array(sorted(r.t_center_s for r in ir.rf if r.use == "refocusing"))
+    if t_ref.size < 2:
+        return False
+    period = np.searchsorted(exc, t_ref, side="right")  # 0: before the first excitation
+    trains = good = 0
+    for p in np.unique(period[period > 0]):
+        tr = t_ref[period == p]
+        end = exc[p] if p < len(exc) else ir.duration_s + 1.0
+        trains += 1
+        good += int(tr.size >= 2 and np.all(np.histogram(t_adc, bins=np.r_[tr, end])[0] > 0))
+    return trains > 0 and good > trains / 2
