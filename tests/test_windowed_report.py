@@ -63,8 +63,10 @@ def test_long_gre_with_image_weight_and_no_full_loss_is_windowed_with_image_figu
     assert nb is not None and na is not None and na < 0.5 * nb  # the image of the windowed output, before -> after
     sv = m["solver"]
     assert sv["method"] == "windowed" and sv["stop_reason"] == "tolerance"
-    # the report's k error is the exported waveform's (the manifest's own figure), within the tolerance
-    assert sv["achieved_max_adc_dk"] == pytest.approx(m["after"]["kspace_max_error_dk"], rel=1e-6)
+    # the report's k error is the exported waveform's, within the tolerance: the norm over the encoded axes (the
+    # solver's convention) of the same errors whose largest single axis the manifest's figure is
+    per_axis = m["after"]["kspace_max_error_dk"]
+    assert per_axis * (1 - 1e-9) <= sv["achieved_max_adc_dk"] <= np.sqrt(2) * per_axis * (1 + 1e-9)
     assert sv["achieved_max_dk"] <= cfg.k_tol_dk and sv["unreachable"]["n_samples"] == 0
     assert m["before"]["kspace_max_error_dk"] > 3 * cfg.k_tol_dk  # the model moves k: there was work to do
 
@@ -85,7 +87,9 @@ def test_windowed_run_names_the_samples_the_limits_leave_off_target(gre, tmp_pat
     assert worst["unconstrained_error_dk"] <= cfg.k_tol_dk < worst["error_dk"]
     assert f"sample {worst['sample']} at" in sv["summary"] and f"{worst['limit']} limit active" in sv["summary"]
     # the named figure is the exported file's
-    assert worst["error_dk"] <= res.manifest["after"]["kspace_max_error_dk"] * (1 + 1e-9)
+    assert worst["error_dk"] <= np.sqrt(2) * res.manifest["after"]["kspace_max_error_dk"] * (
+        1 + 1e-9
+    )  # norm vs one axis
 
 
 def test_goldens_and_short_sequences_stay_whole_many_short_periods_are_windowed():

@@ -249,8 +249,9 @@ def solver_record(solves: list) -> dict:
 
 
 def streamed_k_errors(twin: EdgeTwin, ctx, played) -> tuple[np.ndarray, np.ndarray]:
-    """Per ADC sample and per moment (k just before every RF pulse after the first), the largest axis's k error of
-    the demanded waveform ``played`` (3, 2N+1) against the nominal, dk (axes without a k unit left out): the chain
+    """Per ADC sample and per moment (k just before every RF pulse after the first), the k error of
+    the demanded waveform ``played`` (3, 2N+1) against the nominal, dk: the norm over the encoded axes (axes without a k unit left out), the whole
+    solve's convention (:func:`dtoc.optimize.optimizer.kspace_error_dk`): the chain
     played piece by piece (:func:`dtoc.sim.predict.realized_pieces`), k integrated across the pieces, so memory is
     bounded by a piece; played whole where the chain cannot be streamed."""
     from dtoc.seq.kspace import kspace_at_streamed
@@ -278,7 +279,7 @@ def streamed_k_errors(twin: EdgeTwin, ctx, played) -> tuple[np.ndarray, np.ndarr
         if k0 is None or k.shape[1] == 0 or ax.size == 0:
             return np.zeros(k.shape[1])
         d = (k.cpu().numpy() - k0.cpu().numpy())[ax] / dk[ax, None]
-        return np.abs(d).max(axis=0)
+        return np.sqrt((d**2).sum(axis=0))
 
     return err(k_adc, ctx.k0_rad_per_m), err(k_mom, ctx.k0_moment_rad_per_m)
 
@@ -366,7 +367,7 @@ def windowed_solver_record(plan: Plan, x: torch.Tensor, fine, st) -> dict:
     line = (
         f"solver: windowed, {rep.stop_reason} after {st.windows} windows ({st.direct} solved directly, "
         f"{st.admm_iters} ADMM iterations); max k error {worst:.3g} dk (ADC samples {rec['achieved_max_adc_dk']:.3g}, "
-        f"moments {rec['achieved_max_moment_dk']:.3g}; tolerance {tol:g} dk)"
+        f"moments {rec['achieved_max_moment_dk']:.3g}; norm over the encoded axes; tolerance {tol:g} dk)"
     )
     if un.indices.size:
         line += "; " + un.summary()

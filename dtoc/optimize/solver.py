@@ -181,7 +181,7 @@ class SolveReport:
         """The stderr line."""
         s = (
             f"solver: {self.stop_reason} after {self.evaluations} evaluations ({self.cg_iterations} CG iterations, "
-            f"{self.rounds} active-set rounds); max k error {self.achieved_max_dk:.3g} dk"
+            f"{self.rounds} active-set rounds); max k error {self.achieved_max_dk:.3g} dk (norm over the encoded axes)"
             + ("" if self.moment_max_dk is None else f", moments before RF pulses {self.moment_max_dk:.3g} dk")
             + f" (tolerance {self.k_tol_dk:g} dk)"
         )

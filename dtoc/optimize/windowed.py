@@ -291,8 +291,8 @@ class _Scales:
         self.m_unit = math.sqrt(weights.moment / n_mom)
 
     def k_errors_dk(self, rd: np.ndarray, n_adc: int, n_mom: int) -> tuple[np.ndarray, np.ndarray]:
-        """Per ADC sample and per moment, the largest axis's k error, dk, of the window's k-space residual rows
-        ``rd`` (:func:`window_residual`'s order: the ADC samples' rows then the moments', axis by axis)."""
+        """Per ADC sample and per moment, the k error (norm over the encoded axes, as the whole solve's), dk, of the
+        window's k-space residual rows ``rd`` (:func:`window_residual`'s order: the ADC samples' rows then the moments', axis by axis)."""
         na = self.k_axes.size
         out = []
         for rows, n, unit in (
@@ -302,7 +302,7 @@ class _Scales:
             if n == 0 or na == 0 or unit <= 0:
                 out.append(np.full(n, np.nan))
             else:
-                out.append(np.abs(rows.reshape(na, n)).max(axis=0) / unit)
+                out.append(np.sqrt((rows.reshape(na, n) ** 2).sum(axis=0)) / unit)
         return out[0], out[1]
 
 
