@@ -12,7 +12,7 @@ import pytest
 from dtoc.hardware.effects import Delay, ExpEddy, Gain
 from dtoc.hardware.model import HardwareModel
 from dtoc.optimize.config import load_config
-from dtoc.optimize.run import _window_plan, free_edges, optimize_sequence
+from dtoc.optimize.run import free_edges, optimize_sequence, window_plan
 from dtoc.seq.load import load_sequence
 from tests.cli_helpers import run_cli
 from tests.test_windowed import _idle_gre_ir
@@ -97,16 +97,16 @@ def test_goldens_and_short_sequences_stay_whole_many_short_periods_are_windowed(
     for path in ("sequences/gre_small.yaml", "sequences/gre_paper_fig5.yaml", "sequences/epi_small.yaml"):
         ir = load_sequence(path)
         cfg = load_config(ir.kind, None)
-        assert _window_plan(ir, hw, cfg, free_edges(ir), None) is None, path
+        assert window_plan(ir, hw, cfg, free_edges(ir), None) is None, path
     # 256 lines of 256 samples in 0.87 s (below window_auto_s): the whole solve is estimated far above the windowed
     ir = _idle_gre_ir(256, idle_edges=0, r_s=1e-5, n=256, fov_m=0.32)
     assert ir.duration_s < load_config("gre", None).window_auto_s
-    plan = _window_plan(ir, hw, load_config("gre", None), free_edges(ir), None)
+    plan = window_plan(ir, hw, load_config("gre", None), free_edges(ir), None)
     assert plan is not None and "whole solve estimated" in plan["note"]
     # ... but not when the full loss would use the image asked for, nor with windowed: off
     dto = load_config("gre", None, {"iters": 5})
-    assert _window_plan(ir, hw, dto, free_edges(ir), True) is None
-    assert _window_plan(ir, hw, load_config("gre", None, {"windowed": "off"}), free_edges(ir), None) is None
+    assert window_plan(ir, hw, dto, free_edges(ir), True) is None
+    assert window_plan(ir, hw, load_config("gre", None, {"windowed": "off"}), free_edges(ir), None) is None
 
 
 def test_windowed_solver_line_on_stderr(gre, tmp_path, capsys):

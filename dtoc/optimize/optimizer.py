@@ -263,6 +263,12 @@ def constrained_least_squares(
     return x
 
 
+#: the sampled, signed path model as the solver's preconditioner for sequences with refocusing pulses: off (faster
+#: unconstrained CG on a synthetic spin echo, but a worse constrained result on a ramp-sampled SE-EPI with the KCL
+#: GIRF, 0.0592 vs 0.0402 dk: docs/optimize.md, "Solver")
+PATH_MODEL_PRECONDITIONER = False
+
+
 def path_model(twin, ctx, weights, moments: bool):
     """The :class:`~dtoc.optimize.solver.PathModel` of :func:`linear_objective` on ``twin``'s raster edges: the
     weight of k at each edge from the ADC samples (``ctx.sample_weight`` included) and, with ``moments``, the
@@ -348,7 +354,11 @@ def solve_warm_start(
             f, x0, twin.projector, twin.free_t, k_error, k_tol_dk=k_tol_dk, budget=budget,
             sample_times_s=times, progress=progress, n_adc=n_adc,
             cuts=np.array([round(r.t_center_s / twin.ir.raster_s) for r in twin.ir.rf if r.excites], dtype=np.int64),
-            model=path_model(twin, ctx, weights, use_moments) if any(r.refocuses for r in twin.ir.rf) else None,
+            model=(
+                path_model(twin, ctx, weights, use_moments)
+                if PATH_MODEL_PRECONDITIONER and any(r.refocuses for r in twin.ir.rf)
+                else None
+            ),
         )  # fmt: skip
         left = budget - rep.evaluations
         above = max(rep.achieved_max_dk, rep.moment_max_dk or 0.0) > k_tol_dk

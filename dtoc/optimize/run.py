@@ -419,7 +419,7 @@ WINDOW_AUTO_WHOLE_S = 120.0
 WINDOW_AUTO_GAIN = 3.0
 
 
-def _window_plan(ir, hardware, cfg: OptimizeConfig, free, with_image: bool | None) -> dict | None:
+def window_plan(ir, hardware, cfg: OptimizeConfig, free, with_image: bool | None) -> dict | None:
     """Whether to solve period by period (:mod:`dtoc.optimize.windowed`) and with which horizon; None = whole.
 
     'auto' windows a sequence longer than ``window_auto_s``, or one whose whole solve is estimated to cost far more
@@ -812,7 +812,7 @@ def plan_run(
     if with_image is None and ir.meta.get("grid3d") is not None:
         # a 3D-encoded sequence: the image term when a 3D phantom is given (then not windowed), else k-space only
         with_image = phantom_3d
-    window = _window_plan(ir, hardware, cfg, free, with_image)
+    window = window_plan(ir, hardware, cfg, free, with_image)
     if window is not None and image_in_loss(cfg):  # period by period, k-space terms only: no full loss to use it
         if with_image:
             raise InputError(
