@@ -162,7 +162,12 @@ def plan_windows(
     out = []
     for b0, b1, starts_period in cores:
         t0, t1 = edges[b0], edges[b1]
-        sb0 = int(max(0, np.searchsorted(edges, t0 - horizon_s, side="right") - 1))
+        # the history: the hardware's causal memory before the earliest time whose realized gradient the window
+        # integrates -- the core's start, or a part's reference (:func:`part_reference_s`: its acausal memory
+        # earlier); a history cut at the core's start - horizon would leave the part's k without the memory of
+        # the waveform before it (the KCL GIRF's 25 ms: k errors of 0.06 dk that the window saw as 1e-4)
+        t_hist = t0 if starts_period else t0 - ir.raster_s - lookahead_s
+        sb0 = int(max(0, np.searchsorted(edges, t_hist - horizon_s, side="right") - 1))
         # the next period's excitation (its moment and G-during-RF depend on this core)
         nxt = [i for i in in_blocks(rf_block, b1, b1 + 1) if ir.rf[i].excites] if b1 < nb else []
         t_end = t1 + lookahead_s
