@@ -202,7 +202,8 @@ def test_a_part_window_holds_the_memory_of_what_it_integrates(tse16):
     causal memory before that reference: then the realized gradient of the window's waveform alone equals the whole
     sequence's from the reference to the core's end, and so does its k.  A window whose history started at the
     core's start - horizon (before this change) misses the waveform before it: with this two-sided chain the part's
-    k was off by ~0.05 dk (the measured KCL 7 T GIRF on write_tse: windows that saw 1e-4 dk ended at 0.07 dk)."""
+    k was off by 0.073 dk (now 7e-15; with the measured KCL 7 T GIRF on this TSE, windows that saw 1e-4 dk ended at
+    0.07 dk)."""
     from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
     from dtoc.optimize.windowed import part_reference_s, plan_windows
 
