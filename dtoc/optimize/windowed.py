@@ -7,7 +7,8 @@ period's terms depend on the demanded waveform only within the hardware's memory
 time, in time order (receding horizon):
 
 * the window is ``[core start - horizon, core end + lookahead]`` (block boundaries; the lookahead reaches at
-  least the next period's excitation): the committed waveform before the core (history) and the base
+  least the next period's excitation; a part of a period starts ``horizon`` before its reference,
+  :func:`part_reference_s`): the committed waveform before the core (history) and the base
   waveform after it are fixed, only the core's free edges move;
 * the core's terms: its ADC samples (exact k: the core begins with an excitation, which resets k), the
   moment and the G-during-RF of every pulse after its own excitation up to the next period's excitation,
