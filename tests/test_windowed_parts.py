@@ -176,6 +176,65 @@ def test_a_spin_echo_train_is_a_tse(tse16):
     assert _load(se_epi(n=16)).kind == "epi"  # one refocusing pulse, then an EPI train: not a TSE
     cfg = load_config("tse", None)
     assert cfg.iters == 0 and cfg.weights.image > 0 and KIND_DEFAULTS["tse"]["iters"] == 0
-    # its long periods are windowed in parts when asked for (windowed: on); 'auto' still solves them whole
+    # its long periods are windowed in parts, by 'auto' too; a long period of another kind only when asked for
+    # (windowed: on)
     assert why_not_windowed(ir, hw, cfg.model_copy(update={"windowed": "on"}), free) is None
-    assert "windowed: on solves them in parts" in (why_not_windowed(ir, hw, cfg, free) or "")
+    assert why_not_windowed(ir, hw, cfg, free) is None
+    ir.kind = "epi"
+    try:
+        assert "windowed: on solves them in parts" in (why_not_windowed(ir, hw, cfg, free) or "")
+    finally:
+        ir.kind = "tse"
+
+
+def _two_sided_girf(acausal_s: float = 5e-3, causal_s: float = 10e-3):
+    """A GIRF-like kernel (3x3, dt 10 us) with memory on both sides: a unit tap, a -1 % acausal tail over
+    ``acausal_s`` / 3 and a +5 % causal one of 3 ms (an eddy current), no cross terms; and a 6 us delay."""
+    from dtoc.hardware.effects import Girf
+
+    dt = 1e-5
+    t = np.arange(-round(acausal_s / dt), round(causal_s / dt) + 1) * dt
+    tail = np.where(t < 0, -0.01 * np.exp(t / (acausal_s / 3)) / (acausal_s / 3), 0.0)
+    tail += np.where(t > 0, 0.05 * np.exp(-t / 3e-3) / 3e-3, 0.0)
+    h = np.zeros((3, 3, t.size))
+    for a in range(3):
+        h[a, a] = tail * dt
+        h[a, a, np.argmin(np.abs(t))] += 1.0
+    return HardwareModel([Girf(h, dt, float(t[0])), Delay(6e-6)]).frozen()
+
+
+def test_a_part_window_holds_the_memory_of_what_it_integrates(tse16):
+    """A part integrates its k from its reference (its acausal memory before the core), so its window must hold the
+    causal memory before that reference: then the realized gradient of the window's waveform alone equals the whole
+    sequence's from the reference to the core's end, and so does its k.  A window whose history started at the
+    core's start - horizon (before this change) misses the waveform before it: with this two-sided chain the part's
+    k was off by 0.073 dk (now 7e-15; with the measured KCL 7 T GIRF on this TSE, windows that saw 1e-4 dk ended at
+    0.07 dk)."""
+    from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
+    from dtoc.optimize.windowed import part_reference_s, plan_windows
+
+    ir, _, free = tse16
+    hw = _two_sided_girf()
+    c, a = memory_s(hw)
+    assert a >= 4e-3 and c >= 9e-3  # memory on both sides (the case)
+    base_fine = torch.as_tensor(np.asarray(ir.grad_mT_per_m, dtype=np.float64))
+    with torch.no_grad():
+        G = hw(base_fine[None], ir.dt_fine_s)[0][0].numpy()
+    be, dtf = ir.block_edges_s, ir.dt_fine_s
+    dk = float(ir.dk_rad_per_m[0])
+    worst, n = 0.0, 0
+    t_ref = 0.0
+    for w in plan_windows(ir, c, a, free, part_max=1200):
+        if w.starts_period:
+            t_ref = be[w.core[0]]
+            continue
+        t_ref = part_reference_s(ir, w, a, t_ref)
+        m0, m1 = round(be[w.sub[0]] / dtf), round(be[w.sub[1]] / dtf)
+        with torch.no_grad():
+            Gw = hw(base_fine[None, :, m0 : m1 + 1], dtf)[0][0].numpy()
+        r0, r1 = round(t_ref / dtf), round(be[w.core[1]] / dtf)
+        dG = Gw[:2, r0 - m0 : r1 - m0] - G[:2, r0:r1]  # readout and phase axes
+        worst = max(worst, float(np.abs(np.cumsum(dG, axis=1)).max()) * dtf * GAMMA_RAD_PER_S_PER_MT / dk)
+        n += 1
+    assert n >= 16
+    assert worst < 1e-3, worst  # k from the reference to the core's end, dk
