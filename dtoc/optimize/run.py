@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from dtoc.constants import AXES, BASE_HASH_DEFINITION
+from dtoc.constants import BASE_HASH_DEFINITION
 from dtoc.errors import InputError, LimitError, ValidationFailed
 from dtoc.optimize import loss as L
 from dtoc.optimize import optimizer as O
@@ -37,7 +37,7 @@ from dtoc.optimize.limits import (
     waveform_extremes,
 )
 from dtoc.optimize.report import plotted_span
-from dtoc.optimize.solver import SolveReport, Unreachable
+from dtoc.optimize.solver import SolveReport, explain_unreachable
 from dtoc.optimize.twin import EdgeTwin
 from dtoc.seq.check import SafetyChecks, base_timing_refusal, check_file, check_ir_limits
 from dtoc.seq.ir import SequenceIR
@@ -284,51 +284,12 @@ def streamed_k_errors(twin: EdgeTwin, ctx, played) -> tuple[np.ndarray, np.ndarr
     return err(k_adc, ctx.k0_rad_per_m), err(k_mom, ctx.k0_moment_rad_per_m)
 
 
-def _active_limits_before(P: EdgeProjector, x: np.ndarray, times_s: np.ndarray) -> tuple[list[str], np.ndarray]:
-    """Per time, the amplitude or slew limit (per axis) at its bound nearest before it in the edges ``x``, and its
-    time (nan, '' if none): one (N+1,) index array at a time, no list of events (a long sequence at its slew limit
-    on every ramp has millions)."""
-    amp, slew_seg = P.at_limits(x)
-    n = P.free.shape[1]
-    best_t = np.full(times_s.size, -np.inf)
-    name = [""] * times_s.size
-    pos = np.clip(np.floor(times_s / P.raster_s + 1e-9).astype(np.int64), 0, n - 1)
-    for kind, m in (("amplitude", amp), ("slew", slew_seg)):
-        for a in range(3):
-            if not m[a].any():
-                continue
-            last = np.maximum.accumulate(np.where(m[a], np.arange(m.shape[1]), -1))
-            i = last[np.minimum(pos, m.shape[1] - 1)]
-            t = np.where(i >= 0, i * P.raster_s, -np.inf)
-            for j in np.flatnonzero(t > best_t):
-                name[j] = f"{kind} {AXES[a]}"
-            best_t = np.maximum(best_t, t)
-    return name, np.where(np.isfinite(best_t), best_t, np.nan)
-
-
-def _unreachable(err, unc, k_tol_dk: float, P: EdgeProjector, x: np.ndarray, times_s: np.ndarray) -> Unreachable:
-    """The samples (or moments) above ``k_tol_dk``, named as :func:`dtoc.optimize.solver.explain_unreachable` does:
-    'fixed' when their window's unconstrained optimum misses them too (or no free edge reaches them: ``unc`` nan),
-    else 'limits' with the limit active nearest before them, or 'unresolved' when no limit is at its bound before
-    them (the window's ADMM stopped at its residual tolerance: no claim)."""
-    idx = np.flatnonzero(err > k_tol_dk)
-    u = np.where(np.isnan(unc[idx]), err[idx], unc[idx])
-    reason = ["fixed" if v > k_tol_dk else "limits" for v in u]
-    lim, lt = _active_limits_before(P, x, times_s[idx])
-    # reachable without the limits but no limit at its bound before it: the window's ADMM stopped at its residual
-    # tolerance short of the constrained optimum (docs/optimize.md): no claim
-    reason = ["unresolved" if r == "limits" and not name else r for r, name in zip(reason, lim)]
-    lim = [name if r == "limits" else "" for name, r in zip(lim, reason)]
-    lt = np.where([r == "limits" for r in reason], lt, np.nan) if idx.size else lt
-    return Unreachable(idx, err[idx], reason, lim, lt, u)
-
-
 def windowed_solver_record(plan: Plan, x: torch.Tensor, fine, st) -> dict:
     """The manifest's ``solver`` record of a windowed solve, in the whole solve's vocabulary
     (:class:`dtoc.optimize.solver.SolveReport`): the exported waveform's k error at every ADC sample and moment
     (streamed: memory bounded by a piece), 'tolerance' when all are within ``k_tol_dk``, else 'converged' (every
     window at its optimum within the limits; 'rounds' if a window's ADMM stopped at its cap) with the samples and
-    moments above it named: 'fixed' when the window's unconstrained optimum misses them too, else 'limits'."""
+    moments above it named by :func:`dtoc.optimize.solver.explain_unreachable`."""
     ir, tol = plan.ir, plan.cfg.k_tol_dk
     e_adc, e_mom = streamed_k_errors(plan.twin, plan.ctx, fine)
     P, xe = plan.projector, x.detach().cpu().numpy()
@@ -338,8 +299,8 @@ def windowed_solver_record(plan: Plan, x: torch.Tensor, fine, st) -> dict:
     if u_mom.size != e_mom.size:
         u_mom = np.full(e_mom.size, np.nan)
     t_mom = np.array([r.t_center_s for r in ir.rf[1:]], dtype=np.float64)
-    un = _unreachable(e_adc, u_adc, tol, P, xe, ir.adc_times_s)
-    um = _unreachable(e_mom, u_mom, tol, P, xe, t_mom)
+    un = explain_unreachable(xe, e_adc, u_adc, tol, P, ir.adc_times_s)
+    um = explain_unreachable(xe, e_mom, u_mom, tol, P, t_mom)
     um.indices = um.indices + 1  # the moment before RF pulse i (0-based; the first pulse has none)
     worst = float(max(e_adc.max(initial=0.0), e_mom.max(initial=0.0)))
     rep = SolveReport(method="windowed", k_tol_dk=tol, achieved_max_dk=worst, unreachable=un)

@@ -522,34 +522,67 @@ def _tolerance_check(x, P, k_error, k_tol_dk: float, every: int):
     return check
 
 
+#: a sample above the tolerance is 'fixed' (not reachable even without the limits) only when its error at the
+#: unconstrained optimum is above the tolerance too AND makes up at least this share of its error at the stop; else
+#: the limits cost most of it and it is named 'limits' with "without limits X dk" (a rule of ours, docs/optimize.md)
+FIXED_SHARE = 0.5
+
+
+def active_limits_nearest(P, x: np.ndarray, times_s: np.ndarray) -> tuple[list[str], np.ndarray]:
+    """Per time, the amplitude or slew limit (per axis) at its bound nearest before it in the edges ``x`` (or, if
+    none is before it, nearest after it: an acausal GIRF lets a later limit act), and that limit's time ('', nan if
+    no limit is at its bound anywhere).  One (N+1,) index array at a time, no list of events (a long sequence at
+    its slew limit on every ramp has millions).  Ties: the first of amplitude x, y, z, slew x, y, z."""
+    amp, slew_seg = P.at_limits(np.asarray(x, dtype=np.float64))
+    times_s = np.asarray(times_s, dtype=np.float64)
+    n = P.free.shape[1]
+    pos = np.clip(np.floor(times_s / P.raster_s + 1e-9).astype(np.int64), 0, n - 1)
+    before = np.full(times_s.size, -np.inf)
+    after = np.full(times_s.size, np.inf)
+    nb, na = [""] * times_s.size, [""] * times_s.size
+    for kind, m in (("amplitude", amp), ("slew", slew_seg)):
+        for a in range(3):
+            if not m[a].any():
+                continue
+            ar = np.arange(m.shape[1])
+            p = np.minimum(pos, m.shape[1] - 1)
+            last = np.maximum.accumulate(np.where(m[a], ar, -1))[p]
+            nxt = np.minimum.accumulate(np.where(m[a], ar, m.shape[1])[::-1])[::-1][p]
+            tb = np.where(last >= 0, last * P.raster_s, -np.inf)
+            ta = np.where(nxt < m.shape[1], nxt * P.raster_s, np.inf)
+            for j in np.flatnonzero(tb > before):
+                nb[j] = f"{kind} {AXES[a]}"
+            for j in np.flatnonzero(ta < after):
+                na[j] = f"{kind} {AXES[a]}"
+            before, after = np.maximum(before, tb), np.minimum(after, ta)
+    name = [b or a for b, a in zip(nb, na)]
+    t = np.where(np.isfinite(before), before, np.where(np.isfinite(after), after, np.nan))
+    return name, t
+
+
 def explain_unreachable(
     x, err, err_unc, k_tol_dk, P, sample_times_s, unc_converged: bool = True, n_adc: int | None = None
 ) -> Unreachable:
-    """Name the samples above tolerance: 'fixed' when the unconstrained optimum misses them too ('unresolved'
-    when the solve did not reach that optimum within its budget: no claim), else 'limits' with the active limit
-    (amplitude or slew at its bound, per axis) nearest before the sample."""
+    """Name the samples above tolerance (one rule for the whole and the windowed solve): 'fixed' when the
+    unconstrained optimum misses them too, by at least :data:`FIXED_SHARE` of their error (``err_unc`` nan: no
+    free edge reaches them); 'unresolved' instead when the unconstrained solve did not reach its optimum within
+    its budget (``unc_converged`` False: no claim); else 'limits' with the active limit (amplitude or slew at its
+    bound, per axis) nearest before the sample (:func:`active_limits_nearest`), or 'unresolved' when no limit is at
+    its bound anywhere (the solve stopped short of the constrained optimum: no claim)."""
+    err, err_unc = np.asarray(err, dtype=np.float64), np.asarray(err_unc, dtype=np.float64)
     idx = np.flatnonzero(err > k_tol_dk)
+    e, u = err[idx], np.where(np.isnan(err_unc[idx]), err[idx], err_unc[idx])
     miss = "fixed" if unc_converged else "unresolved"
-    reason = [miss if err_unc[i] > k_tol_dk else "limits" for i in idx]
+    reason = [miss if (uu > k_tol_dk and uu >= FIXED_SHARE * ee) else "limits" for ee, uu in zip(e, u)]
     limit = [""] * idx.size
     lt = np.full(idx.size, np.nan)
-    if idx.size and sample_times_s is not None:
+    lim_i = [j for j, r in enumerate(reason) if r == "limits"]
+    if lim_i and sample_times_s is not None:
         xe = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
-        amp, slew_seg = P.at_limits(xe)
-        slew = np.zeros_like(P.free)
-        slew[:, :-1] = slew_seg
-        events = []
-        for kind, m in (("amplitude", amp), ("slew", slew)):
-            for a in range(3):
-                for n in np.flatnonzero(m[a]):
-                    events.append((n * P.raster_s, f"{kind} {AXES[a]}"))
-        if events:
-            events.sort()
-            te = np.array([e[0] for e in events])
-            for j, i in enumerate(idx):
-                if reason[j] != "limits":
-                    continue
-                p = int(np.searchsorted(te, sample_times_s[i], side="right")) - 1
-                p = max(p, 0)
-                lt[j], limit[j] = te[p], events[p][1]
-    return Unreachable(idx, err[idx], reason, limit, lt, err_unc[idx], n_adc)
+        names, times = active_limits_nearest(P, xe, np.asarray(sample_times_s, dtype=np.float64)[idx[lim_i]])
+        for j, nm, tt in zip(lim_i, names, times):
+            if nm:
+                limit[j], lt[j] = nm, tt
+            else:
+                reason[j] = "unresolved"
+    return Unreachable(idx, e, reason, limit, lt, u, n_adc)
