@@ -39,7 +39,14 @@ from dtoc.optimize.limits import (
 from dtoc.optimize.report import plotted_span
 from dtoc.optimize.solver import SolveReport, Unreachable
 from dtoc.optimize.twin import EdgeTwin
-from dtoc.seq.check import SafetyChecks, base_timing_refusal, check_file, check_ir_limits
+from dtoc.seq.check import (
+    SafetyChecks,
+    base_timing_refusal,
+    check_file,
+    check_ir_limits,
+    inherited_text,
+    settle_inherited,
+)
 from dtoc.seq.ir import SequenceIR
 from dtoc.seq.seqtext import shared_parse
 from dtoc.seq.system import SystemSpec
@@ -1179,6 +1186,11 @@ def _write_outputs(
         if base_sha:  # the base it was compiled from (--reference BASE verifies it; dtoc.sim.reference)
             definitions[BASE_HASH_DEFINITION] = base_sha
         manifest["output"] = write_checked(ir_out, out, force, limits, definitions, safety, adc_offsets)
+        if manifest["output"]["check_inherited"]:
+            manifest["warnings"].append(
+                "the output keeps the base's own gradient steps where dtoc changed neither block (inherited, not "
+                f"worse, within the slew limit): {inherited_text(manifest['output']['check_inherited'])}"
+            )
     manifest["run_time_s"] = time.time() - t_start
     if manifest_path is not None:
         atomic_write_text(manifest_path, strict_json(manifest), force=force)
@@ -1274,6 +1286,7 @@ def write_checked(
         bad = [v for v in res.violations if v.rule in lim_rules]
         if bad:
             raise ValidationFailed(f"written file fails dtoc check: {bad[0].message}; nothing written")
+        inherited = settle_inherited(res, ir_out.source, sysspec)  # steps the base has: reported; new ones: raise
         result: dict[str, Any] = {
             "path": str(outp),
             "check_ok": res.ok,
@@ -1282,6 +1295,7 @@ def write_checked(
             "check_failed": res.summary() if not res.ok else None,  # by kind, with the worst values
             "checks": list(res.checks),
             "check_not_checked": list(res.not_checked),
+            "check_inherited": inherited,  # the base's own steps the output keeps (dtoc.seq.check.settle_inherited)
         }
         data = tmp.read_bytes()
     atomic_write_bytes(outp, data, force=force)
