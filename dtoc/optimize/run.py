@@ -822,6 +822,7 @@ def plan_run(
         # a 3D-encoded sequence: the image term when a 3D phantom is given (then not windowed), else k-space only
         with_image = phantom_3d
     window = window_plan(ir, hardware, cfg, free, with_image)
+    phantoms, graph, image_reason = None, None, None  # the report image's, when its cost was estimated from its graph
     if window is not None and image_in_loss(cfg):  # period by period, k-space terms only: no full loss to use it
         if with_image:
             raise InputError(
@@ -838,7 +839,14 @@ def plan_run(
             except InputError as e:
                 with_image = False
                 if io.notes is not None:
-                    io.notes(f"note: no image for the report (k-space figures only): {e}")
+                    io.notes(f"no image for the report (k-space figures only): {e}")
+            else:  # its simulation from the graph's emitting states: an unspoiled steady state's are many
+                phantoms = make_phantoms(ir, cfg, phantom)
+                graph, image_reason = report_image_reason(ir, cfg, phantoms)
+                if image_reason is not None:
+                    with_image, phantoms, graph = False, None, None
+                    if io.notes is not None:
+                        io.notes(f"no image for the report (k-space figures only): {image_reason}")
     if not with_image:
         cfg = cfg.model_copy(update={"weights": cfg.weights.model_copy(update={"image": 0.0})})
     whole_why = None  # a long sequence solved whole: why (the refusal's way out must not offer the windowed solve)
@@ -855,17 +863,43 @@ def plan_run(
     ctx = L.build_context(ir, limits, dtype=dtype, device=device)
     imager = None
     if with_image:
-        phantoms = make_phantoms(ir, cfg, phantom)
-        imager = O.memo_signal(Imager(ir, phantoms, n_dummies=cfg.n_dummies, dtype=dtype, device=device))
+        phantoms = phantoms or make_phantoms(ir, cfg, phantom)
+        imager = O.memo_signal(Imager(ir, phantoms, n_dummies=cfg.n_dummies, dtype=dtype, device=device, graph=graph))
 
     # a long (windowed) sequence keeps only the report's span of its whole-sequence waveforms
     n_wave = None if window is None else plotted_span(ir)[0]
     before = quality(twin, imager, ctx, ir.grad_mT_per_m, waveform_samples=n_wave)
+    if image_reason is not None:  # a figure that is not computed: its reason, never a number
+        before["image_reason"] = image_reason
     fault_point("setup")
     return Plan(
         ir, cfg, hardware, R, limits, phys_limits, limit_sources, free, projector, twin, ctx, imager, window,
         bool(with_image), phantom, warnings_out, dtype, device, n_wave, before,
     )  # fmt: skip
+
+
+def report_image_reason(ir, cfg: OptimizeConfig, phantoms: list) -> tuple[Any, str | None]:
+    """The graph of the report image's simulation (a windowed run: the image is for the report only) and why it is
+    not simulated, or None: its estimate from the graph's emitting states (:func:`dtoc.util.cost.emission_cost`;
+    the base's and every phantom's target, the base, the discarding and the output: 3 + phantoms simulations) above
+    :data:`dtoc.util.cost.REPORT_IMAGE_MAX_SECONDS` or beyond the memory available."""
+    from dtoc.sim.pdg import PDGConfig, build_graph
+    from dtoc.util.cost import FIT_FRACTION, PROCESS_BYTES, REPORT_IMAGE_MAX_SECONDS, emission_cost
+    from dtoc.util.validate import available_memory_bytes, gib
+
+    graph = build_graph(ir, PDGConfig(), phantoms[0])
+    vox = int(np.asarray(phantoms[0].pd).size)
+    mem, sec, per = emission_cost(graph, vox, len(phantoms), n_runs=1)
+    sec *= (3 + len(phantoms)) / len(phantoms)
+    avail = available_memory_bytes()
+    if sec <= REPORT_IMAGE_MAX_SECONDS and PROCESS_BYTES + mem <= FIT_FRACTION * avail:
+        return graph, None
+    return None, (
+        f"its simulation ({vox} voxels; {per:.3g} signal pathways emit at each ADC sample on average, as in an "
+        f"unspoiled steady state) needs ~{sec:.0f} s or more and about {gib(PROCESS_BYTES + mem)} (estimate; the report image may "
+        f"take {REPORT_IMAGE_MAX_SECONDS:.0f} s, {gib(FIT_FRACTION * avail)} here): image figures not computed; "
+        "a smaller phantom (phantom_size in --config) may fit"
+    )
 
 
 def check_run_cost(
@@ -1046,6 +1080,8 @@ def export_stage(plan: Plan, sol: Solution, io: RunIO, t_start: float) -> RunOut
         _check_system_limits(ir_out, limits)
         # the exported waveform itself (bit for bit what twin.played(x) gives): no second whole-sequence copy
         after = quality(twin, imager, ctx, fine, keep_mask=keep, waveform_samples=plan.n_wave)
+        if imager is None and before.get("image_reason"):
+            after["image_reason"] = before["image_reason"]
         if sol.window_stats is not None:  # what the windowed solve achieved against the tolerance, named
             extra["solver"] = windowed_solver_record(plan, x, fine, sol.window_stats)
         if state.interrupted and sol.ckpt_target is not None:
