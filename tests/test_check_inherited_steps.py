@@ -132,3 +132,22 @@ def test_introduced_step_fails_before_writing(files, tmp_path, capsys, monkeypat
     assert "written file fails dtoc check: continuity at block 2, axis z" in lines[0]
     assert "the base has none there: introduced by the optimization; nothing written" in lines[0]
     assert not out.exists() and not man.exists()
+
+
+def test_a_base_step_beyond_the_slew_limit_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """80 kHz/m (1.88 mT/m) in one step where dtoc may not change the waveform (the slice axis): beyond 130 T/m/s x
+    10 us (55 kHz/m), a limit question (never inherited): one line naming it, before any optimization work."""
+    base = tmp_path / "big.seq"
+    base.write_bytes(gre_with_z_step(80000.0))
+
+    def boom(*a, **k):
+        raise AssertionError("optimization work started")
+
+    monkeypatch.setattr(run_mod, "EdgeTwin", boom)
+    out = tmp_path / "o.seq"
+    code, so, err = run_cli(capsys, "optimize", base, "--ideal", "-o", out, *RUN)
+    assert code == 2, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("dtoc: error:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert "the base itself needs" in lines[0] and "above smax 130 on z" in lines[0]
+    assert "dtoc never writes beyond the limits" in lines[0] and not out.exists()

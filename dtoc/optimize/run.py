@@ -854,6 +854,7 @@ def plan_run(
         whole_why = why_not_windowed(ir, hardware, cfg, free)
     check_run_cost(ir, cfg, free, window, with_image, str(io.base_path or "sequence"), io.notes, whole_why)
     check_area_reachable(ir, limits)
+    held_limit_refusal(ir, free, limits)
     if io.out is not None:  # the base written in the output's format and read back: once the run is known to fit
         ir.meta["output_format_version"] = version_str(preflight_write(ir, io.format_version))
     projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
@@ -876,6 +877,37 @@ def plan_run(
         ir, cfg, hardware, R, limits, phys_limits, limit_sources, free, projector, twin, ctx, imager, window,
         bool(with_image), phantom, warnings_out, dtype, device, n_wave, before,
     )  # fmt: skip
+
+
+def held_limit_refusal(ir, free: np.ndarray, limits: Limits) -> None:
+    """One-line InputError, before any work, when the base itself exceeds the slew or amplitude limit where dtoc may
+    not change it (a fine segment between two held raster edges: inside RF blocks, on the slice-select axis, at held
+    block boundaries), e.g. a base's step between two blocks beyond smax x raster: its output would too, and dtoc
+    never writes beyond the limits (the projection could only fail at export)."""
+    g = np.asarray(ir.grad_mT_per_m, dtype=np.float64)
+    held = ~np.asarray(free, dtype=bool)  # (3, N+1) raster edges; fine segment j depends on edges j // 2, j // 2 + 1
+    j = np.arange(g.shape[1] - 1) // 2
+    seg = held[:, j] & held[:, np.minimum(j + 1, held.shape[1] - 1)]
+    slew = np.abs(np.diff(g, axis=1)) / ir.dt_fine_s * 1e-3  # T/m/s
+    over_s = seg & (slew > limits.smax_T_per_m_per_s * (1 + 1e-6))
+    over_g = held[:, np.arange(g.shape[1]) // 2] & (np.abs(g) > limits.gmax_mT_per_m * (1 + 1e-6))
+    if not over_s.any() and not over_g.any():
+        return
+    edges = np.asarray(ir.block_edges_s)
+    ids = ir.meta.get("block_ids") or list(range(1, len(edges)))
+    if over_s.any():
+        a, m = np.unravel_index(int(np.argmax(np.where(over_s, slew, -1.0))), slew.shape)
+        what = f"{slew[a, m]:.4g} T/m/s, above smax {limits.smax_T_per_m_per_s:g}"
+    else:
+        a, m = np.unravel_index(int(np.argmax(np.where(over_g, np.abs(g), -1.0))), g.shape)
+        what = f"{abs(g[a, m]):.4g} mT/m, above gmax {limits.gmax_mT_per_m:g}"
+    b = int(np.clip(np.searchsorted(edges, m * ir.dt_fine_s, side="right") - 1, 0, len(ids) - 1))
+    raise InputError(
+        f"the base itself needs {what} on {AXES[a]} at {m * ir.dt_fine_s * 1e3:.4f} ms (block {ids[b]}), where dtoc "
+        "may not change the waveform (RF blocks, the slice-select axis, held block boundaries): its output would "
+        "too, and dtoc never writes beyond the limits; correct the base (e.g. a step between blocks: at most smax x "
+        "the gradient raster) or give limits it meets"
+    )
 
 
 def report_image_reason(ir, cfg: OptimizeConfig, phantoms: list) -> tuple[Any, str | None]:
