@@ -923,14 +923,15 @@ def report_image_reason(ir, cfg: OptimizeConfig, phantoms: list) -> tuple[Any, s
     vox = int(np.asarray(phantoms[0].pd).size)
     mem, sec, per = emission_cost(graph, vox, len(phantoms), n_runs=1)
     sec *= (3 + len(phantoms)) / len(phantoms)
-    avail = available_memory_bytes()
-    if sec <= REPORT_IMAGE_MAX_SECONDS and PROCESS_BYTES + mem <= FIT_FRACTION * avail:
+    fits = PROCESS_BYTES + mem <= FIT_FRACTION * available_memory_bytes()
+    if sec <= REPORT_IMAGE_MAX_SECONDS and fits:
         return graph, None
+    beyond = [f"the report image's {REPORT_IMAGE_MAX_SECONDS:.0f} s"] if sec > REPORT_IMAGE_MAX_SECONDS else []
+    beyond += [] if fits else [f"{FIT_FRACTION:.0%} of the memory available"]
     return None, (
-        f"its simulation ({vox} voxels; {per:.3g} signal pathways emit at each ADC sample on average, as in an "
-        f"unspoiled steady state) needs ~{sec:.0f} s or more and about {gib(PROCESS_BYTES + mem)} (estimate; the report image may "
-        f"take {REPORT_IMAGE_MAX_SECONDS:.0f} s, {gib(FIT_FRACTION * avail)} here): image figures not computed; "
-        "a smaller phantom (phantom_size in --config) may fit"
+        f"its simulation ({vox} voxels; {per:.3g} signal pathways emit at each ADC sample on average) needs "
+        f"~{sec:.0f} s or more and about {gib(PROCESS_BYTES + mem)} (estimate, beyond {' and '.join(beyond)}): image "
+        "figures not computed; a smaller phantom (phantom_size in --config) may fit"
     )
 
 
@@ -1256,8 +1257,8 @@ def _write_outputs(
         manifest["output"] = write_checked(ir_out, out, force, limits, definitions, safety, adc_offsets)
         if manifest["output"]["check_inherited"]:
             manifest["warnings"].append(
-                "the output keeps the base's own gradient steps where dtoc changed neither block (inherited, not "
-                f"worse, within the slew limit): {inherited_text(manifest['output']['check_inherited'])}"
+                "the output keeps the base's own gradient steps (inherited: the base has each at the same block and "
+                f"axis, not smaller, within the slew limit): {inherited_text(manifest['output']['check_inherited'])}"
             )
     manifest["run_time_s"] = time.time() - t_start
     if manifest_path is not None:
