@@ -151,3 +151,35 @@ def test_a_base_step_beyond_the_slew_limit_is_refused_before_any_work(tmp_path, 
     assert len(lines) == 1 and "Traceback" not in err, err
     assert "the base itself needs" in lines[0] and "above smax 130 on z" in lines[0]
     assert "dtoc never writes beyond the limits" in lines[0] and not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("base_value", "out_value", "says"),
+    [
+        (None, 2000.0, "the base has none there: introduced by the optimization"),
+        (2000.0, 2500.0, "worse than the base's 2000 Hz/m there: introduced by the optimization"),
+        (6e4, 6e4, "the base itself steps 60000 Hz/m there, more than the 55351 Hz/m the slew limit allows"),
+        (2000.0, 2000.0, None),  # inherited: no error, the record returned
+    ],
+)
+def test_settle_inherited_says_why(monkeypatch, base_value, out_value, says):
+    import dtoc.seq.check as C
+    from dtoc.errors import ValidationFailed
+
+    def v(value):
+        return C.Violation("continuity", 2, "z", value, 1.0, "Hz/m", "jump from block 1: 0 -> x Hz/m")
+
+    res = C.CheckResult(path="o.seq", system=LIMITS, limits_source="test", violations=[v(out_value)])
+    monkeypatch.setattr(
+        C, "gradient_rule_violations", lambda seq, system: [] if base_value is None else [v(base_value)]
+    )
+    if says is None:
+        recs = C.settle_inherited(res, object(), LIMITS)
+        assert res.violations == [] and [(r["block"], r["value"], r["base_value"]) for r in recs] == [
+            (2, 2000.0, 2000.0)
+        ]
+        return
+    with pytest.raises(ValidationFailed) as e:
+        C.settle_inherited(res, object(), LIMITS)
+    assert "written file fails dtoc check: continuity at block 2, axis z" in str(e.value) and says in str(e.value)
+    assert str(e.value).endswith("nothing written")

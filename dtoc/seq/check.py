@@ -771,16 +771,16 @@ def settle_inherited(res: CheckResult, base_seq, system: SystemSpec) -> list[dic
         v = introduced[0]
         b = next((w for w in base if (w.rule, w.block, w.axis) == (v.rule, v.block, v.axis)), None)
         step = step_limit_hz_per_m(system)
-        if b is not None and v.value is not None and v.value > step:
+        if b is None:
+            why = "the base has none there: introduced by the optimization"
+        elif (v.value or 0.0) > (b.value or 0.0) + (v.limit or 0.0) + 1e-9 * abs(b.value or 0.0):
+            why = f"worse than the base's {_q(b.value or 0.0, b.unit)} there: introduced by the optimization"
+        else:  # not worse, so beyond the slew limit's step: the base's own
             why = (
-                f"the base itself steps {_q(v.value, v.unit)} there, more than the {_q(step, 'Hz/m')} the slew limit "
-                f"allows in one gradient raster ({system.max_slew_T_per_m_per_s:g} T/m/s x "
+                f"the base itself steps {_q(b.value or 0.0, b.unit)} there, more than the {_q(step, 'Hz/m')} the slew "
+                f"limit allows in one gradient raster ({system.max_slew_T_per_m_per_s:g} T/m/s x "
                 f"{system.grad_raster_s * 1e6:g} us): a limit, never accepted as inherited"
             )
-        elif b is not None:
-            why = f"worse than the base's {_q(b.value or 0.0, b.unit)} there: introduced by the optimization"
-        else:
-            why = "the base has none there: introduced by the optimization"
         more = f" (and {len(introduced) - 1} more)" if len(introduced) > 1 else ""
         raise ValidationFailed(
             f"written file fails dtoc check: {v.rule} at block {v.block}, axis {v.axis}: {v.message} "
