@@ -268,6 +268,7 @@ def run_file(seq: Path, girf: Path, budgets: dict, work: Path, env: dict) -> dic
         row["nrmse_before_pct"] = m["before"].get("nrmse_percent")
         row["nrmse_after_pct"] = m["after"].get("nrmse_percent")
         row["image_term"] = m["sequence"].get("image_term")
+        row["image_reason"] = m["before"].get("image_reason")  # image figures not computed: why
         row["dk_source"] = m["sequence"].get("dk_source")
         row["output_check_ok"] = (m.get("output") or {}).get("check_ok")
     else:
@@ -336,6 +337,8 @@ def row_line(r: dict, commit: str) -> str:
         nba = (
             f"{_f(r.get('nrmse_before_pct'))} -> {_f(r.get('nrmse_after_pct'))}"
             if r.get("nrmse_before_pct") is not None
+            else f"'-': {_cell(r['image_reason'])}"
+            if r.get("image_reason")
             else "k-space only (no image term)"
         )
     else:

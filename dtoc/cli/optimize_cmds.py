@@ -190,7 +190,13 @@ def _print_summary(m: dict, con) -> None:
     sv = m.get("solver")
     if sv and sv.get("summary"):
         note(sv["summary"])
-    if out.get("check_ok", True):
+    n_inh = len(out.get("check_inherited") or [])
+    if out.get("check_ok", True) and n_inh:  # the base's own steps, kept (a warning names them)
+        note(
+            f"wrote {out.get('path')} in {m['run_time_s']:.1f} s; limits verified at {at}; 0 violations introduced, "
+            f"{n_inh} inherited from the base"
+        )
+    elif out.get("check_ok", True):
         note(f"wrote {out.get('path')} in {m['run_time_s']:.1f} s; limits verified, 0 violations at {at}")
     else:  # never "0 violations" for a file dtoc check fails (exit 1 in optimize_cmd)
         note(

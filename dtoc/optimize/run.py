@@ -39,7 +39,14 @@ from dtoc.optimize.limits import (
 from dtoc.optimize.report import plotted_span
 from dtoc.optimize.solver import SolveReport, explain_unreachable
 from dtoc.optimize.twin import EdgeTwin
-from dtoc.seq.check import SafetyChecks, base_timing_refusal, check_file, check_ir_limits
+from dtoc.seq.check import (
+    SafetyChecks,
+    base_timing_refusal,
+    check_file,
+    check_ir_limits,
+    inherited_text,
+    settle_inherited,
+)
 from dtoc.seq.ir import SequenceIR
 from dtoc.seq.seqtext import shared_parse
 from dtoc.seq.system import SystemSpec
@@ -776,6 +783,7 @@ def plan_run(
         # a 3D-encoded sequence: the image term when a 3D phantom is given (then not windowed), else k-space only
         with_image = phantom_3d
     window = window_plan(ir, hardware, cfg, free, with_image)
+    phantoms, graph, image_reason = None, None, None  # the report image's, when its cost was estimated from its graph
     if window is not None and image_in_loss(cfg):  # period by period, k-space terms only: no full loss to use it
         if with_image:
             raise InputError(
@@ -792,7 +800,14 @@ def plan_run(
             except InputError as e:
                 with_image = False
                 if io.notes is not None:
-                    io.notes(f"note: no image for the report (k-space figures only): {e}")
+                    io.notes(f"no image for the report (k-space figures only): {e}")
+            else:  # its simulation from the graph's emitting states: an unspoiled steady state's are many
+                phantoms = make_phantoms(ir, cfg, phantom)
+                graph, image_reason = report_image_reason(ir, cfg, phantoms)
+                if image_reason is not None:
+                    with_image, phantoms, graph = False, None, None
+                    if io.notes is not None:
+                        io.notes(f"no image for the report (k-space figures only): {image_reason}")
     if not with_image:
         cfg = cfg.model_copy(update={"weights": cfg.weights.model_copy(update={"image": 0.0})})
     whole_why = None  # a long sequence solved whole: why (the refusal's way out must not offer the windowed solve)
@@ -800,6 +815,7 @@ def plan_run(
         whole_why = why_not_windowed(ir, hardware, cfg, free)
     check_run_cost(ir, cfg, free, window, with_image, str(io.base_path or "sequence"), io.notes, whole_why)
     check_area_reachable(ir, limits)
+    held_limit_refusal(ir, free, limits)
     if io.out is not None:  # the base written in the output's format and read back: once the run is known to fit
         ir.meta["output_format_version"] = version_str(preflight_write(ir, io.format_version))
     projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
@@ -809,17 +825,75 @@ def plan_run(
     ctx = L.build_context(ir, limits, dtype=dtype, device=device)
     imager = None
     if with_image:
-        phantoms = make_phantoms(ir, cfg, phantom)
-        imager = O.memo_signal(Imager(ir, phantoms, n_dummies=cfg.n_dummies, dtype=dtype, device=device))
+        phantoms = phantoms or make_phantoms(ir, cfg, phantom)
+        imager = O.memo_signal(Imager(ir, phantoms, n_dummies=cfg.n_dummies, dtype=dtype, device=device, graph=graph))
 
     # a long (windowed) sequence keeps only the report's span of its whole-sequence waveforms
     n_wave = None if window is None else plotted_span(ir)[0]
     before = quality(twin, imager, ctx, ir.grad_mT_per_m, waveform_samples=n_wave)
+    if image_reason is not None:  # a figure that is not computed: its reason, never a number
+        before["image_reason"] = image_reason
     fault_point("setup")
     return Plan(
         ir, cfg, hardware, R, limits, phys_limits, limit_sources, free, projector, twin, ctx, imager, window,
         bool(with_image), phantom, warnings_out, dtype, device, n_wave, before,
     )  # fmt: skip
+
+
+def held_limit_refusal(ir, free: np.ndarray, limits: Limits) -> None:
+    """One-line InputError, before any work, when the base itself exceeds the slew or amplitude limit where dtoc may
+    not change it (a fine segment between two held raster edges: inside RF blocks, on the slice-select axis, at held
+    block boundaries), e.g. a base's step between two blocks beyond smax x raster: its output would too, and dtoc
+    never writes beyond the limits (the projection could only fail at export)."""
+    g = np.asarray(ir.grad_mT_per_m, dtype=np.float64)
+    held = ~np.asarray(free, dtype=bool)  # (3, N+1) raster edges; fine segment j depends on edges j // 2, j // 2 + 1
+    j = np.arange(g.shape[1] - 1) // 2
+    seg = held[:, j] & held[:, np.minimum(j + 1, held.shape[1] - 1)]
+    slew = np.abs(np.diff(g, axis=1)) / ir.dt_fine_s * 1e-3  # T/m/s
+    over_s = seg & (slew > limits.smax_T_per_m_per_s * (1 + 1e-6))
+    over_g = held[:, np.arange(g.shape[1]) // 2] & (np.abs(g) > limits.gmax_mT_per_m * (1 + 1e-6))
+    if not over_s.any() and not over_g.any():
+        return
+    edges = np.asarray(ir.block_edges_s)
+    ids = ir.meta.get("block_ids") or list(range(1, len(edges)))
+    if over_s.any():
+        a, m = np.unravel_index(int(np.argmax(np.where(over_s, slew, -1.0))), slew.shape)
+        what = f"{slew[a, m]:.4g} T/m/s, above smax {limits.smax_T_per_m_per_s:g}"
+    else:
+        a, m = np.unravel_index(int(np.argmax(np.where(over_g, np.abs(g), -1.0))), g.shape)
+        what = f"{abs(g[a, m]):.4g} mT/m, above gmax {limits.gmax_mT_per_m:g}"
+    b = int(np.clip(np.searchsorted(edges, m * ir.dt_fine_s, side="right") - 1, 0, len(ids) - 1))
+    raise InputError(
+        f"the base itself needs {what} on {AXES[a]} at {m * ir.dt_fine_s * 1e3:.4f} ms (block {ids[b]}), where dtoc "
+        "may not change the waveform (RF blocks, the slice-select axis, held block boundaries): its output would "
+        "too, and dtoc never writes beyond the limits; correct the base (e.g. a step between blocks: at most smax x "
+        "the gradient raster) or give limits it meets"
+    )
+
+
+def report_image_reason(ir, cfg: OptimizeConfig, phantoms: list) -> tuple[Any, str | None]:
+    """The graph of the report image's simulation (a windowed run: the image is for the report only) and why it is
+    not simulated, or None: its estimate from the graph's emitting states (:func:`dtoc.util.cost.emission_cost`;
+    the base's and every phantom's target, the base, the discarding and the output: 3 + phantoms simulations) above
+    :data:`dtoc.util.cost.REPORT_IMAGE_MAX_SECONDS` or beyond the memory available."""
+    from dtoc.sim.pdg import PDGConfig, build_graph
+    from dtoc.util.cost import FIT_FRACTION, PROCESS_BYTES, REPORT_IMAGE_MAX_SECONDS, emission_cost
+    from dtoc.util.validate import available_memory_bytes, gib
+
+    graph = build_graph(ir, PDGConfig(), phantoms[0])
+    vox = int(np.asarray(phantoms[0].pd).size)
+    mem, sec, per = emission_cost(graph, vox, len(phantoms), n_runs=1)
+    sec *= (3 + len(phantoms)) / len(phantoms)
+    fits = PROCESS_BYTES + mem <= FIT_FRACTION * available_memory_bytes()
+    if sec <= REPORT_IMAGE_MAX_SECONDS and fits:
+        return graph, None
+    beyond = [f"the report image's {REPORT_IMAGE_MAX_SECONDS:.0f} s"] if sec > REPORT_IMAGE_MAX_SECONDS else []
+    beyond += [] if fits else [f"{FIT_FRACTION:.0%} of the memory available"]
+    return None, (
+        f"its simulation ({vox} voxels; {per:.3g} signal pathways emit at each ADC sample on average) needs "
+        f"~{sec:.0f} s or more and about {gib(PROCESS_BYTES + mem)} (estimate, beyond {' and '.join(beyond)}): image "
+        "figures not computed; a smaller phantom (phantom_size in --config) may fit"
+    )
 
 
 def check_run_cost(
@@ -1000,6 +1074,8 @@ def export_stage(plan: Plan, sol: Solution, io: RunIO, t_start: float) -> RunOut
         _check_system_limits(ir_out, limits)
         # the exported waveform itself (bit for bit what twin.played(x) gives): no second whole-sequence copy
         after = quality(twin, imager, ctx, fine, keep_mask=keep, waveform_samples=plan.n_wave)
+        if imager is None and before.get("image_reason"):
+            after["image_reason"] = before["image_reason"]
         if sol.window_stats is not None:  # what the windowed solve achieved against the tolerance, named
             extra["solver"] = windowed_solver_record(plan, x, fine, sol.window_stats)
         if state.interrupted and sol.ckpt_target is not None:
@@ -1140,6 +1216,11 @@ def _write_outputs(
         if base_sha:  # the base it was compiled from (--reference BASE verifies it; dtoc.sim.reference)
             definitions[BASE_HASH_DEFINITION] = base_sha
         manifest["output"] = write_checked(ir_out, out, force, limits, definitions, safety, adc_offsets)
+        if manifest["output"]["check_inherited"]:
+            manifest["warnings"].append(
+                "the output keeps the base's own gradient steps (inherited: the base has each at the same block and "
+                f"axis, not smaller, within the slew limit): {inherited_text(manifest['output']['check_inherited'])}"
+            )
     manifest["run_time_s"] = time.time() - t_start
     if manifest_path is not None:
         atomic_write_text(manifest_path, strict_json(manifest), force=force)
@@ -1235,6 +1316,7 @@ def write_checked(
         bad = [v for v in res.violations if v.rule in lim_rules]
         if bad:
             raise ValidationFailed(f"written file fails dtoc check: {bad[0].message}; nothing written")
+        inherited = settle_inherited(res, ir_out.source, sysspec)  # steps the base has: reported; new ones: raise
         result: dict[str, Any] = {
             "path": str(outp),
             "check_ok": res.ok,
@@ -1243,6 +1325,7 @@ def write_checked(
             "check_failed": res.summary() if not res.ok else None,  # by kind, with the worst values
             "checks": list(res.checks),
             "check_not_checked": list(res.not_checked),
+            "check_inherited": inherited,  # the base's own steps the output keeps (dtoc.seq.check.settle_inherited)
         }
         data = tmp.read_bytes()
     atomic_write_bytes(outp, data, force=force)

@@ -37,8 +37,8 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from dtoc.constants import AXES
-from dtoc.errors import InputError
+from dtoc.constants import AXES, GAMMA_HZ_PER_T
+from dtoc.errors import InputError, ValidationFailed
 from dtoc.seq.ir import SequenceIR
 from dtoc.seq.pulseq import quiet
 from dtoc.seq.read import from_pypulseq, grad_vertices, read_pypulseq
@@ -380,8 +380,9 @@ def _event_rules(
     r = rasters["grad"]
     keys = list(seq.block_events.keys())
     tol = system.continuity_tol_hz_per_m
-    prev_last = np.zeros(3)  # value each axis has at the end of the previous block, Hz/m
-    for b, key in enumerate(keys):
+    prev_last = np.zeros(3)  # value each axis has at the end of the previous block of non-zero duration, Hz/m
+    prev_key = None  # that block (None: the sequence starts)
+    for key in keys:
         with quiet():
             blk = seq.get_block(key)
         dur = float(seq.block_durations[key])
@@ -481,22 +482,26 @@ def _event_rules(
                         f"gradient ends at {vv[-1]:.6g} Hz/m before the block end ({tv[-1] * 1e6:.1f} of {dur * 1e6:.1f} us)",
                     )
                 )
-        for a in range(3):
-            jump = abs(first[a] - prev_last[a])
-            if jump > tol:
-                what = "sequence starts" if b == 0 else f"jump from block {keys[b - 1]}"
-                out.append(
-                    Violation(
-                        "continuity",
-                        key,
-                        AXES[a],
-                        jump,
-                        tol,
-                        "Hz/m",
-                        f"{what}: {prev_last[a]:.6g} -> {first[a]:.6g} Hz/m",
+        # a zero-duration block (labels, other extensions) plays no time: the gradient runs on from the previous
+        # block of non-zero duration into the next one, as Pulseq's own setBlock and checkTiming compare them
+        # (docs/foreign.md "What dtoc check checks")
+        if dur > _TTOL:
+            for a in range(3):
+                jump = abs(first[a] - prev_last[a])
+                if jump > tol:
+                    what = "sequence starts" if prev_key is None else f"jump from block {prev_key}"
+                    out.append(
+                        Violation(
+                            "continuity",
+                            key,
+                            AXES[a],
+                            jump,
+                            tol,
+                            "Hz/m",
+                            f"{what}: {prev_last[a]:.6g} -> {first[a]:.6g} Hz/m",
+                        )
                     )
-                )
-        prev_last = last
+            prev_last, prev_key = last, key
         rf = getattr(blk, "rf", None)
         if rf is not None and conventions:
             if rf.delay < system.rf_dead_time_s - _TTOL:
@@ -602,7 +607,7 @@ def _event_rules(
             out.append(
                 Violation(
                     "grad_end_nonzero",
-                    keys[-1],
+                    prev_key,
                     AXES[a],
                     abs(prev_last[a]),
                     tol,
@@ -698,6 +703,117 @@ def base_timing_refusal(seq, version: str, path: str | Path | None = None) -> st
         "would fail the same rule, and an interpreter on that raster cannot play the timing the twin optimizes for: "
         "correct the base and run again"
     )
+
+
+#: the format's gradient rules no hardware limit names: a step between blocks (``continuity``) and a gradient that starts
+#: or ends inside its block at a non-zero value (a step there).  dtoc's writer rewrites only the blocks it changes, so
+#: an output keeps a base's step where it changes neither block: inherited, told apart from one dtoc introduces
+#: (:func:`split_inherited`)
+GRADIENT_RULES = ("continuity", "grad_start_nonzero", "grad_end_nonzero")
+
+
+def gradient_rule_violations(seq, system: SystemSpec) -> list[Violation]:
+    """The violations of :data:`GRADIENT_RULES` of a pypulseq ``Sequence`` (a base as read), as :func:`check_file`
+    finds them in a file (same blocks, axes and figures, Hz/m)."""
+    out: list[Violation] = []
+    _event_rules(seq, None, system, out, False, None)
+    return [v for v in out if v.rule in GRADIENT_RULES]
+
+
+def step_limit_hz_per_m(system: SystemSpec) -> float:
+    """The largest step, Hz/m, a gradient may take from one raster point to the next within the slew limit: smax x
+    the gradient raster (Pulseq's own continuity tolerance, ``maxSlew * gradRasterTime`` in setBlock and pypulseq's
+    add_block).  A larger step is played faster than the slew limit allows: a limit, never a format matter."""
+    return system.max_slew_T_per_m_per_s * system.grad_raster_s * GAMMA_HZ_PER_T
+
+
+def split_inherited(
+    violations: list[Violation], base: list[Violation], system: SystemSpec
+) -> tuple[list[Violation], list[tuple[Violation, Violation]]]:
+    """(introduced, inherited) of an output's ``violations`` against its base's (:func:`gradient_rule_violations`).
+
+    A violation is inherited when its rule is one of :data:`GRADIENT_RULES`, the base fails the same rule at the same
+    block and axis, the output's figure is not worse than the base's (by more than the rule's own tolerance, 1 Hz/m
+    by default) and the step is within the slew limit (:func:`step_limit_hz_per_m`): a base's step beyond it is a
+    limit question, and dtoc never writes beyond the limits.  Every other violation is introduced.  ``inherited``
+    pairs each output violation with the base's."""
+    at = {(v.rule, v.block, v.axis): v for v in base if v.rule in GRADIENT_RULES}
+    step = step_limit_hz_per_m(system)
+    introduced: list[Violation] = []
+    inherited: list[tuple[Violation, Violation]] = []
+    for v in violations:
+        b = at.get((v.rule, v.block, v.axis))
+        ok = (
+            b is not None
+            and v.value is not None
+            and b.value is not None
+            and v.value <= b.value + (v.limit or 0.0) + 1e-9 * abs(b.value)
+            and v.value <= step
+        )
+        if ok and b is not None:
+            inherited.append((v, b))
+        else:
+            introduced.append(v)
+    return introduced, inherited
+
+
+def settle_inherited(res: CheckResult, base_seq, system: SystemSpec) -> list[dict]:
+    """The final check of a written output against its base (``base_seq``, the pypulseq ``Sequence`` it was written
+    from): its :data:`GRADIENT_RULES` violations the base has too (:func:`split_inherited`) leave ``res.violations``
+    and come back as records (rule, block, axis, value, the base's value, unit, message); one it introduced, or a
+    base's step beyond the slew limit, raises :class:`ValidationFailed` (one line: nothing is written)."""
+    mine = [v for v in res.violations if v.rule in GRADIENT_RULES]
+    if not mine:
+        return []
+    base = [] if base_seq is None else gradient_rule_violations(base_seq, system)
+    introduced, inherited = split_inherited(mine, base, system)
+    if introduced:
+        v = introduced[0]
+        b = next((w for w in base if (w.rule, w.block, w.axis) == (v.rule, v.block, v.axis)), None)
+        step = step_limit_hz_per_m(system)
+        if b is None:
+            why = "the base has none there: introduced by the optimization"
+        elif (v.value or 0.0) > (b.value or 0.0) + (v.limit or 0.0) + 1e-9 * abs(b.value or 0.0):
+            why = f"worse than the base's {_q(b.value or 0.0, b.unit)} there: introduced by the optimization"
+        else:  # not worse, so beyond the slew limit's step: the base's own
+            why = (
+                f"the base itself steps {_q(b.value or 0.0, b.unit)} there, more than the {_q(step, 'Hz/m')} the slew "
+                f"limit allows in one gradient raster ({system.max_slew_T_per_m_per_s:g} T/m/s x "
+                f"{system.grad_raster_s * 1e6:g} us): a limit, never accepted as inherited"
+            )
+        more = f" (and {len(introduced) - 1} more)" if len(introduced) > 1 else ""
+        raise ValidationFailed(
+            f"written file fails dtoc check: {v.rule} at block {v.block}, axis {v.axis}: {v.message} "
+            f"({_q(v.value or 0.0, v.unit)}){more}; {why}; nothing written"
+        )
+    drop = {id(v) for v, _ in inherited}
+    res.violations = [v for v in res.violations if id(v) not in drop]
+    return [
+        {
+            "rule": v.rule,
+            "block": v.block,
+            "axis": v.axis,
+            "value": v.value,
+            "base_value": b.value,
+            "unit": v.unit,
+            "message": v.message,
+        }
+        for v, b in inherited
+    ]
+
+
+def inherited_text(records: list[dict]) -> str:
+    """One line of an output's inherited violations (:func:`settle_inherited`): how many of each rule, the worst."""
+    parts = []
+    for rule in GRADIENT_RULES:
+        rs = [r for r in records if r["rule"] == rule]
+        if rs:
+            w = max(rs, key=lambda r: r["value"] or 0.0)
+            parts.append(
+                f"{len(rs)} x {rule} (worst {_q(w['value'] or 0.0, w['unit'])} at block {w['block']}, axis {w['axis']}; "
+                f"the base's {_q(w['base_value'] or 0.0, w['unit'])})"
+            )
+    return "; ".join(parts)
 
 
 @dataclass(frozen=True)

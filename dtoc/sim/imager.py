@@ -34,6 +34,7 @@ class Imager:
         steady_state_options: keyword arguments of :func:`~dtoc.sim.pdg.steady_state_mz` for the dummy train
             (None: its defaults, float64 on the CPU, as ``dtoc optimize`` runs it; ``dtoc simulate`` passes its
             own ``config``, ``dtype`` and ``device``).
+        graph: the :func:`~dtoc.sim.pdg.build_graph` of ``ir`` with ``config`` and ``phantoms[0]``, if built already.
     """
 
     def __init__(
@@ -46,6 +47,7 @@ class Imager:
         config: PDGConfig | None = None,
         mz0: list | None = None,
         steady_state_options: dict | None = None,
+        graph=None,
     ):
         self.ir = ir
         self.phantoms = phantoms
@@ -55,7 +57,8 @@ class Imager:
         self.n_dummies = n_dummies
         for ph in phantoms:
             check_phantom_matches(ir, ph)
-        self.graph = build_graph(ir, self.config, phantoms[0] if phantoms else None)
+        # ``graph``: one built already for this base, config and first phantom (e.g. for a cost estimate)
+        self.graph = graph if graph is not None else build_graph(ir, self.config, phantoms[0] if phantoms else None)
         self.mz0: list = []
         #: ideal (base-waveform) signal (n_coils, N_adc) and image (ny, nx) of every phantom
         self.target_signals: list[torch.Tensor] = []

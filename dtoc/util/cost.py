@@ -25,6 +25,16 @@ FIT_FRACTION = 0.75
 SIM_BYTES_PER_VOXEL = 4096
 #: seconds per (voxel x ADC sample) of one forward simulation (same benchmark: 0.65 s for 1.07e9)
 SIM_SECONDS_PER_VOXEL_SAMPLE = 6e-10
+#: the signal of a phase distribution graph (:func:`emission_cost`): the same seconds per (emitting state x ADC sample x
+#: voxel) -- one emitting state per sample in that EPI -- and, per voxel, this many complex (emitting states x voxels)
+#: arrays of the interval with the most emitting states (its spatial phase, amplitudes expanded to voxels, products).
+#: Measured 2026-11-27 on the 2-core Xeon (load ~10) on pypulseq's trufi_v141.seq (balanced SSFP, 256 lines; its graph:
+#: ~92 emitting states per ADC sample, at most 353 in one TR, at 256x256 voxels): the base's signal alone passed
+#: 3.2 GB (and was still growing), the run through its report image 6.3 GB (the bench's cap): ~16 such arrays
+SIM_EMIT_ARRAYS = 16
+#: the image for the report of a windowed run (k-space solve; the image does not enter it) is simulated only when its
+#: estimate is at most this: beyond, its figures are replaced by their reason (dtoc.optimize.run.report_image_reason)
+REPORT_IMAGE_MAX_SECONDS = 120.0
 #: the dummy train (:func:`dtoc.sim.pdg.steady_state_mz`) grows with every repetition: its time grid and
 #: moments (bytes per fine sample of a repetition), its states (per repetition) and the voxels' share.
 #: Measured 2026-11-27 on this project's 2-core Intel Xeon machine (peak RSS growth of a process, load ~10):
@@ -94,6 +104,27 @@ def simulation_cost(n_voxels: int, n_samples: int, n_phantoms: int = 1, n_runs: 
     mem = float(n_voxels) * SIM_BYTES_PER_VOXEL * max(1, n_phantoms)
     sec = float(n_voxels) * float(n_samples) * SIM_SECONDS_PER_VOXEL_SAMPLE * max(1, n_phantoms) * max(1, n_runs)
     return mem, sec
+
+
+def emission_cost(graph, n_voxels: int, n_phantoms: int = 1, n_runs: int = 1) -> tuple[float, float, float]:
+    """(bytes, seconds, emitting states per ADC sample) of ``n_runs`` simulations of ``n_phantoms`` phantoms of
+    ``n_voxels`` each through a built phase distribution graph (:func:`dtoc.sim.pdg.build_graph`): the work is every
+    interval's emitting states x its ADC samples x the voxels.  :func:`simulation_cost` assumes one emitting state
+    per sample (a spoiled or single-shot readout); an unspoiled steady state keeps ~100 coherent pathways emitting at
+    every sample, and this sees them.  A lower bound like :func:`simulation_cost` (same constant per element)."""
+    work = 0.0
+    samples = 0
+    most = 0
+    for iv in graph.intervals:
+        t = int(iv.adc_stop - iv.adc_start)
+        e = int(iv.emit.size)
+        work += float(e) * t
+        samples += t
+        most = max(most, e)
+    v = float(n_voxels)
+    mem = v * (SIM_BYTES_PER_VOXEL + SIM_EMIT_ARRAYS * 16.0 * most) * max(1, n_phantoms)
+    sec = work * v * SIM_SECONDS_PER_VOXEL_SAMPLE * max(1, n_phantoms) * max(1, n_runs)
+    return mem, sec, work / max(samples, 1)
 
 
 def dummy_cost(n_dummies: int, fine_per_repetition: float, n_voxels: int) -> tuple[float, float]:
@@ -217,6 +248,7 @@ __all__ = [
     "check_optimize_cost",
     "check_simulation_cost",
     "dummy_cost",
+    "emission_cost",
     "fine_per_repetition",
     "optimize_cost",
     "simulation_cost",
