@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from dtoc.constants import BASE_HASH_DEFINITION
+from dtoc.constants import AXES, BASE_HASH_DEFINITION
 from dtoc.errors import InputError, LimitError, ValidationFailed
 from dtoc.optimize import loss as L
 from dtoc.optimize import optimizer as O
