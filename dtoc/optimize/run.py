@@ -851,7 +851,9 @@ def held_limit_refusal(ir, free: np.ndarray, limits: Limits) -> None:
     seg = held[:, j] & held[:, np.minimum(j + 1, held.shape[1] - 1)]
     slew = np.abs(np.diff(g, axis=1)) / ir.dt_fine_s * 1e-3  # T/m/s
     over_s = seg & (slew > limits.smax_T_per_m_per_s * (1 + 1e-6))
-    over_g = held[:, np.arange(g.shape[1]) // 2] & (np.abs(g) > limits.gmax_mT_per_m * (1 + 1e-6))
+    # amplitude on the held raster edges themselves: a fine midpoint next to a free edge is not held
+    ge = np.asarray(ir.edge_grad_mT_per_m, dtype=np.float64)
+    over_g = held & (np.abs(ge) > limits.gmax_mT_per_m * (1 + 1e-6))
     if not over_s.any() and not over_g.any():
         return
     edges = np.asarray(ir.block_edges_s)
@@ -860,8 +862,9 @@ def held_limit_refusal(ir, free: np.ndarray, limits: Limits) -> None:
         a, m = np.unravel_index(int(np.argmax(np.where(over_s, slew, -1.0))), slew.shape)
         what = f"{slew[a, m]:.4g} T/m/s, above smax {limits.smax_T_per_m_per_s:g}"
     else:
-        a, m = np.unravel_index(int(np.argmax(np.where(over_g, np.abs(g), -1.0))), g.shape)
-        what = f"{abs(g[a, m]):.4g} mT/m, above gmax {limits.gmax_mT_per_m:g}"
+        a, e = np.unravel_index(int(np.argmax(np.where(over_g, np.abs(ge), -1.0))), ge.shape)
+        m = 2 * e  # the edge's fine sample
+        what = f"{abs(ge[a, e]):.4g} mT/m, above gmax {limits.gmax_mT_per_m:g}"
     b = int(np.clip(np.searchsorted(edges, m * ir.dt_fine_s, side="right") - 1, 0, len(ids) - 1))
     raise InputError(
         f"the base itself needs {what} on {AXES[a]} at {m * ir.dt_fine_s * 1e3:.4f} ms (block {ids[b]}), where dtoc "
