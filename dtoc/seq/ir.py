@@ -42,6 +42,12 @@ class RFEvent:
         freq_offset_hz: frequency offset, Hz.
         use: Pulseq use: 'excitation', 'refocusing', 'inversion', 'saturation', 'preparation', 'undefined'.
         grad_at_center_mT_per_m: demanded gradient on (x, y, z) at ``t_center_s`` (slice selection), mT/m.
+        bandwidth_hz: full width at half maximum of the pulse's spectrum (the small-tip slice / band profile), Hz;
+            None when unknown (synthetic IRs).  With ``freq_offset_hz`` and ``grad_at_center_mT_per_m`` it says which
+            spins the pulse acts on (:mod:`dtoc.sim.slices`: slice groups of a multi-slice sequence).
+        ppm_offset_hz: the part of the pulse's frequency offset given in ppm (Pulseq 1.5 ``freq_ppm``, e.g. a
+            fat-saturation pulse), in Hz at the file's B0 (pypulseq's system B0 when the file gives none); the
+            pulse's band is centred at ``freq_offset_hz + ppm_offset_hz``.
     """
 
     block: int
@@ -53,6 +59,8 @@ class RFEvent:
     freq_offset_hz: float
     use: str
     grad_at_center_mT_per_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    bandwidth_hz: float | None = None
+    ppm_offset_hz: float = 0.0
 
     @property
     def excites(self) -> bool:

@@ -250,6 +250,8 @@ def from_pypulseq(
     rf_blocks: list[int] = []
     soft: list[int] = []  # blocks holding a soft delay (their duration is set on the scanner)
     areas: dict[int, float] = {}  # id(signal) -> its area (the RF decoding is shared, _shared_rf_decoding)
+    bandwidths: dict[int, float | None] = {}  # id(signal) -> its spectrum's FWHM, Hz
+    b0_hz_per_ppm = float(seq.system.gamma) * float(seq.system.B0)  # Hz at 1 ppm x 1e6 (pypulseq: gamma in Hz/T)
     decoded: dict = {}
     for b, key in enumerate(keys):
         with quiet(), _shared_rf_decoding(seq, decoded):
@@ -292,6 +294,8 @@ def from_pypulseq(
                 else:
                     areas[id(rf.signal)] = np.sum(sig) * seq.rf_raster_time
             area = areas[id(rf.signal)]
+            if id(rf.signal) not in bandwidths:
+                bandwidths[id(rf.signal)] = rf_bandwidth_hz(np.asarray(rf.t, dtype=np.float64), np.asarray(rf.signal))
             rf_events.append(
                 RFEvent(
                     block=b,
@@ -302,6 +306,8 @@ def from_pypulseq(
                     phase_rad=float(rf.phase_offset),
                     freq_offset_hz=float(rf.freq_offset),
                     use=str(getattr(rf, "use", "undefined") or "undefined"),
+                    bandwidth_hz=bandwidths[id(rf.signal)],
+                    ppm_offset_hz=float(getattr(rf, "freq_ppm", 0.0) or 0.0) * 1e-6 * b0_hz_per_ppm,
                 )
             )
         if getattr(blk, "adc", None) is not None:
@@ -412,6 +418,41 @@ def _apply_metadata(ir: SequenceIR) -> None:
         if gm.max() > 0:
             ir.readout_axis = int(np.argmax(gm))
             ir.meta["axes_guessed"] = True
+
+
+def rf_bandwidth_hz(t_s: np.ndarray, signal: np.ndarray) -> float | None:
+    """Full width at half maximum (Hz) of the spectrum of an RF waveform (samples ``signal`` at times ``t_s``):
+    the small-tip approximation of the band the pulse acts on (a slice: this width / (gamma |G|)).  The waveform is
+    resampled onto a uniform grid of its shortest step and zero-padded to a frequency step of at most 1/64 of
+    1 / duration; the width is that of the contiguous lobe around the spectrum's peak.  None for an empty or
+    all-zero waveform (a block pulse's spectrum is a sinc: 1.21 / duration)."""
+    t = np.asarray(t_s, dtype=np.float64).ravel()
+    s = np.asarray(signal).ravel()
+    if t.size < 2 or s.size != t.size or not np.any(np.abs(s) > 0):
+        return None
+    dt = float(np.min(np.diff(t)))
+    if not dt > 0:
+        return None
+    dur = float(t[-1] - t[0]) + dt
+    if not np.allclose(np.diff(t), dt, rtol=1e-6, atol=1e-12):
+        tu = np.arange(t[0], t[-1] + 0.5 * dt, dt)
+        s = np.interp(tu, t, s.real) + 1j * np.interp(tu, t, s.imag) if np.iscomplexobj(s) else np.interp(tu, t, s)
+    n = 1 << int(np.ceil(np.log2(max(64 * dur / dt, s.size))))
+    spec = np.abs(np.fft.fftshift(np.fft.fft(s, n)))
+    f = np.fft.fftshift(np.fft.fftfreq(n, dt))
+    p = int(np.argmax(spec))
+    half = 0.5 * spec[p]
+    lo = p
+    while lo > 0 and spec[lo - 1] >= half:
+        lo -= 1
+    hi = p
+    while hi < n - 1 and spec[hi + 1] >= half:
+        hi += 1
+    df = float(f[1] - f[0])
+    # half-maximum crossings interpolated linearly between the bins either side
+    left = f[lo] - (df * (spec[lo] - half) / (spec[lo] - spec[lo - 1]) if lo > 0 else 0.0)
+    right = f[hi] + (df * (spec[hi] - half) / (spec[hi] - spec[hi + 1]) if hi < n - 1 else 0.0)
+    return float(right - left)
 
 
 def slice_axes(ir: SequenceIR, tol_mT_per_m: float = 1e-6) -> list[int]:
