@@ -288,6 +288,8 @@ def _active_limits_before(P: EdgeProjector, x: np.ndarray, times_s: np.ndarray) 
     """Per time, the amplitude or slew limit (per axis) at its bound nearest before it in the edges ``x``, and its
     time (nan, '' if none): one (N+1,) index array at a time, no list of events (a long sequence at its slew limit
     on every ramp has millions)."""
+    if times_s.size == 0:  # nothing to name: no (N+1,) masks
+        return [], np.full(0, np.nan)
     amp, slew_seg = P.at_limits(x)
     n = P.free.shape[1]
     best_t = np.full(times_s.size, -np.inf)
