@@ -197,3 +197,31 @@ def test_the_limits_at_their_bound_in_pieces(monkeypatch):
     amp, slew = P.at_limits(x)
     assert np.array_equal(amp, amp_ref) and np.array_equal(slew, slew_ref)
     assert P._lohi is None
+
+
+def test_the_writer_finds_the_changed_blocks_in_pieces(monkeypatch):
+    """The blocks the writer rewrites are found piece by piece: the same blocks, with temporaries of a piece (a
+    (3, 2N+1) bool mask, 3 bytes per fine sample), not two whole-length float arrays (48)."""
+    from pathlib import Path
+
+    from dtoc.seq import write as W
+    from dtoc.seq.load import load_sequence
+
+    ir = load_sequence(Path(__file__).resolve().parents[1] / "sequences" / "epi_esp081.seq")
+    g = ir.grad_mT_per_m.copy()
+    idx = np.flatnonzero(ir.free_mask[0])
+    g[0, idx[:: max(1, idx.size // 7)]] += 0.01
+    out = ir.with_grad(g)
+    whole = W.changed_blocks(out)
+    assert len(whole) >= 5
+    monkeypatch.setattr(W, "_PIECE", 256)
+    n = g.shape[1]
+    assert n > 20 * 256
+    tracemalloc.start()
+    try:
+        got = W.changed_blocks(out)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert got == whole
+    assert peak / n < 8.0, peak / n
