@@ -134,3 +134,94 @@ def test_the_write_check_compares_in_pieces_and_names_the_first_difference():
     g[1, m] += 1.0  # 1 mT/m more than the text plays, at one fine sample on y
     with pytest.raises(DtocError, match=rf"axis y at {m * ir.dt_fine_s * 1e3:.4f} ms"):
         verify_written(ir.with_grad(g), data, v)
+
+
+def _sine_case(n: int):
+    """A slow sine (in the set with room) on x and y, held in blocks of 200 edges every 5000 (RF), z held at 0."""
+    t = np.arange(n)
+    e = np.zeros((3, n))
+    e[:2] = 10.0 * np.sin(t / 300.0)[None]
+    free = np.ones((3, n), dtype=bool)
+    for s in range(1000, n, 5000):
+        free[:, s : s + 200] = False
+    free[2] = False
+    return e, free
+
+
+def test_a_waveform_outside_the_set_in_a_few_places_is_projected_there_only(monkeypatch):
+    """A long waveform in the set but for a few places (a windowed solve's: its windows' envelopes round by ~5e-10
+    mT/m against the whole sequence's at millions of edges; here also real excesses) is projected span by span: the
+    whole projection's result bit for bit here, within the limits, and neither the whole envelopes (48 bytes per
+    edge) nor Dykstra's whole layout (~150) are made (the 64 s bench.long run: 7.5 GB and 5 minutes for that
+    projection, 2026-11-27).  Many places: the whole is projected, as before."""
+    monkeypatch.setattr(L, "CHECK_CHUNK", 4096)  # 15 pieces
+    monkeypatch.setattr(L, "LOCAL_MIN_EDGES", 8192)
+    n = 60_001
+    e, free = _sine_case(n)
+    P = EdgeProjector(e, free, RASTER, LIM)
+    assert P.is_feasible(e, tol=0.0)
+    x = e.copy()
+    x[0, [7_000, 31_337, 52_001]] += [30.0, -25.0, 3.0]  # beyond gmax / the slew limit
+    lo, hi = P._box_range(1201, 1202, {})  # the free edge after a held block: on its envelope (the slew cone)
+    x[1, 1201] = hi[1, 0] + 1e-10
+    assert not P.is_feasible(x, tol=0.0)
+    y = P.project(x, n_iter=60)
+    assert P._lohi is None and P._layout_made is None
+    whole = EdgeProjector(e, free, RASTER, LIM)
+    whole._local = False
+    assert y.tobytes() == whole.project(x, n_iter=60).tobytes()
+    assert whole._layout_made is not None
+    assert P.is_feasible(y) and y[1, 1201] <= hi[1, 0] + 1e-12
+    moved = np.flatnonzero((y != x).any(axis=0))
+    near = np.abs(moved[:, None] - np.array([1201, 7_000, 31_337, 52_001])[None, :]).min(axis=1)
+    assert moved.size and near.max() <= L.LOCAL_MARGIN
+    many = e.copy()
+    many[0, 50::300] += 5.0  # 200 places: their spans cover the sequence
+    Q = EdgeProjector(e, free, RASTER, LIM)
+    assert Q._bad_spans(many) is None
+    assert Q.project(many, n_iter=60).tobytes() == whole.project(many, n_iter=60).tobytes()
+
+
+def test_the_limits_at_their_bound_in_pieces(monkeypatch):
+    """The masks that name an active limit (the solver's report) are the whole envelopes' ones, in pieces, without
+    making the envelopes whole."""
+    e, free = _case(4, 3001, 0.9)
+    x = EdgeProjector(e, free, RASTER, LIM).project(e + np.random.default_rng(4).normal(scale=3.0, size=e.shape))
+    whole = EdgeProjector(e, free, RASTER, LIM)
+    t = 1e-6 * whole.step
+    amp_ref = whole.free & ((x >= whole.hi - t) | (x <= whole.lo + t))
+    slew_ref = whole.pair_free & (np.abs(np.diff(x, axis=1)) >= whole.step * (1 - 1e-6))
+    assert amp_ref.sum() > 10 and slew_ref.sum() > 10
+    monkeypatch.setattr(L, "CHECK_CHUNK", 256)
+    P = EdgeProjector(e, free, RASTER, LIM)
+    amp, slew = P.at_limits(x)
+    assert np.array_equal(amp, amp_ref) and np.array_equal(slew, slew_ref)
+    assert P._lohi is None
+
+
+def test_the_writer_finds_the_changed_blocks_in_pieces(monkeypatch):
+    """The blocks the writer rewrites are found piece by piece: the same blocks, with temporaries of a piece (a
+    (3, 2N+1) bool mask, 3 bytes per fine sample), not two whole-length float arrays (48)."""
+    from pathlib import Path
+
+    from dtoc.seq import write as W
+    from dtoc.seq.load import load_sequence
+
+    ir = load_sequence(Path(__file__).resolve().parents[1] / "sequences" / "epi_esp081.seq")
+    g = ir.grad_mT_per_m.copy()
+    idx = np.flatnonzero(ir.free_mask[0])
+    g[0, idx[:: max(1, idx.size // 7)]] += 0.01
+    out = ir.with_grad(g)
+    whole = W.changed_blocks(out)
+    assert len(whole) >= 5
+    monkeypatch.setattr(W, "_PIECE", 256)
+    n = g.shape[1]
+    assert n > 20 * 256
+    tracemalloc.start()
+    try:
+        got = W.changed_blocks(out)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert got == whole
+    assert peak / n < 8.0, peak / n

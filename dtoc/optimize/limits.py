@@ -540,6 +540,13 @@ def _physical_error(what: str, axis: str, n: int, value: float, limit: float, ra
 #: of one piece, not of the sequence)
 CHECK_CHUNK = 1 << 18
 
+#: a sequence longer than this many edges whose waveform is outside the set in a few places only (a windowed solve's
+#: results meet their windows' limits; the seams between them and the envelopes' rounding, ~1e-10 mT/m at millions
+#: of edges, are what the final check at tolerance 0 can find) is projected there only (:meth:`EdgeProjector.project`)
+LOCAL_MIN_EDGES = 2 * CHECK_CHUNK
+#: edges on either side of such a place (beyond Dykstra's reach: two edges per round, 60 rounds at the export)
+LOCAL_MARGIN = 256
+
 _BIG = 1e300
 
 
@@ -627,6 +634,8 @@ class EdgeProjector:
             axes, and on the physical ones at an oblique orientation), or when the fixed samples leave no
             waveform that meets them (empty reachability envelope).
     """
+
+    _local = True  # a long sequence projected only where it is outside the set (:meth:`_bad_spans`); not a span's own
 
     def __init__(
         self,
@@ -767,16 +776,101 @@ class EdgeProjector:
         is_t = isinstance(edges, torch.Tensor)
         if is_t and edges.device.type != "cpu":
             return self._project_device(edges, n_iter, exact)
-        x = edges.detach().cpu().numpy().astype(np.float64) if is_t else np.asarray(edges, dtype=np.float64)
-        x = np.where(self.free, x, self.base)
-        if self.is_feasible(x, tol=0.0):  # already in the set: the projection is the identity (bit for bit)
-            return torch.as_tensor(x, dtype=edges.dtype, device=edges.device) if is_t else x
-        x = self._dykstra(x, n_iter)
-        if exact:
-            x = self.repair(x)
+        # (a float64 tensor's numpy view, not a copy: np.where below makes the one copy)
+        x0 = np.asarray(edges.detach().cpu().numpy() if is_t else edges, dtype=np.float64)
+        x = np.where(self.free, x0, self.base)
+        if not self.is_feasible(x, tol=0.0):  # else already in the set: the projection is the identity (bit for bit)
+            spans = self._bad_spans(x) if self._local and self.n_edges > LOCAL_MIN_EDGES else None
+            if spans is None or not self._project_spans(x, spans, n_iter, exact):
+                x = self._dykstra(np.where(self.free, x0, self.base), n_iter)
+                if exact:
+                    x = self.repair(x)
         if is_t:
             return torch.as_tensor(x, dtype=edges.dtype, device=edges.device)
         return x
+
+    def _piece_bad(self, x: np.ndarray, a: int, b: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
+        """The edges ``a..b-1`` (``a`` a multiple of :data:`CHECK_CHUNK`, or the envelopes held) outside their box,
+        (3, b - a), and the steps from them beyond their bound, (3, b - a) (at the sequence's end one fewer), at
+        ``tol``."""
+        e, s = slice(a, b), slice(a, b - 1 if b == self.n_edges else b)  # the piece's edges and steps
+        xe = x[:, e]
+        lo, hi = self._box(e)
+        box = (xe < lo - tol) | (xe > hi + tol)
+        d = np.diff(x[:, a : s.stop + 1], axis=1)
+        if self.uniform:
+            step = self.pair_free[:, s] & (np.abs(d) > self.step + tol)
+        else:
+            step = self.pair_free[:, s] & ((d > self.dhi[:, s] + tol) | (d < self.dlo[:, s] - tol))
+        return box, step
+
+    def _bad_spans(self, x: np.ndarray) -> list[tuple[int, int]] | None:
+        """The spans ``[a, b)`` of edges around the places where ``x`` is outside the set at tolerance 0 (each
+        :data:`LOCAL_MARGIN` edges on either side, ``a`` even, overlapping ones merged), found piece by piece;
+        None when they would cover more than half the sequence (then the whole is projected)."""
+        spans: list[list[int]] = []
+        n, m, covered = self.n_edges, LOCAL_MARGIN, 0
+        for a0 in range(0, n, CHECK_CHUNK):
+            box, step = self._piece_bad(x, a0, min(a0 + CHECK_CHUNK, n), 0.0)
+            s = np.flatnonzero(step.any(axis=0))
+            bad = np.union1d(np.flatnonzero(box.any(axis=0)), np.r_[s, s + 1]) + a0  # a step: both its edges
+            if bad.size == 0:
+                continue
+            cut = np.flatnonzero(np.diff(bad) > 2 * m) + 1
+            for first, last in zip(bad[np.r_[0, cut]], bad[np.r_[cut - 1, bad.size - 1]]):
+                lo, hi = max(int(first) - m, 0) & ~1, min(int(last) + 1 + m, n)
+                if spans and lo <= spans[-1][1]:
+                    covered -= spans[-1][1] - spans[-1][0]
+                    spans[-1][1] = max(spans[-1][1], hi)
+                else:
+                    spans.append([lo, hi])
+                covered += spans[-1][1] - spans[-1][0]
+                if 2 * covered > n:
+                    return None
+        return [(a, b) for a, b in spans]
+
+    def _project_spans(self, x: np.ndarray, spans: list[tuple[int, int]], n_iter: int, exact: bool) -> bool:
+        """Project only ``spans`` of ``x`` (in place), each on its own with its first and last edge held at ``x``'s
+        values (the rest of ``x`` is in the set), then check the whole result at the default tolerance (1e-9
+        mT/m: the whole projection's own result is within its limits to rounding, not always at 0; the envelopes'
+        ``(c - S j) + S n`` round by up to ~5e-10 mT/m at millions of edges).  False when that check fails
+        (``x`` then partly projected): the caller projects the whole."""
+        pieces: dict = {}  # the envelopes' pieces the spans (in order) are in: each made once
+        for a, b in spans:
+            for p in [p for p in pieces if p + CHECK_CHUNK <= a]:
+                del pieces[p]
+            x[:, a:b] = self._span(x, a, b, pieces).project(x[:, a:b], n_iter, exact)
+        return self.is_feasible(x)
+
+    def _span(self, x: np.ndarray, a: int, b: int, pieces: dict) -> EdgeProjector:
+        """The projector of the edges ``a..b-1``: this one's envelopes, step bounds and fixed samples there, and
+        the span's first and last edge (inside the sequence) held at ``x``'s values.  ``pieces``: {start: (lo, hi)}
+        of the envelopes' pieces made so far (added to)."""
+        sub = object.__new__(EdgeProjector)
+        lo, hi = (np.array(v) for v in self._box_range(a, b, pieces))
+        free, base = self.free[:, a:b].copy(), self.base[:, a:b].copy()
+        for i, edge in ((0, a > 0), (b - a - 1, b < self.n_edges)):
+            if edge:
+                free[:, i] = False
+                base[:, i] = lo[:, i] = hi[:, i] = x[:, a + i]
+        sub.base, sub.free, sub.raster_s, sub.limits = base, free, self.raster_s, self.limits
+        sub.step, sub.uniform, sub._lohi = self.step, self.uniform, (lo, hi)
+        sub.dlo, sub.dhi = self.dlo[:, a : b - 1], self.dhi[:, a : b - 1]
+        sub.pair_free = free[:, 1:] & free[:, :-1]
+        sub.n_edges, sub._layout_made, sub._on_device, sub._local = b - a, None, {}, False
+        return sub
+
+    def _box_range(self, a: int, b: int, pieces: dict) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) of the edges ``a..b-1``, any span (:meth:`_box` takes whole pieces; ``pieces`` keeps them)."""
+        if self._lohi is not None:
+            return self._lohi[0][:, a:b], self._lohi[1][:, a:b]
+        p0 = a - a % CHECK_CHUNK
+        for p in range(p0, b, CHECK_CHUNK):
+            if p not in pieces:
+                pieces[p] = self._box(slice(p, min(p + CHECK_CHUNK, self.n_edges)))
+        parts = [pieces[p] for p in range(p0, b, CHECK_CHUNK)]
+        lo, hi = (np.concatenate([q[i] for q in parts], axis=1)[:, a - p0 : b - p0] for i in (0, 1))
+        return lo, hi
 
     @property
     def _layout(self) -> _Layout:
@@ -838,18 +932,8 @@ class EdgeProjector:
         """True if ``x`` (3, N+1) meets the margin limits and the fixed values."""
         x = np.asarray(x, dtype=np.float64)
         for a in range(0, self.n_edges, CHECK_CHUNK):  # in pieces: the temporaries are one piece's, not the sequence's
-            b = min(a + CHECK_CHUNK, self.n_edges)
-            e, s = slice(a, b), slice(a, b - 1 if b == self.n_edges else b)  # the pieces' edges and steps
-            xe = x[:, e]
-            lo, hi = self._box(e)
-            if np.any(xe < lo - tol) or np.any(xe > hi + tol):
-                return False
-            d = np.diff(x[:, a : s.stop + 1], axis=1)
-            if self.uniform:
-                bad = self.pair_free[:, s] & (np.abs(d) > self.step + tol)
-            else:
-                bad = self.pair_free[:, s] & ((d > self.dhi[:, s] + tol) | (d < self.dlo[:, s] - tol))
-            if bad.any():
+            box, step = self._piece_bad(x, a, min(a + CHECK_CHUNK, self.n_edges), tol)
+            if box.any() or step.any():
                 return False
         return True
 
@@ -858,11 +942,19 @@ class EdgeProjector:
         (3, N), within ``rtol`` of the step bound)."""
         x = np.asarray(x, dtype=np.float64)
         t = rtol * max(self.step, 1e-9)
-        amp = self.free & ((x >= self.hi - t) | (x <= self.lo + t))
-        if self.uniform:
-            return amp, self.pair_free & (np.abs(np.diff(x, axis=1)) >= self.step * (1 - rtol))
-        d = np.diff(x, axis=1)
-        return amp, self.pair_free & ((d >= self.dhi - t) | (d <= self.dlo + t))
+        amp, slew = np.empty(self.free.shape, dtype=bool), np.empty(self.pair_free.shape, dtype=bool)
+        n = self.n_edges
+        for a in range(0, n, CHECK_CHUNK):  # in pieces: the envelopes are not made whole (nor kept)
+            b = min(a + CHECK_CHUNK, n)
+            e, s = slice(a, b), slice(a, b - 1 if b == n else b)
+            lo, hi = self._box(e)
+            amp[:, e] = self.free[:, e] & ((x[:, e] >= hi - t) | (x[:, e] <= lo + t))
+            d = np.diff(x[:, a : s.stop + 1], axis=1)
+            if self.uniform:
+                slew[:, s] = self.pair_free[:, s] & (np.abs(d) >= self.step * (1 - rtol))
+            else:
+                slew[:, s] = self.pair_free[:, s] & ((d >= self.dhi[:, s] - t) | (d <= self.dlo[:, s] + t))
+        return amp, slew
 
     def repair(self, x: np.ndarray) -> np.ndarray:
         """Feasible-by-construction correction (mean of forward and backward greedy passes)."""
@@ -901,7 +993,11 @@ def edges_to_played(edges, base_fine, fine_mask):
         base = torch.as_tensor(np.asarray(base_fine), dtype=fine.dtype, device=fine.device)
         mask = torch.as_tensor(np.asarray(fine_mask), device=fine.device)
         return torch.where(mask, fine, base)
-    return np.where(fine_mask, fine, base_fine)
+    base_fine = np.asarray(base_fine)
+    if fine.dtype != np.result_type(fine, base_fine):
+        return np.where(fine_mask, fine, base_fine)
+    np.copyto(fine, base_fine, where=~np.asarray(fine_mask))  # np.where's values, without a second (3, 2N+1) array
+    return fine
 
 
 def check_area_reachable(ir, limits: Limits, rel_tol: float = 1e-3) -> None:

@@ -62,7 +62,7 @@ for _mm in ((1, 3), (1, 2)):
 _NUM = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$|^[+-]?(nan|inf)$", re.IGNORECASE)
 
 
-@dataclass
+@dataclass(slots=True)
 class SeqLine:
     lineno: int  # 1-based line number in the file
     text: str  # stripped line

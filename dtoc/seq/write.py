@@ -50,6 +50,8 @@ from dtoc.seq.versions import (
 
 #: a block/axis counts as changed when any fine sample moved by more than this, mT/m
 CHANGE_TOL_MT_PER_M = 1e-9
+#: fine samples per piece where a whole waveform is compared (temporaries of a piece, not of the sequence)
+_PIECE = 1 << 19
 
 
 def _round6(x: np.ndarray) -> np.ndarray:
@@ -69,7 +71,12 @@ def changed_blocks(ir: SequenceIR) -> dict[int, list[int]]:
     if orig.shape != ir.grad_mT_per_m.shape:
         raise DtocError(f"IR gradient grid {ir.grad_mT_per_m.shape} does not match its source sequence {orig.shape}")
     m_edges = np.round(np.asarray(ir.block_edges_s) / ir.dt_fine_s).astype(np.int64)
-    diff = np.abs(ir.grad_mT_per_m - orig) > CHANGE_TOL_MT_PER_M
+    g = ir.grad_mT_per_m
+    # in pieces: no whole-length float temporaries (a long sequence's 96 bytes per raster edge)
+    diff = np.empty(g.shape, dtype=bool)
+    for i in range(0, g.shape[1], _PIECE):
+        e = slice(i, i + _PIECE)
+        np.greater(np.abs(g[:, e] - orig[:, e]), CHANGE_TOL_MT_PER_M, out=diff[:, e])
     out: dict[int, list[int]] = {}
     for b in range(len(m_edges) - 1):
         if m_edges[b + 1] == m_edges[b]:  # a zero-duration block (labels only) holds no gradient
@@ -111,17 +118,20 @@ def to_pypulseq(ir: SequenceIR, adc_offsets: dict[int, tuple[float, float]] | No
     ).to_pypulseq_opts(enforce_limits=False)
     keys = list(seq.block_events.keys())
     m_edges = np.round(np.asarray(ir.block_edges_s) / ir.dt_fine_s).astype(np.int64)
-    g = ir.grad_mT_per_m.copy()
+    g = ir.grad_mT_per_m
     # pypulseq's set_block compares the new first/last with the neighbours' (still old) values using
     # system.max_slew * raster; blocks are rewritten one at a time, so lift that check on our copy
     # (continuity of the result is exact by construction and verified by dtoc.seq.check).
     saved_slew, saved_grad = seq.system.max_slew, seq.system.max_grad
     seq.system.max_slew, seq.system.max_grad = opts.max_slew, opts.max_grad
-    # boundary samples that changed are rounded to 6 significant digits (Hz/m) on both sides at once
+    # boundary samples that changed are rounded to 6 significant digits (Hz/m) on both sides at once (kept apart:
+    # not a second whole-length copy of the waveform)
+    rounded: dict[tuple[int, int], float] = {}
     for m in m_edges:
         for a in range(3):
             if abs(g[a, m] - orig[a, m]) > CHANGE_TOL_MT_PER_M:
-                g[a, m] = _round6(np.array([hz_per_m_from_mT_per_m(g[a, m])]))[0] / hz_per_m_from_mT_per_m(1.0)
+                hz = _round6(np.array([hz_per_m_from_mT_per_m(g[a, m])]))[0]
+                rounded[a, int(m)] = hz / hz_per_m_from_mT_per_m(1.0)
     rot = {int(b): quaternion_matrix(q) for b, q in (ir.meta.get("rotations") or {}).items()}
     for b in sorted(set(changes) | set(adc_offsets)):
         axes = changes.get(b, [])
@@ -130,7 +140,11 @@ def to_pypulseq(ir: SequenceIR, adc_offsets: dict[int, tuple[float, float]] | No
             blk = seq.get_block(key)
         m0, m1 = int(m_edges[b]), int(m_edges[b + 1])
         dur = float(seq.block_durations[key])
-        played, edges_g = ir.grad_mT_per_m[:, m0 : m1 + 1], g[:, m0 : m1 + 1]
+        played, edges_g = g[:, m0 : m1 + 1], g[:, m0 : m1 + 1].copy()
+        for a in range(3):
+            for m in (m0, m1):
+                if (a, m) in rounded:
+                    edges_g[a, m - m0] = rounded[a, m]
         if b in rot and axes:  # a rotated block: its events are logical gradients, R^T of the played ones
             played, edges_g = rot[b].T @ played, rot[b].T @ edges_g
             axes = [0, 1, 2]
@@ -336,7 +350,8 @@ def _detected_use(seq, rf) -> str:
 def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> None:
     """Read ``data`` back with dtoc's reader and with pypulseq (which reads no 1.5.1 extension: a text holding
     ROTATIONS or RF_SHIMS is read by dtoc's reader only): it must be format ``version`` and play ``ir``'s
-    gradients (within the writer's precision, module doc), RF centres and ADC samples.
+    gradients (within the writer's precision, module doc), RF centres and ADC samples.  dtoc's read-back is
+    compared and released before pypulseq reads the text (a long sequence's two readings are not held together).
 
     Raises:
         DtocError: one line naming the first difference."""
@@ -357,6 +372,8 @@ def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> No
             raise DtocError(
                 f"the written format {v} text does not read back: {str(e).replace(tmp, 'output')}"
             ) from None
+        _compare_read_back(ir, back, v, version)
+        del back
         try:
             if not any(f"\nextension {k} ".encode() in data for k in KEPT_EXTENSIONS):  # pypulseq 1.5.0 knows neither
                 with quiet():  # (its 1.4 port leaves unused gradients' edges None, which its de-duplication rounds)
@@ -365,12 +382,16 @@ def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> No
             raise DtocError(f"pypulseq cannot read the written format {v} text: {type(e).__name__}: {e}") from None
     finally:
         os.unlink(tmp)
+
+
+def _compare_read_back(ir: SequenceIR, back: SequenceIR, v: str, version) -> None:
+    """:func:`verify_written`'s comparison of dtoc's read-back ``back`` (format ``v``) with ``ir``."""
     if back.meta.get("format_version") != v:
         raise DtocError(f"written text says format {back.meta.get('format_version')}, not {v}")
     g, gb = ir.grad_mT_per_m, back.grad_mT_per_m
     if g.shape != gb.shape:
         raise DtocError(f"format {v} text reads back with {gb.shape[1]} gradient samples, not {g.shape[1]}")
-    piece = 1 << 19  # fine samples per piece: the comparison's temporaries are a piece's, not the sequence's
+    piece = _PIECE  # the comparison's temporaries are a piece's, not the sequence's
     gmax = max([float(np.abs(g[:, i : i + piece]).max()) for i in range(0, g.shape[1], piece)] + [1e-9])
     tol = 2e-5 * gmax
     if any(float(np.abs(gb[:, i : i + piece] - g[:, i : i + piece]).max()) > tol for i in range(0, g.shape[1], piece)):
