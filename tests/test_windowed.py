@@ -164,10 +164,13 @@ def test_identical_periods_share_one_solve():
     assert EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, lim).is_feasible(e)
 
 
-def test_window_jacobian_equals_unit_perturbations():
+@pytest.mark.parametrize("contiguous", [False, True])
+def test_window_jacobian_equals_unit_perturbations(contiguous):
     """The impulse-response Jacobian (window_jacobian) against one forward per free edge through the window's
     residual: acausal taps, a cross term, an exponential, a delay, an offset; excitation, refocusing and an
-    'undefined' pulse (which excites) among the ADC samples; fine samples that do not follow the edges."""
+    'undefined' pulse (which excites) among the ADC samples; fine samples that do not follow the edges.  Free edges
+    scattered (most columns' taps partly held: the tap-by-tap path) or in one run per axis (the hat path's
+    strided rows)."""
     from types import SimpleNamespace
 
     from dtoc.hardware.effects import CrossEddy, Lti, Offset
@@ -184,7 +187,7 @@ def test_window_jacobian_equals_unit_perturbations():
          Delay(7e-6), Offset(0.1)]
     ).frozen()  # fmt: skip
     fr = np.zeros((3, Ne), dtype=bool)
-    fr[:, 150:450] = rng.random((3, 300)) < 0.5
+    fr[:, 150:450] = True if contiguous else rng.random((3, 300)) < 0.5
     fmask = np.zeros((3, W), dtype=bool)
     fmask[:, ::2] = fr
     fmask[:, 1::2] = fr[:, 1:] | fr[:, :-1]

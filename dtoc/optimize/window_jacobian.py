@@ -17,8 +17,10 @@ so the response to a unit change of one fine sample is one impulse response per 
   ``k(t) = gamma (I(t) + sum_e A[t, e] I(t_e))``; the running integral of a shifted impulse response is a
   shifted lookup in the exact PWL cumulative integral of ``R`` (:func:`dtoc.seq.kspace.pwl_integral_at`).
 
-Cost: three forwards of ``2 W`` samples and ``O(rows x columns)`` lookups, instead of one forward of the
-window per column.  The change penalty's rows (one per free fine sample, two or three non-zeros each) are
+Cost: three forwards of ``2 W`` samples and ``O(rows x columns)`` copies, instead of one forward of the
+window per column: an edge whose three fine taps all follow it moves the realized waveform by one *hat* response
+(``R`` convolved with the taps' weights), so its column is a stride-2 run of the hat's PWL integral, read as one
+strided row copy per query (:func:`_shifted_rows`); only the scored output axes are evaluated.  The change penalty's rows (one per free fine sample, two or three non-zeros each) are
 not built: :func:`reg_rows` gives the sparse matrix.  Units: mT/m, s, rad/m.
 """
 
@@ -32,8 +34,6 @@ from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
 
 #: the RF uses kspace_at acts on (excitation and undefined reset, refocusing negates)
 _K_EVENTS = ("excitation", "undefined", "refocusing")
-#: query rows evaluated at a time (memory ~ rows x columns x 9 doubles)
-_CHUNK = 256
 
 
 def impulse_responses(hardware, dt_s: float, W: int, dtype=torch.float64, device="cpu") -> np.ndarray:
@@ -82,15 +82,67 @@ def _edge_taps(fr_a: np.ndarray, fmask_a: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def _integrals(R_a: np.ndarray, C_a: np.ndarray, W: int, dt: float, t_s: np.ndarray, n, w) -> np.ndarray:
-    """(3, Q, n_a): ``int_0^t`` of each column's realized change at the query times (window-relative)."""
-    t = np.clip(np.asarray(t_s, dtype=np.float64), 0.0, (W - 1) * dt)
-    m = np.clip(np.floor(t / dt + 1e-9).astype(np.int64), 0, max(W - 2, 0))
-    tau = (t - m * dt)[None, :, None, None]
+    """(3, Q, n_a): ``int_0^t`` of each column's realized change at the query times (window-relative), tap by tap
+    (any columns; :func:`_hat_rows` is the fast path for the columns whose three taps all follow their edge)."""
+    m, tau = _query_steps(t_s, W, dt)
+    tau = tau[None, :, None, None]
     idx = m[:, None, None] + W - n[None]  # (Q, n_a, 3) into the 2W grid
     g0 = R_a[:, idx]
     val = C_a[:, idx] + tau * g0 + 0.5 * tau * tau * (R_a[:, idx + 1] - g0) / dt
     val = val - C_a[:, W - n][:, None]  # integrals counted from the window's start
     return (val * w[None, None]).sum(-1)
+
+
+def _query_steps(t_s: np.ndarray, W: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(fine step m (Q,), offset tau (Q,) s) of query times clipped to the window: ``t = m dt + tau``."""
+    t = np.clip(np.asarray(t_s, dtype=np.float64), 0.0, (W - 1) * dt)
+    m = np.clip(np.floor(t / dt + 1e-9).astype(np.int64), 0, max(W - 2, 0))
+    return m, t - m * dt
+
+
+def _hat(X: np.ndarray) -> np.ndarray:
+    """``0.5 X[i + 1] + X[i] + 0.5 X[i - 1]`` along the last axis (zero beyond the ends): the response to one raster
+    edge whose three fine taps (weights 1/2, 1, 1/2) all follow it, from the response to one fine sample."""
+    out = X.copy()
+    out[..., 1:] += 0.5 * X[..., :-1]
+    out[..., :-1] += 0.5 * X[..., 1:]
+    return out
+
+
+def _shifted_rows(X: np.ndarray, i0: np.ndarray, j: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """(Q, len(j)) ``X[i0[q] - 2 j]`` (into ``out`` if given): per query a reversed stride-2 run of ``X``, read as
+    one strided row copy per query (no element gather); ``j`` ascending, every index within ``X``."""
+    if not (i0.size and j.size):
+        return np.empty((i0.size, j.size)) if out is None else out
+    if out is None:
+        return _shifted_rows(X, i0, j, np.empty((i0.size, j.size)))
+    j0, j1 = int(j[0]), int(j[-1]) + 1
+    Xr = np.ascontiguousarray(X[::-1])  # Xr[L - 1 - i] = X[i]
+    s = Xr.strides[0]
+    n_rows = Xr.size - 2 * (j1 - j0 - 1)
+    V = np.lib.stride_tricks.as_strided(Xr, (n_rows, j1 - j0), (s, 2 * s), writeable=False)
+    start = Xr.size - 1 - i0 + 2 * j0  # V[start, j - j0] = Xr[start + 2 (j - j0)] = X[i0 - 2 j]
+    out[:] = V[start] if j1 - j0 == j.size else V[start][:, j - j0]
+    return out
+
+
+def _hat_rows(Ch, Rh, W: int, dt: float, t_s: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """(Q, len(j)) ``int_0^t`` at the query times of one realized axis' change for a unit change of the raster
+    edges ``j`` (all three taps following them): :func:`_integrals` on the hat responses ``Ch`` (integral) and ``Rh``
+    (:func:`_hat`), the exact PWL integral ``C[i] + tau R[i] + tau^2 / (2 dt) (R[i + 1] - R[i])``, ``i = m + W - 2j``,
+    minus its value at the window's start."""
+    m, tau = _query_steps(t_s, W, dt)
+    i0 = m + W
+    b = 0.5 * tau * tau / dt
+    val = _shifted_rows(Ch, i0, j)
+    tmp = _shifted_rows(Rh, i0, j)
+    tmp *= (tau - b)[:, None]
+    val += tmp
+    _shifted_rows(Rh, i0 + 1, j, out=tmp)
+    tmp *= b[:, None]
+    val += tmp
+    val -= Ch[W - 2 * j][None, :]
+    return val
 
 
 def lti_jacobian(
@@ -111,6 +163,11 @@ def lti_jacobian(
     """Rows of the window's residual other than the change penalty, as :func:`windowed.window_residual` orders
     them (k: k-axes x ADC samples; moments: k-axes x pulses; G during RF: 3 x RF samples), by free edge.
 
+    A column whose edge moves all three of its fine taps is one shifted copy of the hat response per (input,
+    output) axis pair: its rows are read as strided runs of the hat's integral (:func:`_hat_rows`); the few
+    columns at the ends of a free run (a tap held) go tap by tap (:func:`_integrals`).  Only the scored output
+    axes are evaluated.  Cost ~ rows x columns copies, no (rows x columns x taps) gathers.
+
     Args:
         R: (3, 3, 2W) :func:`impulse_responses`.  dt_s: fine spacing, s.
         fr: (3, Ne) free edges; fmask: (3, W) fine samples that follow the edges.
@@ -123,32 +180,53 @@ def lti_jacobian(
     """
     W = fmask.shape[1]
     C = np.concatenate([np.zeros(R.shape[:2] + (1,)), np.cumsum(0.5 * dt_s * (R[..., 1:] + R[..., :-1]), -1)], -1)
+    Rh, Ch = _hat(R), _hat(C)
     te, A_adc = k_coefficients(t_adc, rf_c, rf_u)
     _, A_mom = k_coefficients(t_mom, rf_c, rf_u)
     ka = np.asarray(k_axes, dtype=np.int64)
     p_rf = np.flatnonzero(rfm)
-    blocks = []  # per input axis: (rows, n_a)
+    k_terms = [(np.asarray(tq), A, np.asarray(sc)) for tq, A, sc in ((t_adc, A_adc, k_scale), (t_mom, A_mom, m_scale))]
+    n_rows = sum(ka.size * tq.size for tq, _, _ in k_terms) + 3 * p_rf.size
+    J = np.empty((n_rows, int(fr.sum())))
+    c0 = 0
+    full = np.array([0.5, 1.0, 0.5])
     for a in range(3):
         n, w = _edge_taps(fr[a], fmask[a])
         if n.shape[0] == 0:
             continue
-        parts = []
-        I_ev = _integrals(R[a], C[a], W, dt_s, te, n, w) if te.size else np.zeros((3, 0, n.shape[0]))
-        for tq, A, scale in ((t_adc, A_adc, k_scale), (t_mom, A_mom, m_scale)):
-            if not (np.size(tq) and ka.size):
-                continue
-            out = np.empty((3, np.size(tq), n.shape[0]))
-            for s in range(0, np.size(tq), _CHUNK):
-                sl = slice(s, s + _CHUNK)
-                out[:, sl] = _integrals(R[a], C[a], W, dt_s, tq[sl], n, w) + np.einsum("qe,ben->bqn", A[sl], I_ev)
-            sc_ = np.asarray(scale)
-            out *= GAMMA_RAD_PER_S_PER_MT * (sc_[:, :, None] if sc_.ndim == 2 else sc_[:, None, None])
-            parts.append(out[ka].reshape(-1, n.shape[0]))
-        if p_rf.size:
-            idx = p_rf[:, None, None] - n[None] + W  # (P, n_a, 3)
-            parts.append((rf_scale * (R[a][:, idx] * w[None, None]).sum(-1)).reshape(-1, n.shape[0]))
-        blocks.append(np.concatenate(parts, 0) if parts else np.zeros((0, n.shape[0])))
-    return np.concatenate(blocks, 1) if blocks else np.zeros((0, 0))
+        cols = slice(c0, c0 + n.shape[0])
+        c0 += n.shape[0]
+        j = np.flatnonzero(fr[a])
+        hat = (w == full).all(1)
+        tap = np.flatnonzero(~hat)
+
+        def integrals(tq, b, a=a, n=n, w=w, j=j, hat=hat, tap=tap):
+            if not tap.size:
+                return _hat_rows(Ch[a, b], Rh[a, b], W, dt_s, tq, j)
+            out = np.empty((tq.size, j.size))
+            out[:, hat] = _hat_rows(Ch[a, b], Rh[a, b], W, dt_s, tq, j[hat])
+            out[:, tap] = _integrals(R[a, b : b + 1], C[a, b : b + 1], W, dt_s, tq, n[tap], w[tap])[0]
+            return out
+
+        r0 = 0
+        I_ev = {int(b): integrals(te, b) for b in ka} if te.size else {}
+        for tq, A, sc_ in k_terms:
+            for b in ka:
+                out = integrals(tq, b)
+                if te.size:
+                    out += A @ I_ev[int(b)]
+                out *= GAMMA_RAD_PER_S_PER_MT * (sc_[b][:, None] if sc_.ndim == 2 else sc_[b])
+                J[r0 : r0 + tq.size, cols] = out
+                r0 += tq.size
+        for b in range(3) if p_rf.size else ():
+            out = np.empty((p_rf.size, j.size))
+            out[:, hat] = _shifted_rows(Rh[a, b], p_rf + W, j[hat])
+            if tap.size:
+                idx = p_rf[:, None, None] - n[tap][None] + W  # (P, n_tap, 3)
+                out[:, tap] = (R[a, b][idx] * w[tap][None]).sum(-1)
+            J[r0 : r0 + p_rf.size, cols] = rf_scale * out
+            r0 += p_rf.size
+    return J
 
 
 def reg_rows(fr: np.ndarray, fmask: np.ndarray, scale: float) -> sp.csr_matrix:
