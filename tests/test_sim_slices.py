@@ -159,3 +159,17 @@ def test_steady_state_per_slice_group(files):
     n = ir.n_adc_samples // 2
     one = simulate(files[1], ph, initial_mz=torch.as_tensor(mz[1]), dtype=torch.float64)[0].numpy()[n:]
     np.testing.assert_allclose(sig[n:], one, rtol=0, atol=1e-9 * np.abs(one).max())
+
+
+def test_the_simulation_estimate_reads_every_slice_groups_graph(files):
+    """dtoc.util.cost.emission_cost (the report image's estimate) on a grouped graph: the groups' work summed (it
+    read ``graph.intervals`` of one graph and failed on a multi-slice file: an internal error on spiral_v15)."""
+    from dtoc.util.cost import emission_cost
+
+    g = build_graph(files["both"])
+    assert isinstance(g, GroupedGraph) and len(g.graphs) == 2
+    mem, sec, per = emission_cost(g, 256)
+    parts = [emission_cost(gg, 256) for gg in g.graphs]
+    assert sec > 0 and sec == pytest.approx(sum(p[1] for p in parts), rel=1e-12)
+    assert mem == pytest.approx(max(p[0] for p in parts), rel=1e-12)  # the groups run one after the other
+    assert per > 0

@@ -108,19 +108,20 @@ def simulation_cost(n_voxels: int, n_samples: int, n_phantoms: int = 1, n_runs: 
 
 def emission_cost(graph, n_voxels: int, n_phantoms: int = 1, n_runs: int = 1) -> tuple[float, float, float]:
     """(bytes, seconds, emitting states per ADC sample) of ``n_runs`` simulations of ``n_phantoms`` phantoms of
-    ``n_voxels`` each through a built phase distribution graph (:func:`dtoc.sim.pdg.build_graph`): the work is every
+    ``n_voxels`` each through a built phase distribution graph (:func:`dtoc.sim.pdg.build_graph`, one or a slice group's each): the work is every
     interval's emitting states x its ADC samples x the voxels.  :func:`simulation_cost` assumes one emitting state
     per sample (a spoiled or single-shot readout); an unspoiled steady state keeps ~100 coherent pathways emitting at
     every sample, and this sees them.  A lower bound like :func:`simulation_cost` (same constant per element)."""
     work = 0.0
     samples = 0
     most = 0
-    for iv in graph.intervals:
-        t = int(iv.adc_stop - iv.adc_start)
-        e = int(iv.emit.size)
-        work += float(e) * t
-        samples += t
-        most = max(most, e)
+    for g in getattr(graph, "graphs", [graph]):  # a GroupedGraph (slice groups): every group's own intervals
+        for iv in g.intervals:
+            t = int(iv.adc_stop - iv.adc_start)
+            e = int(iv.emit.size)
+            work += float(e) * t
+            samples += t
+            most = max(most, e)
     v = float(n_voxels)
     mem = v * (SIM_BYTES_PER_VOXEL + SIM_EMIT_ARRAYS * 16.0 * most) * max(1, n_phantoms)
     sec = work * v * SIM_SECONDS_PER_VOXEL_SAMPLE * max(1, n_phantoms) * max(1, n_runs)
