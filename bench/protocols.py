@@ -107,12 +107,20 @@ def _encode(pp, sys_, ky: float, kz: float, dur_s: float) -> list:
 
 
 def gre3d_1mm(
-    nx: int = 256, ny: int = 192, nz: int = 96, tr: float = 6.5e-3, flip_deg: float = 10, bw_px_hz: float = 400
+    nx: int = 256,
+    ny: int = 192,
+    nz: int = 96,
+    tr: float = 6.5e-3,
+    flip_deg: float = 10,
+    bw_px_hz: float = 400,
+    partitions: int | None = None,
 ) -> bytes:
     """3D spoiled GRE (FLASH-like) at 1 mm isotropic: FOV ``nx`` x ``ny`` x ``nz`` mm, a 1 ms slab-selective sinc over
     the ``nz`` mm slab, ``ny`` x ``nz`` TRs of ``tr`` (defaults: 256 x 192 x 96, TR 6.5 ms: 119.8 s), RF spoiling
     117 deg, readout on x at ``bw_px_hz`` Hz/pixel, phase on y (inner loop) and partition on z (outer); a
-    T1-weighted 3D FLASH of about 2 minutes (protocol values assumed, typical of a 3 T T1w 3D GRE)."""
+    T1-weighted 3D FLASH of about 2 minutes (protocol values assumed, typical of a 3 T T1w 3D GRE).  ``partitions``:
+    only that many of the ``nz`` partitions, the central ones (a shorter cut of the same protocol: the same TRs and
+    encoding amplitudes, fewer of them)."""
     import pypulseq as pp
 
     from tests.foreign.writers import _bytes, _fill, _sinc, _system
@@ -128,7 +136,8 @@ def gre3d_1mm(
         raise ValueError(f"gre3d_1mm: TR {tr * 1e3:g} ms is {-fill * 1e3:.2f} ms too short")
     dky, dkz = 1 / fov[1], 1 / fov[2]
     i = 0
-    for kz in (np.arange(nz) - nz // 2) * dkz:
+    npar = nz if partitions is None else min(partitions, nz)
+    for kz in (np.arange(nz // 2 - npar // 2, nz // 2 - npar // 2 + npar) - nz // 2) * dkz:
         for ky in (np.arange(ny) - ny // 2) * dky:
             phase = math.radians((117 * i * (i + 1) / 2) % 360)  # RF spoiling
             rf.phase_offset, adc.phase_offset, i = phase, phase, i + 1

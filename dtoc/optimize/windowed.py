@@ -48,6 +48,7 @@ from dtoc.optimize.limits import EdgeProjector, Limits, edges_to_played, fine_fr
 from dtoc.optimize.loss import LossContext
 from dtoc.seq.ir import SequenceIR, edges_to_fine
 from dtoc.seq.kspace import kspace_at
+from dtoc.util.blas import on_torch_threads
 
 #: a period with more free variables than this is not solved densely (the whole-sequence path is used)
 DENSE_MAX = 6000
@@ -312,6 +313,50 @@ class _Scales:
         return out[0], out[1]
 
 
+#: windows of one structure whose unconstrained optima's k errors are computed together (:class:`_UnconstrainedErrors`)
+UNCONSTRAINED_BATCH = 64
+
+
+class _UnconstrainedErrors:
+    """Per ADC sample and moment, the k error of its window's unconstrained optimum (the manifest's 'fixed' or
+    'limits' naming, :func:`dtoc.optimize.run.windowed_solver_record`): a diagnostic, not on the chain from one
+    window to the next, so it is computed for up to :data:`UNCONSTRAINED_BATCH` consecutive windows of one
+    structure at a time, one matrix product ``J_k [d_1 ... d_B]`` over the Jacobian's k rows (bound by arithmetic)
+    instead of a matrix-vector product per window (bound by reading ``J``: the window loop's cost in a long train,
+    docs/benchmarks.md "Long sequences").  Memory: the batch's optima and k rows, and one structure's ``J`` held."""
+
+    def __init__(self, sc: _Scales, st: WindowStats, batch: int = UNCONSTRAINED_BATCH):
+        self.sc, self.st, self.batch = sc, st, batch
+        self.key: str | None = None
+        self.J: np.ndarray | None = None
+        self.items: list[tuple] = []
+
+    def add(self, key, J, r0d, d, n_adc, n_mom, sel_adc, core_adc, moment_rf, n_guard_mom) -> None:
+        """A window: its structure ``key`` and ``J``, residual rows ``r0d``, unconstrained optimum ``d``, sample and
+        moment counts (its rows' layout), where its core's samples and moments go (``sel_adc``, ``core_adc``,
+        ``moment_rf``; its first ``n_guard_mom`` moments are a part's guarded ones)."""
+        if key != self.key or len(self.items) >= self.batch:
+            self.flush()
+        self.key, self.J = key, J
+        nk = len(self.sc.k_axes) * (n_adc + n_mom)
+        self.items.append((r0d[:nk].copy(), d, n_adc, n_mom, sel_adc, core_adc, moment_rf, n_guard_mom))
+
+    def flush(self) -> None:
+        if not self.items:
+            return
+        J, n_adc, n_mom = self.J, self.items[0][2], self.items[0][3]
+        ua_all, um_all = self.st.unconstrained_adc_dk, self.st.unconstrained_moment_dk
+        assert J is not None and ua_all is not None and um_all is not None
+        rk = np.stack([it[0] for it in self.items], axis=1)
+        rk += J[: rk.shape[0]] @ np.stack([it[1] for it in self.items], axis=1)
+        for j, (_, _, _, _, sel_adc, core_adc, moment_rf, g) in enumerate(self.items):
+            ua, um = self.sc.k_errors_dk(rk[:, j], n_adc, n_mom)
+            ua_all[sel_adc] = ua[core_adc]
+            um_all[moment_rf] = um[g:]
+        self.items, self.J, self.key = [], None, None
+
+
+@on_torch_threads
 def windowed_warm_start(
     ir: SequenceIR,
     hardware,
@@ -347,6 +392,9 @@ def windowed_warm_start(
         (3, N+1) edges within the limits, and :class:`WindowStats`.
     Raises:
         ValueError: a single block has more than ``dense_max`` free variables.
+
+    numpy's and scipy's dense products run on torch's thread count (the run's ``threads``:
+    :mod:`dtoc.util.blas`).
     """
     import time
 
@@ -385,6 +433,7 @@ def windowed_warm_start(
     t_rf = np.array([r.t_center_s for r in ir.rf])
     adc_block = np.array([a.block for a in ir.adc], dtype=np.int64)
     t_ref = 0.0
+    unconstrained = _UnconstrainedErrors(sc, st)
     for wi, w in enumerate(windows):
         t0 = time.time()
         be = ir.block_edges_s
@@ -513,9 +562,7 @@ def windowed_warm_start(
         d = -(c["Hinv"] @ grad0)  # the window's unconstrained optimum
         # the core's own rows (a part's guarded rows come first, its end row last: not the core's samples)
         core_adc = slice(n_guard[0], n_guard[0] + len(sel_adc))
-        ua, um = sc.k_errors_dk(r0d + c["J"] @ d, t_adc.size, t_mom.size)
-        st.unconstrained_adc_dk[sel_adc] = ua[core_adc]
-        st.unconstrained_moment_dk[w.moment_rf] = um[n_guard[1] :]
+        unconstrained.add(key, c["J"], r0d, d, t_adc.size, t_mom.size, sel_adc, core_adc, w.moment_rf, n_guard[1])
         # a window whose problem is an earlier one's (same structure; residual to 1e-6 of its largest entry and
         # edges to 1e-4 mT/m: identical repetitions, averages, slices that differ only in RF frequency or labels)
         # takes its change of the edges, if that is within the limits here
@@ -542,16 +589,19 @@ def windowed_warm_start(
             x_p[:, rs], its = _admm(c, grad0, P, fr_r, x_sub[:, rs], max_iter=ADMM_MAX_ITER)
             st.admm_iters += its
             st.admm_capped += its >= ADMM_MAX_ITER
-        if _quadratic(c, r0d, r0r, x_p[fr] - x_sub[fr]) > float(r0n @ r0n):  # never worse than unchanged
-            x_p = x_sub
+        dx = x_p[fr] - x_sub[fr]
+        rd, rr = r0d + c["J"] @ dx, r0r + c["S"] @ dx  # the window's residual at the solution
+        if float(rd @ rd + rr @ rr) > float(r0n @ r0n):  # never worse than unchanged
+            x_p, rd = x_sub, r0d
         tt["solve"] += time.time() - t0
         solved[skey] = x_p - x_sub
         if len(solved) > SOLVES_KEPT:
             solved.popitem(last=False)
         edges[:, e0 : e1 + 1] = x_p
-        st.window_adc_dk[sel_adc] = sc.k_errors_dk(r0d + c["J"] @ (x_p[fr] - x_sub[fr]), t_adc.size, 0)[0][core_adc]
+        st.window_adc_dk[sel_adc] = sc.k_errors_dk(rd, t_adc.size, 0)[0][core_adc]
         if progress is not None:
             progress("windows", wi + 1, len(windows), float((r0**2).sum()))
+    unconstrained.flush()
     st.structures = cache.distinct
     tt["total"] = time.time() - t_all
     st.times_s = tt
@@ -843,9 +893,3 @@ def _admm(
     x = xb.copy()
     x.ravel()[idx] = x0 + d
     return P.project(x), it
-
-
-def _quadratic(c: dict, r0d: np.ndarray, r0r: np.ndarray, d: np.ndarray) -> float:
-    rd = r0d + c["J"] @ d
-    rr = r0r + c["S"] @ d
-    return float(rd @ rd + rr @ rr)
