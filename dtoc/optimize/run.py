@@ -347,8 +347,9 @@ def windowed_solver_record(plan: Plan, x: torch.Tensor, fine, st) -> dict:
     return rec
 
 
-def why_not_windowed(ir, hardware, cfg: OptimizeConfig, free) -> str | None:
-    """Why this sequence cannot be solved period by period (None: it can)."""
+def why_not_windowed(ir, hardware, cfg: OptimizeConfig, free, parts: bool = False) -> str | None:
+    """Why this sequence cannot be solved period by period (None: it can).  ``parts``: periods longer than a dense
+    window may be cut in parts whatever the kind ('auto' asks so when the cost rule holds, :func:`window_plan`)."""
     from dtoc.hardware.memory import is_affine
 
     if cfg.method not in ("dto", "warmstart"):
@@ -365,7 +366,7 @@ def why_not_windowed(ir, hardware, cfg: OptimizeConfig, free) -> str | None:
     n = int(period_free_counts(ir, free).max())
     # parts of periods: measured better than the base at every sample on spin-echo trains (TSE, HASTE; the KCL 7 T
     # GIRF and a causal chain, docs/optimize.md); other long periods (EPI trains) not yet measured: solved whole
-    if n > DENSE_MAX and cfg.windowed != "on" and ir.kind != "tse":
+    if n > DENSE_MAX and cfg.windowed != "on" and ir.kind != "tse" and not parts:
         return (
             f"an excitation period has {n} free variables (> {DENSE_MAX}: long periods other than spin-echo "
             "trains are solved whole; windowed: on solves them in parts, docs/optimize.md)"
@@ -404,7 +405,15 @@ def window_plan(ir, hardware, cfg: OptimizeConfig, free, with_image: bool | None
     if cfg.windowed == "auto" and ir.duration_s <= cfg.window_auto_s and len(period_starts(ir)) < 3:
         return None  # short, and nothing to cut: not even estimated
     why = why_not_windowed(ir, hardware, cfg, free)
-    if why is not None:
+    # long periods other than spin-echo trains (EPI trains): in parts only when the cost rule below says so, for a
+    # sequence up to window_auto_s (measured on a 3 s 4-slice EPI: docs/optimize.md; longer ones not yet measured)
+    parts = (
+        why is not None
+        and cfg.windowed == "auto"
+        and ir.duration_s <= cfg.window_auto_s
+        and why_not_windowed(ir, hardware, cfg, free, True) is None
+    )
+    if why is not None and not parts:
         if cfg.windowed == "on":
             raise InputError(f"windowed optimization impossible: {why}")
         return None
@@ -413,27 +422,38 @@ def window_plan(ir, hardware, cfg: OptimizeConfig, free, with_image: bool | None
     horizon, lookahead = min(causal, cap), min(acausal, cap)
     sizes = window_sizes(ir, free, horizon, lookahead)
     rule = f"longer than {cfg.window_auto_s:g} s"
-    if cfg.windowed == "auto" and ir.duration_s <= cfg.window_auto_s:
+    by_cost = cfg.windowed == "auto" and (ir.duration_s <= cfg.window_auto_s or parts)
+    if by_cost:
         from dtoc.util.cost import optimize_cost
 
         n_fine, n_adc = ir.grad_mT_per_m.shape[1], ir.n_adc_samples
         whole_s, win_s = optimize_cost(n_fine, n_adc)[1], optimize_cost(n_fine, n_adc, sizes)[1]
         if whole_s < WINDOW_AUTO_WHOLE_S or whole_s < WINDOW_AUTO_GAIN * win_s:
             return None
-        rule = f"{sizes['n_windows']} periods, whole solve estimated ~{whole_s:.0f} s against ~{win_s:.0f} s"
+        rule = (
+            f"{sizes['n_windows']} {'parts of ' if parts else ''}periods, whole solve estimated ~{whole_s:.0f} s "
+            f"against ~{win_s:.0f} s"
+        )
     elif cfg.windowed == "on":
         rule = "windowed: on"
-    image = "k-space terms only" + (
-        ", the image for the report"
-        if with_image is not False and not image_in_loss(cfg) and cfg.weights.image > 0
-        else ", no image term"
-    )
+    # by the cost rule, a run whose full loss would use the image keeps the image for the report (plan_run: iters 0)
+    report_image = with_image is not False and cfg.weights.image > 0 and (not image_in_loss(cfg) or by_cost)
+    image = "k-space terms only" + (", the image for the report" if report_image else ", no image term")
+    if by_cost and image_in_loss(cfg):
+        image += " (the full-loss stage is not run: its image term has no windowed form; windowed: off runs it)"
     note = (
         f"{'long ' if ir.duration_s > cfg.window_auto_s else ''}sequence ({ir.duration_s:.3g} s; {rule}): optimized "
         f"one excitation period at a time, history {horizon * 1e3:.3g} ms / lookahead {lookahead * 1e3:.3g} ms "
         f"(hardware memory {causal * 1e3:.3g} / {acausal * 1e3:.3g} ms); {image} (docs/optimize.md)"
     )
-    return {"horizon_s": horizon, "lookahead_s": lookahead, "memory_s": [causal, acausal], "note": note, "sizes": sizes}
+    return {
+        "horizon_s": horizon,
+        "lookahead_s": lookahead,
+        "memory_s": [causal, acausal],
+        "note": note,
+        "sizes": sizes,
+        "by_cost": by_cost,
+    }
 
 
 def window_sizes(ir, free, horizon_s: float, lookahead_s: float) -> dict:
@@ -789,7 +809,10 @@ def plan_run(
             raise InputError(
                 "a windowed (long-sequence) optimization has no image term; give windowed: off in --config"
             )
-        with_image = False
+        if window.get("by_cost"):  # windowed by the cost rule: no full-loss stage, the image for the report only
+            cfg = cfg.model_copy(update={"iters": 0})
+        else:
+            with_image = False
     if with_image is None:
         with_image = ir.geometry is not None  # no grid (non-Cartesian): the k-space term alone
         if with_image and window is not None and cfg.weights.image <= 0:
