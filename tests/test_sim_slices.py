@@ -173,3 +173,24 @@ def test_the_simulation_estimate_reads_every_slice_groups_graph(files):
     assert sec > 0 and sec == pytest.approx(sum(p[1] for p in parts), rel=1e-12)
     assert mem == pytest.approx(max(p[0] for p in parts), rel=1e-12)  # the groups run one after the other
     assert per > 0
+
+
+def test_the_bandwidth_of_a_long_saturation_pulse_is_read_in_bounded_memory():
+    """A 2 s block pulse at 1 us (a CEST saturation train's length): its spectrum's FWHM is 1.21 / 2 s, read without
+    zero-padding it to 64x its duration (2^27 points, ~6 GB at the read: the APTw files stopped at the bench's cap)."""
+    import tracemalloc
+
+    from dtoc.seq.read import BANDWIDTH_FFT_MAX, rf_bandwidth_hz
+
+    t = np.arange(2_000_000) * 1e-6
+    tracemalloc.start()
+    bw = rf_bandwidth_hz(t, np.ones(t.size))
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert bw == pytest.approx(1.2067 / 2.0, rel=0.05)
+    assert peak < 16 * 4 * (1 << 21)  # a few complex arrays of the waveform's own power-of-two length
+    # a slice-selective pulse keeps its 64x zero-padding: 2 ms sinc, time-bandwidth 4 -> ~2 kHz
+    ts = np.arange(200) * 1e-5
+    x = np.linspace(-2, 2, ts.size)
+    assert 64 * 2e-3 / 1e-5 < BANDWIDTH_FFT_MAX
+    assert rf_bandwidth_hz(ts, np.sinc(x)) == pytest.approx(2000.0 * 0.96, rel=0.05)

@@ -420,11 +420,18 @@ def _apply_metadata(ir: SequenceIR) -> None:
             ir.meta["axes_guessed"] = True
 
 
+#: the most points :func:`rf_bandwidth_hz` zero-pads a waveform to
+BANDWIDTH_FFT_MAX = 1 << 20
+#: a waveform of more samples is averaged over blocks down to at most this many before its spectrum is taken (a
+#: 2 s pulse: 30 us steps, a 16 kHz band: far wider than the band of any pulse that long)
+BANDWIDTH_SAMPLES_MAX = 1 << 16
+
+
 def rf_bandwidth_hz(t_s: np.ndarray, signal: np.ndarray) -> float | None:
     """Full width at half maximum (Hz) of the spectrum of an RF waveform (samples ``signal`` at times ``t_s``):
     the small-tip approximation of the band the pulse acts on (a slice: this width / (gamma |G|)).  The waveform is
     resampled onto a uniform grid of its shortest step and zero-padded to a frequency step of at most 1/64 of
-    1 / duration; the width is that of the contiguous lobe around the spectrum's peak.  None for an empty or
+    1 / duration (at most :data:`BANDWIDTH_FFT_MAX` points: a long pulse's step is coarser); the width is that of the contiguous lobe around the spectrum's peak.  None for an empty or
     all-zero waveform (a block pulse's spectrum is a sinc: 1.21 / duration)."""
     t = np.asarray(t_s, dtype=np.float64).ravel()
     s = np.asarray(signal).ravel()
@@ -437,7 +444,12 @@ def rf_bandwidth_hz(t_s: np.ndarray, signal: np.ndarray) -> float | None:
     if not np.allclose(np.diff(t), dt, rtol=1e-6, atol=1e-12):
         tu = np.arange(t[0], t[-1] + 0.5 * dt, dt)
         s = np.interp(tu, t, s.real) + 1j * np.interp(tu, t, s.imag) if np.iscomplexobj(s) else np.interp(tu, t, s)
-    n = 1 << int(np.ceil(np.log2(max(64 * dur / dt, s.size))))
+    if s.size > BANDWIDTH_SAMPLES_MAX:  # a long waveform (a 2 s CEST train at 1 us): block means, a narrow band
+        k = -(-s.size // BANDWIDTH_SAMPLES_MAX)
+        s = np.concatenate([s, np.zeros((-s.size) % k, dtype=s.dtype)]).reshape(-1, k).mean(axis=1)
+        dt *= k
+    # zero-padded to 64x the duration, to at most BANDWIDTH_FFT_MAX points (2^27 points, 6 GB, for that CEST train)
+    n = 1 << int(np.ceil(np.log2(max(min(64 * dur / dt, float(BANDWIDTH_FFT_MAX)), s.size))))
     spec = np.abs(np.fft.fftshift(np.fft.fft(s, n)))
     f = np.fft.fftshift(np.fft.fftfreq(n, dt))
     p = int(np.argmax(spec))
