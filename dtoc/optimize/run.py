@@ -838,11 +838,14 @@ def plan_run(
         whole_why = why_not_windowed(ir, hardware, cfg, free)
     check_run_cost(ir, cfg, free, window, with_image, str(io.base_path or "sequence"), io.notes, whole_why)
     check_area_reachable(ir, limits)
-    held_limit_refusal(ir, free, limits)
+    base_extremes = waveform_extremes(ir.grad_mT_per_m, ir.dt_fine_s)  # one pass: the refusal and the warnings
+    held_limit_refusal(ir, free, limits, base_extremes)
     if io.out is not None:  # the base written in the output's format and read back: once the run is known to fit
         ir.meta["output_format_version"] = version_str(preflight_write(ir, io.format_version))
     projector = EdgeProjector(ir.edge_grad_mT_per_m, free, ir.raster_s, limits)
-    warnings_out = base_limit_warnings(ir, limits) + base_physical_warnings(ir.grad_mT_per_m, ir.dt_fine_s, limits)
+    warnings_out = base_limit_warnings(ir, limits, base_extremes) + base_physical_warnings(
+        ir.grad_mT_per_m, ir.dt_fine_s, limits
+    )
     dtype = torch.float64
     twin = EdgeTwin(ir, hardware, projector, dtype=dtype, device=device)
     ctx = L.build_context(ir, limits, dtype=dtype, device=device)
@@ -863,31 +866,54 @@ def plan_run(
     )  # fmt: skip
 
 
-def held_limit_refusal(ir, free: np.ndarray, limits: Limits) -> None:
+def held_limit_refusal(ir, free: np.ndarray, limits: Limits, extremes: dict | None = None) -> None:
     """One-line InputError, before any work, when the base itself exceeds the slew or amplitude limit where dtoc may
     not change it (a fine segment between two held raster edges: inside RF blocks, on the slice-select axis, at held
     block boundaries), e.g. a base's step between two blocks beyond smax x raster: its output would too, and dtoc
-    never writes beyond the limits (the projection could only fail at export)."""
+    never writes beyond the limits (the projection could only fail at export).  ``extremes``: the base's
+    :func:`waveform_extremes` (within the limits everywhere: nothing to look for); the waveform is read in pieces of
+    :data:`~dtoc.optimize.limits.EXTREMES_CHUNK` fine samples, no whole-length temporaries."""
+    from dtoc.optimize.limits import EXTREMES_CHUNK
+
+    ext = extremes if extremes is not None else waveform_extremes(ir.grad_mT_per_m, ir.dt_fine_s)
+    g_lim, s_lim = limits.gmax_mT_per_m * (1 + 1e-6), limits.smax_T_per_m_per_s * (1 + 1e-6)
+    if max(ext["gmax_mT_per_m"]) <= g_lim and max(ext["smax_T_per_m_per_s"]) <= s_lim:
+        return
     g = np.asarray(ir.grad_mT_per_m, dtype=np.float64)
     held = ~np.asarray(free, dtype=bool)  # (3, N+1) raster edges; fine segment j depends on edges j // 2, j // 2 + 1
-    j = np.arange(g.shape[1] - 1) // 2
-    seg = held[:, j] & held[:, np.minimum(j + 1, held.shape[1] - 1)]
-    slew = np.abs(np.diff(g, axis=1)) / ir.dt_fine_s * 1e-3  # T/m/s
-    over_s = seg & (slew > limits.smax_T_per_m_per_s * (1 + 1e-6))
-    # amplitude on the held raster edges themselves: a fine midpoint next to a free edge is not held
-    ge = np.asarray(ir.edge_grad_mT_per_m, dtype=np.float64)
-    over_g = held & (np.abs(ge) > limits.gmax_mT_per_m * (1 + 1e-6))
-    if not over_s.any() and not over_g.any():
+    # per axis, the largest value beyond the limit and its first index: fine segment (slew), raster edge (amplitude)
+    worst_s, at_s = np.full(3, -1.0), np.zeros(3, dtype=np.int64)
+    worst_g, at_g = np.full(3, -1.0), np.zeros(3, dtype=np.int64)
+    n_seg = g.shape[1] - 1
+    for s0 in range(0, max(n_seg, 0), EXTREMES_CHUNK):
+        k = np.arange(s0, min(s0 + EXTREMES_CHUNK, n_seg))
+        j = k // 2
+        seg = held[:, j] & held[:, np.minimum(j + 1, held.shape[1] - 1)]
+        slew = np.abs(np.diff(g[:, s0 : k[-1] + 2], axis=1)) / ir.dt_fine_s * 1e-3  # T/m/s
+        v = np.where(seg & (slew > s_lim), slew, -1.0)
+        i = np.argmax(v, axis=1)
+        better = v[np.arange(3), i] > worst_s
+        worst_s, at_s = np.where(better, v[np.arange(3), i], worst_s), np.where(better, k[i], at_s)
+    ge = ir.edge_grad_mT_per_m  # amplitude on the held raster edges themselves: a fine midpoint next to a free edge
+    for e0 in range(0, ge.shape[1], EXTREMES_CHUNK):  # is not held
+        e = np.arange(e0, min(e0 + EXTREMES_CHUNK, ge.shape[1]))
+        amp = np.abs(np.asarray(ge[:, e], dtype=np.float64))
+        v = np.where(held[:, e] & (amp > g_lim), amp, -1.0)
+        i = np.argmax(v, axis=1)
+        better = v[np.arange(3), i] > worst_g
+        worst_g, at_g = np.where(better, v[np.arange(3), i], worst_g), np.where(better, e[i], at_g)
+    if worst_s.max() < 0 and worst_g.max() < 0:
         return
     edges = np.asarray(ir.block_edges_s)
     ids = ir.meta.get("block_ids") or list(range(1, len(edges)))
-    if over_s.any():
-        a, m = np.unravel_index(int(np.argmax(np.where(over_s, slew, -1.0))), slew.shape)
-        what = f"{slew[a, m]:.4g} T/m/s, above smax {limits.smax_T_per_m_per_s:g}"
+    if worst_s.max() >= 0:
+        a = int(np.argmax(worst_s))
+        m = int(at_s[a])
+        what = f"{worst_s[a]:.4g} T/m/s, above smax {limits.smax_T_per_m_per_s:g}"
     else:
-        a, e = np.unravel_index(int(np.argmax(np.where(over_g, np.abs(ge), -1.0))), ge.shape)
-        m = 2 * e  # the edge's fine sample
-        what = f"{abs(ge[a, e]):.4g} mT/m, above gmax {limits.gmax_mT_per_m:g}"
+        a = int(np.argmax(worst_g))
+        m = 2 * int(at_g[a])  # the edge's fine sample
+        what = f"{worst_g[a]:.4g} mT/m, above gmax {limits.gmax_mT_per_m:g}"
     b = int(np.clip(np.searchsorted(edges, m * ir.dt_fine_s, side="right") - 1, 0, len(ids) - 1))
     raise InputError(
         f"the base itself needs {what} on {AXES[a]} at {m * ir.dt_fine_s * 1e3:.4f} ms (block {ids[b]}), where dtoc "
@@ -1262,10 +1288,11 @@ def _orient_name(R) -> str:
     return orientation_name(R)
 
 
-def base_limit_warnings(ir, limits: Limits) -> list[str]:
+def base_limit_warnings(ir, limits: Limits, extremes: dict | None = None) -> list[str]:
     """Warnings when the base sequence itself needs more amplitude or slew than the limits allow: the output
-    then cannot reproduce the base's k-space (it is still written within the limits)."""
-    ext = waveform_extremes(ir.grad_mT_per_m, ir.dt_fine_s)
+    then cannot reproduce the base's k-space (it is still written within the limits).  ``extremes``: the base's
+    :func:`waveform_extremes`, if already computed."""
+    ext = extremes if extremes is not None else waveform_extremes(ir.grad_mT_per_m, ir.dt_fine_s)
     out = []
     g, sl = max(ext["gmax_mT_per_m"]), max(ext["smax_T_per_m_per_s"])
     if g > limits.gmax_mT_per_m * (1 + 1e-6):
