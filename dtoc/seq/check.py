@@ -743,18 +743,17 @@ def split_inherited(
     inherited: list[tuple[Violation, Violation]] = []
     for v in violations:
         b = at.get((v.rule, v.block, v.axis))
-        ok = (
-            b is not None
-            and v.value is not None
-            and b.value is not None
-            and v.value <= b.value + (v.limit or 0.0) + 1e-9 * abs(b.value)
-            and v.value <= step
-        )
-        if ok and b is not None:
+        if b is not None and _not_worse(v, b) and v.value is not None and v.value <= step:
             inherited.append((v, b))
         else:
             introduced.append(v)
     return introduced, inherited
+
+
+def _not_worse(v: Violation, b: Violation) -> bool:
+    """An output's violation ``v`` is not worse than the base's ``b`` at the same place: by at most the rule's own
+    tolerance (``v.limit``, 1 Hz/m for continuity by default)."""
+    return v.value is not None and b.value is not None and v.value <= b.value + (v.limit or 0.0) + 1e-9 * abs(b.value)
 
 
 def settle_inherited(res: CheckResult, base_seq, system: SystemSpec) -> list[dict]:
@@ -773,7 +772,7 @@ def settle_inherited(res: CheckResult, base_seq, system: SystemSpec) -> list[dic
         step = step_limit_hz_per_m(system)
         if b is None:
             why = "the base has none there: introduced by the optimization"
-        elif (v.value or 0.0) > (b.value or 0.0) + (v.limit or 0.0) + 1e-9 * abs(b.value or 0.0):
+        elif not _not_worse(v, b):
             why = f"worse than the base's {_q(b.value or 0.0, b.unit)} there: introduced by the optimization"
         else:  # not worse, so beyond the slew limit's step: the base's own
             why = (
