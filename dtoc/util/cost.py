@@ -108,8 +108,9 @@ def simulation_cost(n_voxels: int, n_samples: int, n_phantoms: int = 1, n_runs: 
 
 def emission_cost(graph, n_voxels: int, n_phantoms: int = 1, n_runs: int = 1) -> tuple[float, float, float]:
     """(bytes, seconds, emitting states per ADC sample) of ``n_runs`` simulations of ``n_phantoms`` phantoms of
-    ``n_voxels`` each through a built phase distribution graph (:func:`dtoc.sim.pdg.build_graph`, one or a slice group's each): the work is every
-    interval's emitting states x its ADC samples x the voxels.  :func:`simulation_cost` assumes one emitting state
+    ``n_voxels`` each through a built phase distribution graph (:func:`dtoc.sim.pdg.build_graph`; of a
+    ``GroupedGraph``, every slice group's): the work is every interval's emitting states x its ADC samples x the
+    voxels.  :func:`simulation_cost` assumes one emitting state
     per sample (a spoiled or single-shot readout); an unspoiled steady state keeps ~100 coherent pathways emitting at
     every sample, and this sees them.  A lower bound like :func:`simulation_cost` (same constant per element)."""
     work = 0.0
