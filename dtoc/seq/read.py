@@ -430,9 +430,11 @@ BANDWIDTH_SAMPLES_MAX = 1 << 16
 def rf_bandwidth_hz(t_s: np.ndarray, signal: np.ndarray) -> float | None:
     """Full width at half maximum (Hz) of the spectrum of an RF waveform (samples ``signal`` at times ``t_s``):
     the small-tip approximation of the band the pulse acts on (a slice: this width / (gamma |G|)).  The waveform is
-    resampled onto a uniform grid of its shortest step and zero-padded to a frequency step of at most 1/64 of
-    1 / duration (at most :data:`BANDWIDTH_FFT_MAX` points: a long pulse's step is coarser); the width is that of the contiguous lobe around the spectrum's peak.  None for an empty or
-    all-zero waveform (a block pulse's spectrum is a sinc: 1.21 / duration)."""
+    resampled onto a uniform grid of its shortest step (averaged over blocks down to :data:`BANDWIDTH_SAMPLES_MAX`
+    samples when longer) and zero-padded to a frequency step of at most 1/64 of 1 / duration (at most
+    :data:`BANDWIDTH_FFT_MAX` points: a long pulse's step is coarser); the width is that of the contiguous lobe
+    around the spectrum's peak.  None for an empty or all-zero waveform (a block pulse's spectrum is a sinc:
+    1.21 / duration)."""
     t = np.asarray(t_s, dtype=np.float64).ravel()
     s = np.asarray(signal).ravel()
     if t.size < 2 or s.size != t.size or not np.any(np.abs(s) > 0):
