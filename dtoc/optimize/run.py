@@ -1034,6 +1034,7 @@ def warm_start_stage(plan: Plan, sol: Solution, report: Callable) -> torch.Tenso
             dtype=plan.dtype,
             device=plan.device,
             progress=report,
+            k_tol_dk=cfg.k_tol_dk,
         )
         stage_times["windowed_s"] = time.time() - t0
         extra["windowed"] = {"note": window["note"], "memory_s": window["memory_s"], **wst.as_dict()}

@@ -32,6 +32,7 @@ sequences"), docs/optimize.md.  Units: mT/m, s, rad/m.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 from collections import OrderedDict
@@ -63,6 +64,13 @@ SOLVES_KEPT = 32
 STRUCTURES_KEPT_BYTES = 3_000_000_000
 #: ADMM iterations of one window at most
 ADMM_MAX_ITER = 2000
+#: ADMM's stopping tolerance (relative primal and dual residuals), and the tighter one of a window whose k error is
+#: still above :data:`REFINE_SHARE` of the run's k tolerance after it (:func:`windowed_warm_start`, ``k_tol_dk``)
+ADMM_TOL = 1e-4
+ADMM_TOL_REFINE = 1e-6
+REFINE_SHARE = 0.5
+#: a structure whose last windows needed the limits tries the unconstrained optimum again every this many windows
+DIRECT_RETRY = 16
 #: edges farther than this from any non-zero base gradient or ADC sample are held at the base value, s
 PAD_S = 2e-3
 
@@ -94,6 +102,7 @@ class WindowStats:
     lookahead_s: float = 0.0
     times_s: dict = field(default_factory=dict)
     admm_capped: int = 0  # windows whose ADMM stopped at its iteration cap (not converged)
+    refined: int = 0  # windows whose ADMM ran on to ADMM_TOL_REFINE (k error above REFINE_SHARE of the tolerance)
     #: per ADC sample / per RF pulse (its moment; nan: none), the k error of its window's unconstrained optimum, dk
     #: (the window's quadratic without the limits: what the free edges could reach there; nan where not solved)
     unconstrained_adc_dk: np.ndarray | None = None
@@ -101,6 +110,8 @@ class WindowStats:
     #: per ADC sample, its k error in its window's model at the committed solution, dk (what the window saw; the whole
     #: sequence's realization differs by the hardware's memory beyond the horizon and the later windows' changes)
     window_adc_dk: np.ndarray | None = None
+    #: per RF pulse, the k error of its moment in its window's model at the committed solution, dk (nan: none)
+    window_moment_dk: np.ndarray | None = None
 
     def as_dict(self) -> dict:
         return {
@@ -109,6 +120,7 @@ class WindowStats:
             "max_free_variables_per_window": self.max_free,
             "windows_solved_directly": self.direct,
             "admm_iterations": self.admm_iters,
+            "windows_refined": self.refined,
             "windows_reusing_a_solve": self.reused,
             "solved_as_one": solved_as_one(self.groups),
             "horizon_s": self.horizon_s,
@@ -329,17 +341,19 @@ class _UnconstrainedErrors:
         self.sc, self.st, self.batch = sc, st, batch
         self.key: str | None = None
         self.J: np.ndarray | None = None
+        self.Hinv: np.ndarray | None = None
         self.items: list[tuple] = []
 
-    def add(self, key, J, r0d, d, n_adc, n_mom, sel_adc, core_adc, moment_rf, n_guard_mom) -> None:
-        """A window: its structure ``key`` and ``J``, residual rows ``r0d``, unconstrained optimum ``d``, sample and
-        moment counts (its rows' layout), where its core's samples and moments go (``sel_adc``, ``core_adc``,
+    def add(self, key, c, r0d, grad0, n_adc, n_mom, sel_adc, core_adc, moment_rf, n_guard_mom) -> None:
+        """A window: its structure ``key`` and matrices ``c`` (``J``, ``Hinv``), residual rows ``r0d``, gradient
+        ``grad0`` (its unconstrained optimum is ``-Hinv grad0``, computed here for the batch in one product), sample
+        and moment counts (its rows' layout), where its core's samples and moments go (``sel_adc``, ``core_adc``,
         ``moment_rf``; its first ``n_guard_mom`` moments are a part's guarded ones)."""
         if key != self.key or len(self.items) >= self.batch:
             self.flush()
-        self.key, self.J = key, J
+        self.key, self.J, self.Hinv = key, c["J"], c["Hinv"]
         nk = len(self.sc.k_axes) * (n_adc + n_mom)
-        self.items.append((r0d[:nk].copy(), d, n_adc, n_mom, sel_adc, core_adc, moment_rf, n_guard_mom))
+        self.items.append((r0d[:nk].copy(), grad0, n_adc, n_mom, sel_adc, core_adc, moment_rf, n_guard_mom))
 
     def flush(self) -> None:
         if not self.items:
@@ -348,12 +362,13 @@ class _UnconstrainedErrors:
         ua_all, um_all = self.st.unconstrained_adc_dk, self.st.unconstrained_moment_dk
         assert J is not None and ua_all is not None and um_all is not None
         rk = np.stack([it[0] for it in self.items], axis=1)
-        rk += J[: rk.shape[0]] @ np.stack([it[1] for it in self.items], axis=1)
+        assert self.Hinv is not None
+        rk -= J[: rk.shape[0]] @ (self.Hinv @ np.stack([it[1] for it in self.items], axis=1))
         for j, (_, _, _, _, sel_adc, core_adc, moment_rf, g) in enumerate(self.items):
             ua, um = self.sc.k_errors_dk(rk[:, j], n_adc, n_mom)
             ua_all[sel_adc] = ua[core_adc]
             um_all[moment_rf] = um[g:]
-        self.items, self.J, self.key = [], None, None
+        self.items, self.J, self.Hinv, self.key = [], None, None, None
 
 
 @on_torch_threads
@@ -374,6 +389,7 @@ def windowed_warm_start(
     reuse: bool = True,
     dense_max: int = DENSE_MAX,
     part_max: int = PART_MAX,
+    k_tol_dk: float | None = None,
 ) -> tuple[np.ndarray, WindowStats]:
     """Solve the warm start's objective period by period (module doc).
 
@@ -388,6 +404,9 @@ def windowed_warm_start(
             (``WindowStats.solved_as_one`` lists them).
         dense_max / part_max: a period with more free variables than ``dense_max`` is cut into parts of at most
             ``part_max`` (:func:`core_blocks`).
+        k_tol_dk: the run's k tolerance, dk: a window whose ADMM solution leaves a core sample or moment above
+            :data:`REFINE_SHARE` of it runs ADMM on to :data:`ADMM_TOL_REFINE` (None: every window stops at
+            :data:`ADMM_TOL`).
     Returns:
         (3, N+1) edges within the limits, and :class:`WindowStats`.
     Raises:
@@ -424,6 +443,7 @@ def windowed_warm_start(
     st.unconstrained_adc_dk = np.full(ir.n_adc_samples, np.nan)
     st.unconstrained_moment_dk = np.full(len(ir.rf), np.nan)
     st.window_adc_dk = np.full(ir.n_adc_samples, np.nan)
+    st.window_moment_dk = np.full(len(ir.rf), np.nan)
     # a part of a period (not its first): the realized k at its start, carried from the parts before (rad/m), and
     # the nominal k at every part's end (the next part's k must stay reachable)
     k_in = np.zeros(3)
@@ -559,10 +579,9 @@ def windowed_warm_start(
         nd = c["J"].shape[0]
         r0d, r0r = r0n[:nd], r0n[nd:]
         grad0 = c["J"].T @ r0d + c["S"].T @ r0r
-        d = -(c["Hinv"] @ grad0)  # the window's unconstrained optimum
         # the core's own rows (a part's guarded rows come first, its end row last: not the core's samples)
         core_adc = slice(n_guard[0], n_guard[0] + len(sel_adc))
-        unconstrained.add(key, c["J"], r0d, d, t_adc.size, t_mom.size, sel_adc, core_adc, w.moment_rf, n_guard[1])
+        unconstrained.add(key, c, r0d, grad0, t_adc.size, t_mom.size, sel_adc, core_adc, w.moment_rf, n_guard[1])
         # a window whose problem is an earlier one's (same structure; residual to 1e-6 of its largest entry and
         # edges to 1e-4 mT/m: identical repetitions, averages, slices that differ only in RF frequency or labels)
         # takes its change of the edges, if that is within the limits here
@@ -575,22 +594,45 @@ def windowed_warm_start(
                 st.reused += 1
                 tt["solve"] += time.time() - t0
                 edges[:, e0 : e1 + 1] = x_p
-                st.window_adc_dk[sel_adc] = sc.k_errors_dk(r0d + c["J"] @ (x_p[fr] - x_sub[fr]), t_adc.size, 0)[0][
-                    core_adc
-                ]
+                _commit_errors(st, sc, r0d + c["J"] @ (x_p[fr] - x_sub[fr]), t_adc.size, t_mom.size, sel_adc, core_adc,
+                               w.moment_rf, n_guard[1])  # fmt: skip
                 if progress is not None:
                     progress("windows", wi + 1, len(windows), float((r0**2).sum()))
                 continue
         x_p = x_sub.copy()
-        x_p[fr] = x_sub[fr] + d
-        if P.is_feasible(x_p[:, rs]):
+        rd: np.ndarray | None = None  # the window's k-space residual rows at its solution (if computed on the way)
+        # the window's unconstrained optimum, tried unless the structure's last windows all needed the limits (then
+        # only every DIRECT_RETRY-th: ADMM reaches that optimum too when it is within the limits)
+        streak = c.get("limited", 0)
+        if streak % DIRECT_RETRY == 0:
+            x_p[fr] = x_sub[fr] - c["Hinv"] @ grad0
+        if streak % DIRECT_RETRY == 0 and P.is_feasible(x_p[:, rs]):
             st.direct += 1
+            c["limited"] = 0
         else:  # a limit is active: the same quadratic within the limits (ADMM, matrices cached per structure)
+            c["limited"] = streak + 1
             x_p[:, rs], its = _admm(c, grad0, P, fr_r, x_sub[:, rs], max_iter=ADMM_MAX_ITER)
             st.admm_iters += its
+            if k_tol_dk is not None and its < ADMM_MAX_ITER:
+                # a window still above a share of the k tolerance runs on from where it stopped, until its k errors
+                # are within that share or ADMM meets the tighter tolerance: what is left is then the quadratic's
+                # optimum within the limits, not ADMM's slack
+                share = REFINE_SHARE * k_tol_dk
+                core = (sc, r0d, c["J"], t_adc.size, t_mom.size, core_adc, n_guard[1])
+                rd = r0d + c["J"] @ (x_p[fr] - x_sub[fr])
+                if _core_max_dk(core, rd=rd) > share:
+                    x_p[:, rs], its = _admm(
+                        c, grad0, P, fr_r, x_sub[:, rs], max_iter=ADMM_MAX_ITER, tol=ADMM_TOL_REFINE,
+                        done=functools.partial(_within, core, share),
+                    )  # fmt: skip
+                    st.admm_iters += its
+                    st.refined += 1
+                    rd = None
             st.admm_capped += its >= ADMM_MAX_ITER
         dx = x_p[fr] - x_sub[fr]
-        rd, rr = r0d + c["J"] @ dx, r0r + c["S"] @ dx  # the window's residual at the solution
+        if rd is None:
+            rd = r0d + c["J"] @ dx
+        rr = r0r + c["S"] @ dx  # the window's residual at the solution
         if float(rd @ rd + rr @ rr) > float(r0n @ r0n):  # never worse than unchanged
             x_p, rd = x_sub, r0d
         tt["solve"] += time.time() - t0
@@ -598,7 +640,7 @@ def windowed_warm_start(
         if len(solved) > SOLVES_KEPT:
             solved.popitem(last=False)
         edges[:, e0 : e1 + 1] = x_p
-        st.window_adc_dk[sel_adc] = sc.k_errors_dk(rd, t_adc.size, 0)[0][core_adc]
+        _commit_errors(st, sc, rd, t_adc.size, t_mom.size, sel_adc, core_adc, w.moment_rf, n_guard[1])
         if progress is not None:
             progress("windows", wi + 1, len(windows), float((r0**2).sum()))
     unconstrained.flush()
@@ -741,6 +783,28 @@ def _nbytes(c: dict) -> int:
     return n
 
 
+def _commit_errors(st: WindowStats, sc: _Scales, rd, n_adc, n_mom, sel_adc, core_adc, moment_rf, n_guard_mom) -> None:
+    """Record a committed window's k errors (its residual rows ``rd``) of its own ADC samples and moments."""
+    ka, km = sc.k_errors_dk(rd, n_adc, n_mom)
+    assert st.window_adc_dk is not None and st.window_moment_dk is not None
+    st.window_adc_dk[sel_adc] = ka[core_adc]
+    st.window_moment_dk[moment_rf] = km[n_guard_mom:]
+
+
+def _core_max_dk(core: tuple, d: np.ndarray | None = None, rd: np.ndarray | None = None) -> float:
+    """The largest k error (dk) of a window's own ADC samples and moments at the change ``d`` of its free edges
+    (or at its residual rows ``rd``); ``core``: (scales, residual rows r0d, J, ADC count, moment count, the core's
+    ADC rows, guarded moments)."""
+    sc, r0d, J, n_adc, n_mom, core_adc, n_guard_mom = core
+    ka, km = sc.k_errors_dk(r0d + J @ d if rd is None else rd, n_adc, n_mom)
+    return float(np.nanmax(np.r_[ka[core_adc], km[n_guard_mom:], 0.0]))
+
+
+def _within(core: tuple, share: float, d: np.ndarray) -> bool:
+    """ADMM's early stop of a refined window: its own k errors within ``share`` dk (:func:`_core_max_dk`)."""
+    return _core_max_dk(core, d=d) <= share
+
+
 def window_residual(hardware, dtf, fmask_t, fine_t, g0_t, t_adc, k0_t, t_mom, mom0_t, rf_c, rf_u, rfm, sc, sk_t, sm_t):
     """The window's weighted residual vector as a function of edge arrays: (B, 3, Ne) -> (B, R)."""
     ka = torch.as_tensor(sc.k_axes)
@@ -826,12 +890,15 @@ def _admm(
     xb: np.ndarray,
     rho_rel: float = 0.01,
     max_iter: int = 2000,
-    tol: float = 1e-4,
+    tol: float | None = None,
+    done: Callable[[np.ndarray], bool] | None = None,
 ) -> tuple[np.ndarray, int]:
     """min 1/2 d^T H d + grad0^T d over the free edges with ``xb + d`` within ``P``'s limits (box ``lo..hi``,
     ``|x[n+1] - x[n]| <= step`` on free pairs), by ADMM (over-relaxed, OSQP's splitting) with the normal
     matrix ``H + rho A^T A`` inverted once per structure (again when rho is rebalanced), warm-started from the
-    last window of the structure; the result goes through ``P.project`` (exact).  Returns (edges, iterations)."""
+    last window of the structure; the result goes through ``P.project`` (exact).  ``done(d)``, asked every 10th
+    iteration, stops it early (a k tolerance met).  ``tol`` None: :data:`ADMM_TOL`.  Returns (edges, iterations)."""
+    tol = ADMM_TOL if tol is None else tol
     idx = np.flatnonzero(fr.ravel())
     n = idx.size
     col = np.full(fr.size, -1, dtype=np.int64)
@@ -873,22 +940,24 @@ def _admm(
         y = y + rho * (Ad_relaxed - z_new)
         dz = z_new - z
         z = z_new
-        if it % 10 == 0:
-            Ad = A @ d
-            r_p = np.abs(Ad - z).max()
-            r_d = rho * np.abs(A.T @ dz).max()
-            if r_p <= tol * max(1.0, np.abs(z).max()) and r_d <= tol * max(1.0, np.abs(grad0).max()):
-                break
-            if it % 50 == 0 and refactor < 3:  # OSQP's rule: balance the scaled primal and dual residuals
-                Hd = c["normal"] @ d
-                rp_n = r_p / max(np.abs(Ad).max(), np.abs(z).max(), 1e-300)
-                rd_n = r_d / max(np.abs(Hd).max(), np.abs(A.T @ y).max(), np.abs(grad0).max(), 1e-300)
-                scale = math.sqrt(rp_n / max(rd_n, 1e-300))
-                if scale > 5 or scale < 0.2:
-                    rho *= float(np.clip(scale, 1e-3, 1e3))
-                    Kinv = _spd_inverse(c["normal"] + rho * (A.T @ A).toarray())
-                    m.update(rho=rho, Kinv=Kinv)
-                    refactor += 1
+        # the stopping rule each iteration: two sparse products, cheap beside the dense one above
+        Ad = A @ d
+        r_p = np.abs(Ad - z).max()
+        r_d = rho * np.abs(A.T @ dz).max()
+        if r_p <= tol * max(1.0, np.abs(z).max()) and r_d <= tol * max(1.0, np.abs(grad0).max()):
+            break
+        if done is not None and it % 10 == 0 and done(d):
+            break
+        if it % 50 == 0 and refactor < 3:  # OSQP's rule: balance the scaled primal and dual residuals
+            Hd = c["normal"] @ d
+            rp_n = r_p / max(np.abs(Ad).max(), np.abs(z).max(), 1e-300)
+            rd_n = r_d / max(np.abs(Hd).max(), np.abs(A.T @ y).max(), np.abs(grad0).max(), 1e-300)
+            scale = math.sqrt(rp_n / max(rd_n, 1e-300))
+            if scale > 5 or scale < 0.2:
+                rho *= float(np.clip(scale, 1e-3, 1e3))
+                Kinv = _spd_inverse(c["normal"] + rho * (A.T @ A).toarray())
+                m.update(rho=rho, Kinv=Kinv)
+                refactor += 1
     m["admm_zy"] = (z, y)
     x = xb.copy()
     x.ravel()[idx] = x0 + d
