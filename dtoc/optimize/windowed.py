@@ -32,7 +32,6 @@ sequences"), docs/optimize.md.  Units: mT/m, s, rad/m.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import math
 from collections import OrderedDict
@@ -69,6 +68,9 @@ ADMM_MAX_ITER = 2000
 ADMM_TOL = 1e-4
 ADMM_TOL_REFINE = 1e-6
 REFINE_SHARE = 0.5
+#: a refined window stops when its largest k error fell by less than REFINE_MIN_GAIN over REFINE_PATIENCE checks
+REFINE_PATIENCE = 5
+REFINE_MIN_GAIN = 0.05
 #: a structure whose last windows needed the limits tries the unconstrained optimum again every this many windows
 DIRECT_RETRY = 16
 #: edges farther than this from any non-zero base gradient or ADC sample are held at the base value, s
@@ -623,7 +625,7 @@ def windowed_warm_start(
                 if _core_max_dk(core, rd=rd) > share:
                     x_p[:, rs], its = _admm(
                         c, grad0, P, fr_r, x_sub[:, rs], max_iter=ADMM_MAX_ITER, tol=ADMM_TOL_REFINE,
-                        done=functools.partial(_within, core, share),
+                        done=_KStop(core, share),
                     )  # fmt: skip
                     st.admm_iters += its
                     st.refined += 1
@@ -800,9 +802,21 @@ def _core_max_dk(core: tuple, d: np.ndarray | None = None, rd: np.ndarray | None
     return float(np.nanmax(np.r_[ka[core_adc], km[n_guard_mom:], 0.0]))
 
 
-def _within(core: tuple, share: float, d: np.ndarray) -> bool:
-    """ADMM's early stop of a refined window: its own k errors within ``share`` dk (:func:`_core_max_dk`)."""
-    return _core_max_dk(core, d=d) <= share
+class _KStop:
+    """ADMM's early stop of a refined window, asked every 10th iteration: its own k errors (:func:`_core_max_dk`)
+    within ``share`` dk, or no longer falling (less than :data:`REFINE_MIN_GAIN` of the largest over the last
+    :data:`REFINE_PATIENCE` checks: ADMM's slack is gone or shrinks too slowly to matter)."""
+
+    def __init__(self, core: tuple, share: float):
+        self.core, self.share = core, share
+        self.seen: list[float] = []
+
+    def __call__(self, d: np.ndarray) -> bool:
+        e = _core_max_dk(self.core, d=d)
+        self.seen.append(e)
+        if e <= self.share:
+            return True
+        return len(self.seen) > REFINE_PATIENCE and e > (1 - REFINE_MIN_GAIN) * self.seen[-1 - REFINE_PATIENCE]
 
 
 def window_residual(hardware, dtf, fmask_t, fine_t, g0_t, t_adc, k0_t, t_mom, mom0_t, rf_c, rf_u, rfm, sc, sk_t, sm_t):
