@@ -384,7 +384,10 @@ def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> No
         DtocError: one line naming the first difference."""
     spans = _verify_spans(ir)
     index = None
-    if len(spans) > 1:
+    in_order = all(
+        a.block <= b.block for ev in (ir.rf, ir.adc) for a, b in zip(ev, ev[1:])
+    )  # (as read: pieces' events)
+    if len(spans) > 1 and in_order:
         from dtoc.seq.pieces import PieceError, TextIndex
 
         try:
@@ -477,6 +480,14 @@ def _verify_text(ir: SequenceIR, data: bytes, version, span) -> None:
         os.unlink(tmp)
 
 
+def _in_blocks(events: list, b0: int, b1: int) -> list:
+    """The events (in block order, as the reader lists them) of blocks ``b0`` .. ``b1 - 1``: a piece's, found in
+    time logarithmic in the sequence's events."""
+    from bisect import bisect_left
+
+    return events[bisect_left(events, b0, key=lambda e: e.block) : bisect_left(events, b1, key=lambda e: e.block)]
+
+
 def _block_id(ir: SequenceIR, b: int) -> int:
     ids = ir.meta.get("block_ids", [])
     return int(ids[b]) if b < len(ids) else b + 1
@@ -510,8 +521,7 @@ def _compare_read_back(ir: SequenceIR, back: SequenceIR, v: str, version, span=N
             f"format {v} text plays another gradient: block {_block_id(ir, b)} "
             f"axis {AXES[a]} at {m * ir.dt_fine_s * 1e3:.4f} ms: {gb[a, m - m_c]:.6g} instead of {g[a, m]:.6g} mT/m"
         )
-    rf0 = [r for r in ir.rf if b0 <= r.block < b1] if span is not None else ir.rf
-    adc0 = [a for a in ir.adc if b0 <= a.block < b1] if span is not None else ir.adc
+    rf0, adc0 = _in_blocks(ir.rf, b0, b1), _in_blocks(ir.adc, b0, b1)
     rf1 = [r for r in back.rf if b0 <= c0 + r.block < b1]
     adc1 = [a for a in back.adc if b0 <= c0 + a.block < b1]
     if len(rf1) != len(rf0) or len(adc1) != len(adc0):
