@@ -92,11 +92,15 @@ def representable_amplitudes(amps_hz_per_m) -> np.ndarray:
     return a
 
 
-def seq_bytes(seq, v141: bool = False) -> bytes:
+def seq_bytes(seq, v141: bool = False, in_place: bool = False) -> bytes:
     """The signed Pulseq 1.5.0 text of a Sequence (pypulseq ``write``), as bytes; ``v141``: pypulseq's 1.4.1
-    writer instead."""
+    writer instead.  ``in_place``: ``seq`` is the caller's to change, and its duplicate events are removed in
+    place (pypulseq's write otherwise removes them on a deep copy of every library: the same text, without that
+    copy)."""
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "out.seq"
         with quiet():
-            seq.write(str(p), create_signature=True, v141_compat=v141)
+            if in_place:
+                seq.remove_duplicates(in_place=True)
+            seq.write(str(p), create_signature=True, v141_compat=v141, remove_duplicates=not in_place)
         return p.read_bytes()

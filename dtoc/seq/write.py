@@ -103,9 +103,12 @@ def to_pypulseq(ir: SequenceIR, adc_offsets: dict[int, tuple[float, float]] | No
         raise DtocError("IR raster differs from its source sequence's gradient raster")
     changes = changed_blocks(ir)
     adc_offsets = {b: v for b, v in (adc_offsets or {}).items() if v[0] or v[1]}
-    seq = copy.deepcopy(src)
+    seq = _copy_without_cache(src)
     if not changes and not adc_offsets:
         return seq
+    # pypulseq keeps every block it decodes (get_block) in its block cache: every rewritten block's events,
+    # waveforms included, would stay until the copy dies (~100 bytes per raster step); not kept here
+    seq.use_block_cache = False
     orig = _original_grad(ir)
     r = ir.raster_s
     opts = SystemSpec(
@@ -189,7 +192,19 @@ def to_pypulseq(ir: SequenceIR, adc_offsets: dict[int, tuple[float, float]] | No
         if abs(float(seq.block_durations[key]) - dur) > 1e-12:
             raise DtocError(f"block {key}: duration changed while rewriting ({dur} -> {seq.block_durations[key]})")
     seq.system.max_slew, seq.system.max_grad = saved_slew, saved_grad
+    seq.use_block_cache = True
     return seq
+
+
+def _copy_without_cache(src):
+    """A deep copy of the pypulseq ``Sequence`` ``src`` without its block cache (decoded blocks, which pypulseq
+    rebuilds on demand: the same sequence, without a second copy of every decoded block of the base)."""
+    kept = src.block_cache
+    src.block_cache = {}
+    try:
+        return copy.deepcopy(src)
+    finally:
+        src.block_cache = kept
 
 
 def set_block_in_place(seq, keys: list, b: int, *events) -> None:
@@ -237,13 +252,14 @@ def seq_bytes_of(
             raise DtocError(f"definition {k!r}: names are letters/digits and values numbers (or one word)")
         seq.set_definition(str(k), vals)
     rotations, shims = ir.meta.get("rotations") or {}, ir.meta.get("rf_shims") or {}
+    seq.use_block_cache = False  # pypulseq's write decodes every block (its timing check): none kept (to_pypulseq)
     if v >= (1, 5, 0):
-        data = seq_bytes(seq)
+        data = seq_bytes(seq, in_place=True)  # (this function's copy)
         if v != (1, 5, 0) or rotations or shims:
             text = set_revision(strip_signature(data), v)
             data = sign_text(add_kept_extensions(text, rotations, shims))
     else:
-        data = sign_text(set_revision(strip_signature(seq_bytes(seq, v141=True)), v))
+        data = sign_text(set_revision(strip_signature(seq_bytes(seq, v141=True, in_place=True)), v))
     if verify:
         verify_written(ir, data, v, adc_offsets)
     return data
@@ -347,14 +363,91 @@ def _detected_use(seq, rf) -> str:
     return next(k for k, v in USES.items() if v == use)
 
 
+#: raster steps per piece of a long written text read back (:mod:`dtoc.seq.pieces`): the read-back holds a piece's
+#: reading (~600 bytes per raster step), not the sequence's; a text of one piece is read whole
+VERIFY_PIECE_RASTER = 1 << 17
+
+
 def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> None:
     """Read ``data`` back with dtoc's reader and with pypulseq (which reads no 1.5.1 extension: a text holding
     ROTATIONS or RF_SHIMS is read by dtoc's reader only): it must be format ``version`` and play ``ir``'s
     gradients (within the writer's precision, module doc), RF centres and ADC samples.  dtoc's read-back is
     compared and released before pypulseq reads the text (a long sequence's two readings are not held together).
 
+    A text longer than :data:`VERIFY_PIECE_RASTER` raster steps is read in pieces (:mod:`dtoc.seq.pieces`:
+    consecutive blocks with the library lines they use, each line of the text in some piece), each piece with
+    the blocks either side of it as context (so a boundary sample, and a pre-1.5 edge a reader infers from the
+    neighbouring block, read as in the whole text); every gradient sample, RF centre and ADC event is compared,
+    and the whole text's signature checked once.
+
     Raises:
         DtocError: one line naming the first difference."""
+    spans = _verify_spans(ir)
+    index = None
+    in_order = all(
+        a.block <= b.block for ev in (ir.rf, ir.adc) for a, b in zip(ev, ev[1:])
+    )  # (as read: pieces' events)
+    if len(spans) > 1 and in_order:
+        from dtoc.seq.pieces import PieceError, TextIndex
+
+        try:
+            index = TextIndex(data)
+        except PieceError:
+            index = None  # a layout not cut in pieces: read whole
+    if index is None:
+        _verify_text(ir, data, version, None)
+        return
+    from dtoc.seq.pieces import share, signature_ok
+
+    v = version_str(tuple(version))
+    if not signature_ok(data):
+        raise DtocError(f"the written format {v} text's signature does not match its content")
+    if index.n_blocks != len(ir.block_edges_s) - 1:
+        raise DtocError(f"the written format {v} text holds {index.n_blocks} blocks, not {len(ir.block_edges_s) - 1}")
+    try:
+        extras = share(index.unused(), len(spans))
+    except PieceError as e:
+        raise DtocError(f"the written format {v} text does not read back: {e}") from None
+    gmax = _grad_peak(ir)
+    for span, extra in zip(spans, extras, strict=True):
+        try:
+            piece = index.piece(span[0], span[3], extra)
+        except PieceError as e:
+            raise DtocError(f"the written format {v} text does not read back: {e}") from None
+        _verify_text(ir, piece, version, (*span, gmax))
+
+
+def _verify_spans(ir: SequenceIR) -> list[tuple[int, int, int, int]]:
+    """The pieces of :func:`verify_written`: (c0, b0, b1, c1) per piece -- blocks ``b0`` .. ``b1 - 1`` compared,
+    ``c0`` .. ``c1 - 1`` read (the compared ones and, either side, the next block of non-zero duration and the
+    zero-duration blocks between)."""
+    e = np.round(np.asarray(ir.block_edges_s) / ir.raster_s).astype(np.int64)
+    nb = len(e) - 1
+    out, b0 = [], 0
+    while b0 < nb:
+        b1 = int(np.searchsorted(e, e[b0] + VERIFY_PIECE_RASTER, side="left"))
+        b1 = min(max(b1, b0 + 1), nb)
+        if nb - b1 > 0 and e[nb] - e[b1] < VERIFY_PIECE_RASTER // 4:  # no short last piece
+            b1 = nb
+        c0 = max(b0 - 1, 0)
+        while c0 > 0 and e[c0 + 1] == e[c0]:
+            c0 -= 1
+        c1 = min(b1 + 1, nb)
+        while c1 < nb and e[c1] == e[c1 - 1]:
+            c1 += 1
+        out.append((c0, b0, b1, c1))
+        b0 = b1
+    return out
+
+
+def _grad_peak(ir: SequenceIR) -> float:
+    g, piece = ir.grad_mT_per_m, 1 << 16  # (a piece's temporaries: 1.6 MB)
+    return max([float(np.abs(g[:, i : i + piece]).max()) for i in range(0, g.shape[1], piece)] + [1e-9])
+
+
+def _verify_text(ir: SequenceIR, data: bytes, version, span) -> None:
+    """Read back ``data`` (the whole text, ``span`` None, or the piece ``span`` = (c0, b0, b1, c1, gmax)) with
+    dtoc's reader and compare it, then with pypulseq (:func:`verify_written`)."""
     import os
     import tempfile
 
@@ -362,6 +455,7 @@ def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> No
     from dtoc.seq.read import read_seq
 
     v = version_str(tuple(version))
+    where = "" if span is None else f" (the piece of blocks {_block_id(ir, span[1])}-{_block_id(ir, span[2] - 1)})"
     fd, tmp = tempfile.mkstemp(suffix=".seq")
     try:
         with os.fdopen(fd, "wb") as f:
@@ -370,51 +464,81 @@ def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> No
             back = read_seq(tmp)
         except DtocError as e:
             raise DtocError(
-                f"the written format {v} text does not read back: {str(e).replace(tmp, 'output')}"
+                f"the written format {v} text does not read back{where}: {str(e).replace(tmp, 'output')}"
             ) from None
-        _compare_read_back(ir, back, v, version)
+        _compare_read_back(ir, back, v, version, span)
         del back
         try:
             if not any(f"\nextension {k} ".encode() in data for k in KEPT_EXTENSIONS):  # pypulseq 1.5.0 knows neither
                 with quiet():  # (its 1.4 port leaves unused gradients' edges None, which its de-duplication rounds)
                     import_pypulseq().Sequence().read(tmp, remove_duplicates=tuple(version) >= (1, 5, 0))
         except Exception as e:  # noqa: BLE001 - pypulseq raises anything
-            raise DtocError(f"pypulseq cannot read the written format {v} text: {type(e).__name__}: {e}") from None
+            raise DtocError(
+                f"pypulseq cannot read the written format {v} text{where}: {type(e).__name__}: {e}"
+            ) from None
     finally:
         os.unlink(tmp)
 
 
-def _compare_read_back(ir: SequenceIR, back: SequenceIR, v: str, version) -> None:
-    """:func:`verify_written`'s comparison of dtoc's read-back ``back`` (format ``v``) with ``ir``."""
+def _in_blocks(events: list, b0: int, b1: int) -> list:
+    """The events (in block order, as the reader lists them) of blocks ``b0`` .. ``b1 - 1``: a piece's, found in
+    time logarithmic in the sequence's events."""
+    from bisect import bisect_left
+
+    return events[bisect_left(events, b0, key=lambda e: e.block) : bisect_left(events, b1, key=lambda e: e.block)]
+
+
+def _block_id(ir: SequenceIR, b: int) -> int:
+    ids = ir.meta.get("block_ids", [])
+    return int(ids[b]) if b < len(ids) else b + 1
+
+
+def _compare_read_back(ir: SequenceIR, back: SequenceIR, v: str, version, span=None) -> None:
+    """:func:`verify_written`'s comparison of dtoc's read-back ``back`` (format ``v``) with ``ir``; ``span``
+    (c0, b0, b1, c1, gmax): ``back`` is the piece of blocks ``c0`` .. ``c1 - 1``, compared on ``b0`` .. ``b1 - 1``
+    (the last piece also on the final sample) with the whole waveform's peak ``gmax``."""
     if back.meta.get("format_version") != v:
         raise DtocError(f"written text says format {back.meta.get('format_version')}, not {v}")
+    nb = len(ir.block_edges_s) - 1
+    c0, b0, b1, c1 = (0, 0, nb, nb) if span is None else span[:4]
+    m_e = np.round(np.asarray(ir.block_edges_s) / ir.dt_fine_s).astype(np.int64)
+    m_c, m0, m1 = int(m_e[c0]), int(m_e[b0]), int(m_e[b1]) + (1 if b1 == nb else 0)
     g, gb = ir.grad_mT_per_m, back.grad_mT_per_m
-    if g.shape != gb.shape:
-        raise DtocError(f"format {v} text reads back with {gb.shape[1]} gradient samples, not {g.shape[1]}")
+    if gb.shape != (3, int(m_e[c1]) - m_c + 1):
+        raise DtocError(f"format {v} text reads back with {gb.shape[1]} gradient samples, not {int(m_e[c1]) - m_c + 1}")
     piece = _PIECE  # the comparison's temporaries are a piece's, not the sequence's
-    gmax = max([float(np.abs(g[:, i : i + piece]).max()) for i in range(0, g.shape[1], piece)] + [1e-9])
-    tol = 2e-5 * gmax
-    if any(float(np.abs(gb[:, i : i + piece] - g[:, i : i + piece]).max()) > tol for i in range(0, g.shape[1], piece)):
-        d = np.abs(gb - g)  # the first largest difference, named (a failure only)
+    tol = 2e-5 * (_grad_peak(ir) if span is None else span[4])
+    lo = m0 - m_c
+    if any(
+        float(np.abs(gb[:, lo + i - m0 : lo + min(i + piece, m1) - m0] - g[:, i : min(i + piece, m1)]).max()) > tol
+        for i in range(m0, m1, piece)
+    ):
+        d = np.abs(gb[:, lo : lo + m1 - m0] - g[:, m0:m1])  # the first largest difference, named (a failure only)
         a, m = np.unravel_index(int(np.argmax(d)), d.shape)
+        m = int(m) + m0
         b = int(np.searchsorted(ir.block_edges_s, m * ir.dt_fine_s, side="right")) - 1
         raise DtocError(
-            f"format {v} text plays another gradient: block {ir.meta.get('block_ids', [])[b] if b < len(ir.meta.get('block_ids', [])) else b + 1} "
-            f"axis {AXES[a]} at {m * ir.dt_fine_s * 1e3:.4f} ms: {gb[a, m]:.6g} instead of {g[a, m]:.6g} mT/m"
+            f"format {v} text plays another gradient: block {_block_id(ir, b)} "
+            f"axis {AXES[a]} at {m * ir.dt_fine_s * 1e3:.4f} ms: {gb[a, m - m_c]:.6g} instead of {g[a, m]:.6g} mT/m"
         )
-    if len(back.rf) != len(ir.rf) or len(back.adc) != len(ir.adc):
+    rf0, adc0 = _in_blocks(ir.rf, b0, b1), _in_blocks(ir.adc, b0, b1)
+    rf1 = [r for r in back.rf if b0 <= c0 + r.block < b1]
+    adc1 = [a for a in back.adc if b0 <= c0 + a.block < b1]
+    if len(rf1) != len(rf0) or len(adc1) != len(adc0):
+        what = "" if span is None else f" in blocks {_block_id(ir, b0)}-{_block_id(ir, b1 - 1)}"
         raise DtocError(
-            f"format {v} text reads back with {len(back.rf)} RF / {len(back.adc)} ADC events, not {len(ir.rf)} / {len(ir.adc)}"
+            f"format {v} text reads back with {len(rf1)} RF / {len(adc1)} ADC events{what}, not {len(rf0)} / {len(adc0)}"
         )
+    t_c = float(ir.block_edges_s[c0])
     rf_raster = float(ir.source.rf_raster_time) if ir.source is not None and tuple(version) < (1, 5, 0) else 1e-7
-    for r0, r1 in zip(ir.rf, back.rf, strict=True):
-        if abs(r0.t_center_s - r1.t_center_s) > 1.01 * rf_raster:  # 1.4 states no centre: the peak's sample
+    for r0, r1 in zip(rf0, rf1, strict=True):
+        if abs(r0.t_center_s - (r1.t_center_s + t_c)) > 1.01 * rf_raster:  # 1.4 states no centre: the peak's sample
             raise DtocError(
-                f"format {v} text moves the RF centre of block {r0.block + 1}: {r1.t_center_s * 1e3:.6f} ms instead of "
-                f"{r0.t_center_s * 1e3:.6f} ms"
+                f"format {v} text moves the RF centre of block {r0.block + 1}: {(r1.t_center_s + t_c) * 1e3:.6f} ms "
+                f"instead of {r0.t_center_s * 1e3:.6f} ms"
             )
-    for a0, a1 in zip(ir.adc, back.adc, strict=True):
-        if abs(a0.t_start_s - a1.t_start_s) > 1e-9 or a0.num_samples != a1.num_samples:
+    for a0, a1 in zip(adc0, adc1, strict=True):
+        if abs(a0.t_start_s - (a1.t_start_s + t_c)) > 1e-9 or a0.num_samples != a1.num_samples:
             raise DtocError(f"format {v} text moves the ADC of block {a0.block + 1}")
 
 

@@ -1,0 +1,137 @@
+"""The export of a long output against its length: time and peak memory of writing and checking the ``.seq``.
+
+Run: ``python -m bench.export_scale [--partitions 2 8 32 96]``.  The base: bench.protocols' 3D FLASH at 1 mm
+(``gre3d_1mm``, 960 blocks and 125,000 raster steps per partition, 96 partitions = the 2-minute protocol), read as
+dtoc reads it (``load_sequence``); every free raster edge is moved by a smooth perturbation of 0.02 mT/m (far
+within the limits: its slew is < 0.1 T/m/s; its period, sqrt(2) ms, shares no multiple with the TR, so no two TRs
+write the same shape), so every block with a free edge is rewritten as an arbitrary waveform,
+as an optimized output is.  Then the write path of ``dtoc optimize``'s export stage: ``seq_bytes_of(verify=False)``
+(the text) and ``verify_written`` (the check of the written text), each timed (wall and CPU) with its peak resident
+memory (``VmHWM`` reset before each step through ``/proc/self/clear_refs``).  Each length runs in its own process
+(the peaks do not mix); one JSON line per length on stdout, then a table.  Nothing is written to docs/.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _rss_mb(field: str) -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def _reset_peak() -> None:
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+
+
+def _step(fn):
+    """(result, {wall_s, cpu_s, rss_start_mb, peak_mb, rss_after_mb}) of ``fn()``."""
+    _reset_peak()
+    r0, t, c = _rss_mb("VmRSS"), time.perf_counter(), time.process_time()
+    out = fn()
+    stats = {"wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c, "rss_start_mb": r0}
+    return out, {**stats, "peak_mb": _rss_mb("VmHWM"), "rss_after_mb": _rss_mb("VmRSS")}
+
+
+def one(partitions: int) -> dict:
+    """One length, in this process."""
+    import tempfile
+
+    import numpy as np
+
+    sys.path.insert(0, str(REPO))
+    from bench.protocols import gre3d_1mm
+    from dtoc.seq.ir import edges_to_fine
+    from dtoc.seq.load import load_sequence
+    from dtoc.seq.write import seq_bytes_of, verify_written, writable_version
+
+    row: dict = {"partitions": partitions}
+    with tempfile.TemporaryDirectory() as td:
+        p = Path(td) / "base.seq"
+        p.write_bytes(gre3d_1mm(partitions=partitions))
+        row["base_mb"] = p.stat().st_size / 1e6
+        ir = load_sequence(p)
+    row["rss_loaded_mb"] = _rss_mb("VmRSS")
+    edges = ir.edge_grad_mT_per_m
+    free = ir.free_mask[:, ::2]
+    n = edges.shape[1]
+    t = np.arange(n) * ir.raster_s
+    e = edges + np.where(free, 0.02 * np.sin(2 * np.pi * t / (1e-3 * np.sqrt(2)))[None, :], 0.0)
+    out = ir.with_grad(edges_to_fine(e))
+    del e, t, edges
+    row.update(
+        blocks=len(ir.block_edges_s) - 1, raster_steps=n - 1, duration_s=float(ir.duration_s),
+        free_edges=int(free.sum()), rss_before_export_mb=_rss_mb("VmRSS"),
+    )  # fmt: skip
+    v = writable_version(out)
+    data, row["write"] = _step(lambda: seq_bytes_of(out, version=v, verify=False))
+    row["out_mb"] = len(data) / 1e6
+    _, row["verify"] = _step(lambda: verify_written(out, data, v))
+    return row
+
+
+def _over(step: dict) -> float:
+    """A step's peak resident memory over its start, MB."""
+    return step["peak_mb"] - step["rss_start_mb"]
+
+
+def render(rows: list[dict]) -> str:
+    head = (
+        "| partitions | blocks | raster steps | duration (s) | output (MB) | RSS loaded (MB) | write: wall / CPU (s) | "
+        "write: peak RSS over its start (MB) | verify: wall / CPU (s) | verify: peak RSS over its start (MB) | export's peak RSS "
+        "(MB) |\n|---|---|---|---|---|---|---|---|---|---|---|\n"
+    )
+    lines = [
+        f"| {r['partitions']} | {r['blocks']} | {r['raster_steps']} | {r['duration_s']:.1f} | {r['out_mb']:.0f} | "
+        f"{r['rss_before_export_mb']:.0f} | {r['write']['wall_s']:.1f} / {r['write']['cpu_s']:.1f} | "
+        f"{_over(r['write']):.0f} | {r['verify']['wall_s']:.1f} / {r['verify']['cpu_s']:.1f} | "
+        f"{_over(r['verify']):.0f} | {max(r['write']['peak_mb'], r['verify']['peak_mb']):.0f} |"
+        for r in rows
+    ]
+    out = head + "\n".join(lines) + "\n"
+    if len(rows) > 1:
+        a, b = rows[0], rows[-1]
+        steps = b["raster_steps"] - a["raster_steps"]
+        per = [f"{k}: {(_over(b[k]) - _over(a[k])) * 2**20 / steps:.0f}" for k in ("write", "verify")]
+        out += (
+            f"\nPeak RSS over the step's start, per raster step ({a['partitions']} -> {b['partitions']} partitions), bytes: "
+            + ", ".join(per)
+            + f"; the loaded IR: {(b['rss_before_export_mb'] - a['rss_before_export_mb']) * 2**20 / steps:.0f}.\n"
+        )
+    return out
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--partitions", type=int, nargs="+", default=[2, 8, 32, 96])
+    ap.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: one length in this process
+    a = ap.parse_args(argv)
+    if a.one is not None:
+        print(json.dumps(one(a.one)), flush=True)
+        return
+    rows = []
+    for p in a.partitions:
+        r = subprocess.run([sys.executable, "-m", "bench.export_scale", "--one", str(p)], cwd=REPO, capture_output=True)
+        if r.returncode:
+            sys.stderr.write(r.stderr.decode(errors="replace")[-3000:])
+            print(json.dumps({"partitions": p, "rc": r.returncode}), flush=True)
+            continue
+        rows.append(json.loads(r.stdout.decode().strip().splitlines()[-1]))
+        print(json.dumps(rows[-1]), flush=True)
+    print(render(rows))
+
+
+if __name__ == "__main__":
+    main()
