@@ -56,3 +56,51 @@ def test_a_reachable_target_is_not_certified_and_its_witness_reaches_it():
     assert not c.proven and c.status == "reachable"
     assert c.lower_bound_dk <= 0.01
     assert c.witness_dk <= 1e-6
+
+
+def _record(k_target_rad_per_m: float, t_s: float) -> dict:
+    """:func:`dtoc.optimize.run.certify_stop` on the case of :func:`_case` (a plan's parts, ideal chain), from a
+    solver record that stopped above the tolerance."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from dtoc.optimize.run import certify_stop
+
+    P, _ = _case(0.0, t_s)
+    x = torch.zeros((3, N_EDGES), dtype=torch.float64)
+    k0 = torch.tensor([[k_target_rad_per_m], [0.0], [0.0]], dtype=torch.float64)
+    plan = SimpleNamespace(
+        hardware=None,
+        projector=P,
+        cfg=SimpleNamespace(k_tol_dk=0.01),
+        ir=SimpleNamespace(dt_fine_s=RAS / 2, adc_times_s=np.array([t_s]), rf=[]),
+        ctx=SimpleNamespace(k0_rad_per_m=k0, dk_rad_per_m=torch.tensor([DK, np.inf, np.inf], dtype=torch.float64)),
+        twin=SimpleNamespace(forward_edges=lambda e: SimpleNamespace(kspace_rad_per_m=torch.zeros((3, 1)))),
+    )
+    err = abs(k_target_rad_per_m) / DK
+    rec = {"k_tol_dk": 0.01, "stop_reason": "converged", "achieved_max_dk": err, "summary": "solver: converged"}
+    certify_stop(plan, x, rec)
+    return rec
+
+
+def test_the_manifest_names_a_proven_stop_and_keeps_the_solvers_own():
+    n = 150
+    P, _ = _case(0.0, n * RAS)
+    k_max = GAMMA_RAD_PER_S_PER_MT * RAS * P.step * n * n / 2
+    rec = _record(k_max + 2.0 * DK, n * RAS)
+    assert rec["stop_reason"] == "unreachable (proven)" and rec["solver_stop_reason"] == "converged"
+    c = rec["certificates"]
+    assert (c["groups"], c["proven"], c["reachable"], c["not_proven"]) == (1, 1, 0, 0)
+    assert c["each"][0]["lower_bound_dk"] == pytest.approx(2.0, abs=1e-4)
+    assert "1 proven unreachable" in rec["summary"]
+
+
+def test_the_manifest_keeps_the_solvers_stop_when_nothing_is_proven():
+    n = 150
+    P, _ = _case(0.0, n * RAS)
+    k_max = GAMMA_RAD_PER_S_PER_MT * RAS * P.step * n * n / 2
+    rec = _record(0.8 * k_max, n * RAS)
+    assert rec["stop_reason"] == "converged" and "solver_stop_reason" not in rec
+    assert rec["certificates"]["reachable"] == 1
+    assert "reachable (the solve stopped short)" in rec["summary"]
