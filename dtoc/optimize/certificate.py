@@ -61,6 +61,12 @@ SUPPORT_MAX_S = 40e-3
 #: the LPs' own variables: the edges within this time before the group's first sample and after its last, s
 #: (a rule of ours: a GIRF's fast part; the edges further in the window enter the bound as a bounded remainder)
 NEAR_S = 2e-3
+#: the witness keeps at most this many other ADC samples of its window no worse (evenly spaced; the witness is
+#: checked on the whole waveform after)
+KEEP_MAX = 16
+#: the most simplex iterations of one LP (deterministic, unlike a time limit): beyond it the LP counts as unsolved
+#: (no bound, no witness)
+LP_MAXITER = 20000
 #: subtracted from the LP's optimum for the solver's tolerances (dk)
 LP_SLACK_DK = 1e-6
 
@@ -355,7 +361,10 @@ def _certify_group(hardware, dt_fine_s, P, x, k_now, k0, dk, ka, t_adc, rf_c, rf
         )
         A_eq = None if eq is None else np.hstack([eq, np.zeros((eq.shape[0], nv - eq.shape[1]))])
         b_eq = None if eq is None else np.zeros(eq.shape[0])
-        res = linprog(c_obj, A_ub=A_ub, b_ub=b_ub, A_eq=A_eq, b_eq=b_eq, bounds=bounds, method="highs")
+        res = linprog(
+            c_obj, A_ub=A_ub, b_ub=b_ub, A_eq=A_eq, b_eq=b_eq, bounds=bounds, method="highs",
+            options={"maxiter": LP_MAXITER},
+        )  # fmt: skip
         return (float(res.fun) if res.status == 0 else math.nan), res
 
     Kb = np.hstack([Jn, Cm])
@@ -393,8 +402,9 @@ def _certify_group(hardware, dt_fine_s, P, x, k_now, k0, dk, ka, t_adc, rf_c, rf
     area = np.stack([dc[ia, bb] * taps for bb in ka])
     # ... and every other ADC sample in the window no worse than the stop's largest error (or its own, if larger)
     t_all = np.asarray(t_adc, dtype=np.float64)
-    o = np.flatnonzero((t_all >= t0) & (t_all <= b * ras))
+    o = np.flatnonzero((t_all >= t0 + n0 * ras) & (t_all <= t0 + n1 * ras))
     o = o[~np.isin(o, g)]
+    o = o[:: max(1, -(-o.size // KEEP_MAX))] if KEEP_MAX > 0 else o[:0]  # a subset (the whole is checked after)
     keep = None
     if o.size:
         Jo = WJ.lti_jacobian(
