@@ -255,6 +255,59 @@ def solver_record(solves: list) -> dict:
     return rec
 
 
+def certify_stop(plan: Plan, x: torch.Tensor, rec: dict) -> None:
+    """The whole solve stopped above the tolerance on an affine chain: certify the worst
+    :data:`~dtoc.optimize.certificate.CERTIFY_GROUPS` groups of samples (:mod:`dtoc.optimize.certificate`, one
+    small LP each) into ``rec`` (the manifest's ``solver`` record, in place): ``certificates``, and the stop reason
+    'unreachable (proven)' when a group is proven (no waveform within the limits meets the tolerance; the solver's
+    own stop is kept as ``solver_stop_reason``); the summary line says which groups were certified and how."""
+    from dtoc.hardware.memory import is_affine
+    from dtoc.optimize import certificate as CE
+
+    tol = float(rec.get("k_tol_dk", plan.cfg.k_tol_dk))
+    if not (rec.get("achieved_max_dk", 0.0) > tol) or rec.get("stop_reason") == "interrupted":
+        return
+    if not is_affine(plan.hardware):
+        rec["certificates"] = {"note": "not certified: the hardware chain is not affine"}
+        return
+    ir, ctx = plan.ir, plan.ctx
+    with torch.no_grad():
+        k = plan.twin.forward_edges(x).kspace_rad_per_m
+    err = O.kspace_error_dk(k, ctx)
+    certs = CE.certify(
+        plan.hardware, ir.dt_fine_s, plan.projector, x.detach().cpu().numpy(), k.detach().cpu().numpy(),
+        ctx.k0_rad_per_m.detach().cpu().numpy(), ctx.dk_rad_per_m.detach().cpu().numpy(), ir.adc_times_s,
+        [r.t_center_s for r in ir.rf], [r.use for r in ir.rf], err, tol,
+    )  # fmt: skip
+    xn = x.detach().cpu().numpy()
+    for c in certs:  # the witness applied to the whole waveform: does it keep every other sample as good?
+        if c.witness_change is not None and not c.proven:
+            e, a, v = c.witness_change
+            xw = xn.copy()
+            xw[a, e] += v
+            with torch.no_grad():
+                kw = plan.twin.forward_edges(torch.as_tensor(xw, dtype=x.dtype, device=x.device)).kspace_rad_per_m
+            c.witness_max_dk, c.stop_max_dk = float(O.kspace_error_dk(kw, ctx).max()), float(err.max())
+    n = {s: sum(c.status == s for c in certs) for s in ("proven", "reachable", "not proven")}
+    rec["certificates"] = {
+        "groups": len(certs),
+        "most_groups": CE.CERTIFY_GROUPS,
+        "group_samples_max": 2 * CE.GROUP_HALF + 1,
+        **{k_.replace(" ", "_"): v for k_, v in n.items()},
+        "each": [c.as_dict() for c in certs],
+    }
+    if n["proven"]:
+        rec["solver_stop_reason"] = rec["stop_reason"]
+        rec["stop_reason"] = "unreachable (proven)"
+    if certs:
+        rec["summary"] = rec.get("summary", "") + (
+            f"; certified the worst {len(certs)} groups of samples: {n['proven']} proven unreachable, "
+            f"{n['reachable']} reachable (the solve stopped short: a change within the limits brings the group within "
+            f"the tolerance and no sample beyond the stop's maximum), {n['not proven']} not proven; "
+            + "; ".join(c.line() for c in certs[:2])
+        )
+
+
 def streamed_k_errors(twin: EdgeTwin, ctx, played) -> tuple[np.ndarray, np.ndarray]:
     """Per ADC sample and per moment (k just before every RF pulse after the first), the k error of
     the demanded waveform ``played`` (3, 2N+1) against the nominal, dk: the norm over the encoded axes (axes without a k unit left out), the whole
@@ -1063,6 +1116,7 @@ def warm_start_stage(plan: Plan, sol: Solution, report: Callable) -> torch.Tenso
     stage_times["warm_start_s"] = time.time() - t0
     if solves:
         extra["solver"] = solver_record(solves)
+        certify_stop(plan, x, extra["solver"])
     return x
 
 
