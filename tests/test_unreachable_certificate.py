@@ -64,7 +64,7 @@ def _k_ideal(e, t_s: float):
     return GAMMA_RAD_PER_S_PER_MT * RAS * (e[:, 1:n].sum(1) + 0.5 * (e[:, 0] + e[:, n]))[:, None]
 
 
-def _record(k_target_rad_per_m: float, t_s: float) -> dict:
+def _record(k_target_rad_per_m: float, t_s: float, groups: int = 4) -> dict:
     """:func:`dtoc.optimize.run.certify_stop` on the case of :func:`_case` (a plan's parts, ideal chain), from a
     solver record that stopped above the tolerance."""
     from types import SimpleNamespace
@@ -79,7 +79,7 @@ def _record(k_target_rad_per_m: float, t_s: float) -> dict:
     plan = SimpleNamespace(
         hardware=None,
         projector=P,
-        cfg=SimpleNamespace(k_tol_dk=0.01),
+        cfg=SimpleNamespace(k_tol_dk=0.01, certify_groups=groups),
         ir=SimpleNamespace(dt_fine_s=RAS / 2, adc_times_s=np.array([t_s]), rf=[]),
         ctx=SimpleNamespace(k0_rad_per_m=k0, dk_rad_per_m=torch.tensor([DK, np.inf, np.inf], dtype=torch.float64)),
         twin=SimpleNamespace(forward_edges=lambda e: SimpleNamespace(kspace_rad_per_m=_k_ideal(e, t_s))),
@@ -111,3 +111,16 @@ def test_the_manifest_keeps_the_solvers_stop_when_nothing_is_proven():
     assert rec["certificates"]["reachable"] == 1
     assert rec["certificates"]["each"][0]["witness_max_dk"] <= 1e-6  # the witness applied: the sample reached
     assert "1 reachable (the solve stopped short" in rec["summary"]
+
+
+def test_certificates_are_off_by_default_and_the_manifest_says_so():
+    """certify_groups 0 (the default): nothing is certified, the stop is the solver's, and the record says the
+    samples are named, not proven."""
+    from dtoc.optimize.config import OptimizeConfig
+
+    assert OptimizeConfig().certify_groups == 0
+    n = 150
+    P, _ = _case(0.0, n * RAS)
+    rec = _record(GAMMA_RAD_PER_S_PER_MT * RAS * P.step * n * n / 2 + 2.0 * DK, n * RAS, groups=0)
+    assert rec["stop_reason"] == "converged" and "solver_stop_reason" not in rec
+    assert "not certified" in rec["certificates"]["note"]

@@ -57,6 +57,9 @@ class OptimizeConfig(BaseModel):
         k_tol_dk: the warm start's stopping tolerance on the k error of every reachable ADC sample, dk
             (``--k-tol``).
         solve_budget: most objective evaluations (forward + backward passes) of one warm-start solve.
+        certify_groups: the worst groups of samples above ``k_tol_dk`` a whole solve certifies after it stops
+            (:mod:`dtoc.optimize.certificate`: proven unreachable, reachable, or not proven; two small LPs per
+            group, ~0.6 s each on the README job); 0 (default): none, the manifest says so.
         robust_rounds: rounds of iteratively reweighted least squares after the warm start (Cauchy
             weights on the per-sample k error, scale ``robust_scale_dk`` in dk): samples that cannot
             reach their target within the limits stop pulling the others off theirs (0 = plain LS).
@@ -102,6 +105,7 @@ class OptimizeConfig(BaseModel):
     warm_iters: int | None = Field(None, ge=0)
     k_tol_dk: float = Field(0.01, gt=0)
     solve_budget: int = Field(600, ge=8)
+    certify_groups: int = Field(0, ge=0, le=64)
     robust_rounds: int = Field(0, ge=0)
     robust_scale_dk: float = Field(0.5, gt=0)
     iters: int = Field(60, ge=0)

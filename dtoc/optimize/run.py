@@ -256,8 +256,8 @@ def solver_record(solves: list) -> dict:
 
 
 def certify_stop(plan: Plan, x: torch.Tensor, rec: dict) -> None:
-    """The whole solve stopped above the tolerance on an affine chain: certify the worst
-    :data:`~dtoc.optimize.certificate.CERTIFY_GROUPS` groups of samples (:mod:`dtoc.optimize.certificate`, one
+    """The whole solve stopped above the tolerance on an affine chain: certify the worst ``cfg.certify_groups``
+    (0, the default: none, the record says so) groups of samples (:mod:`dtoc.optimize.certificate`, one
     small LP each) into ``rec`` (the manifest's ``solver`` record, in place): ``certificates``, and the stop reason
     'unreachable (proven)' when a group is proven (no waveform within the limits meets the tolerance; the solver's
     own stop is kept as ``solver_stop_reason``); the summary line says which groups were certified and how."""
@@ -266,6 +266,12 @@ def certify_stop(plan: Plan, x: torch.Tensor, rec: dict) -> None:
 
     tol = float(rec.get("k_tol_dk", plan.cfg.k_tol_dk))
     if not (rec.get("achieved_max_dk", 0.0) > tol) or rec.get("stop_reason") == "interrupted":
+        return
+    if plan.cfg.certify_groups == 0:
+        rec["certificates"] = {
+            "note": "not certified (certify_groups 0, the default): the samples above the tolerance are named, not "
+            "proven unreachable (docs/optimize.md, 'Certificates')"
+        }
         return
     if not is_affine(plan.hardware):
         rec["certificates"] = {"note": "not certified: the hardware chain is not affine"}
@@ -277,7 +283,7 @@ def certify_stop(plan: Plan, x: torch.Tensor, rec: dict) -> None:
     certs = CE.certify(
         plan.hardware, ir.dt_fine_s, plan.projector, x.detach().cpu().numpy(), k.detach().cpu().numpy(),
         ctx.k0_rad_per_m.detach().cpu().numpy(), ctx.dk_rad_per_m.detach().cpu().numpy(), ir.adc_times_s,
-        [r.t_center_s for r in ir.rf], [r.use for r in ir.rf], err, tol,
+        [r.t_center_s for r in ir.rf], [r.use for r in ir.rf], err, tol, n_groups=plan.cfg.certify_groups,
     )  # fmt: skip
     xn = x.detach().cpu().numpy()
     for c in certs:  # the witness applied to the whole waveform: does it keep every other sample as good?
@@ -291,7 +297,7 @@ def certify_stop(plan: Plan, x: torch.Tensor, rec: dict) -> None:
     n = {s: sum(c.status == s for c in certs) for s in ("proven", "reachable", "not proven")}
     rec["certificates"] = {
         "groups": len(certs),
-        "most_groups": CE.CERTIFY_GROUPS,
+        "most_groups": plan.cfg.certify_groups,
         "group_samples_max": 2 * CE.GROUP_HALF + 1,
         **{k_.replace(" ", "_"): v for k_, v in n.items()},
         "each": [c.as_dict() for c in certs],
