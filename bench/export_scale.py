@@ -6,7 +6,9 @@ dtoc reads it (``load_sequence``); every free raster edge is moved by a smooth p
 within the limits: its slew is < 0.1 T/m/s; its period, sqrt(2) ms, shares no multiple with the TR, so no two TRs
 write the same shape), so every block with a free edge is rewritten as an arbitrary waveform,
 as an optimized output is.  Then the write path of ``dtoc optimize``'s export stage: ``seq_bytes_of(verify=False)``
-(the text) and ``verify_written`` (the check of the written text), each timed (wall and CPU) with its peak resident
+(the text), ``verify_written`` (the read-back of the written text) and the check ``write_checked`` makes of it
+(``check_file_pieces``: in pieces above ``VERIFY_PIECE_RASTER`` raster steps; ``--whole-check``: ``check_file`` on
+the whole text, as before), each timed (wall and CPU) with its peak resident
 memory (``VmHWM`` reset before each step through ``/proc/self/clear_refs``).  Each length runs in its own process
 (the peaks do not mix); one JSON line per length on stdout, then a table.  Nothing is written to docs/.
 """
@@ -45,7 +47,7 @@ def _step(fn):
     return out, {**stats, "peak_mb": _rss_mb("VmHWM"), "rss_after_mb": _rss_mb("VmRSS")}
 
 
-def one(partitions: int) -> dict:
+def one(partitions: int, whole_check: bool = False) -> dict:
     """One length, in this process."""
     import tempfile
 
@@ -53,9 +55,11 @@ def one(partitions: int) -> dict:
 
     sys.path.insert(0, str(REPO))
     from bench.protocols import gre3d_1mm
+    from dtoc.seq import check as C
     from dtoc.seq.ir import edges_to_fine
     from dtoc.seq.load import load_sequence
-    from dtoc.seq.write import seq_bytes_of, verify_written, writable_version
+    from dtoc.seq.system import SystemSpec
+    from dtoc.seq.write import _verify_spans, seq_bytes_of, verify_written, writable_version
 
     row: dict = {"partitions": partitions}
     with tempfile.TemporaryDirectory() as td:
@@ -79,6 +83,18 @@ def one(partitions: int) -> dict:
     data, row["write"] = _step(lambda: seq_bytes_of(out, version=v, verify=False))
     row["out_mb"] = len(data) / 1e6
     _, row["verify"] = _step(lambda: verify_written(out, data, v))
+    sysspec = SystemSpec(max_grad_mT_per_m=80.0, max_slew_T_per_m_per_s=200.0, grad_raster_s=out.raster_s)
+    with tempfile.TemporaryDirectory() as td:  # the check reads the file, as write_checked's does
+        p = Path(td) / "out.seq"
+        p.write_bytes(data)
+        data = b""  # (write_checked holds no copy of the text while it checks the file)
+        if whole_check:
+            res, row["check"] = _step(lambda: C.check_file(p, sysspec, None, conventions=None))
+        else:
+            res, row["check"] = _step(
+                lambda: C.check_file_pieces(p, _verify_spans(out), sysspec, None, conventions=None)
+            )
+    row.update(check_whole=whole_check, check_violations=len(res.violations))
     return row
 
 
@@ -90,21 +106,23 @@ def _over(step: dict) -> float:
 def render(rows: list[dict]) -> str:
     head = (
         "| partitions | blocks | raster steps | duration (s) | output (MB) | RSS loaded (MB) | write: wall / CPU (s) | "
-        "write: peak RSS over its start (MB) | verify: wall / CPU (s) | verify: peak RSS over its start (MB) | export's peak RSS "
-        "(MB) |\n|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "write: peak RSS over its start (MB) | verify: wall / CPU (s) | verify: peak RSS over its start (MB) | "
+        "check: wall / CPU (s) | check: peak RSS over its start (MB) | export's peak RSS (MB) |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = [
         f"| {r['partitions']} | {r['blocks']} | {r['raster_steps']} | {r['duration_s']:.1f} | {r['out_mb']:.0f} | "
         f"{r['rss_before_export_mb']:.0f} | {r['write']['wall_s']:.1f} / {r['write']['cpu_s']:.1f} | "
         f"{_over(r['write']):.0f} | {r['verify']['wall_s']:.1f} / {r['verify']['cpu_s']:.1f} | "
-        f"{_over(r['verify']):.0f} | {max(r['write']['peak_mb'], r['verify']['peak_mb']):.0f} |"
+        f"{_over(r['verify']):.0f} | {r['check']['wall_s']:.1f} / {r['check']['cpu_s']:.1f} | {_over(r['check']):.0f} | "
+        f"{max(r[k]['peak_mb'] for k in ('write', 'verify', 'check')):.0f} |"
         for r in rows
     ]
     out = head + "\n".join(lines) + "\n"
     if len(rows) > 1:
         a, b = rows[0], rows[-1]
         steps = b["raster_steps"] - a["raster_steps"]
-        per = [f"{k}: {(_over(b[k]) - _over(a[k])) * 2**20 / steps:.0f}" for k in ("write", "verify")]
+        per = [f"{k}: {(_over(b[k]) - _over(a[k])) * 2**20 / steps:.0f}" for k in ("write", "verify", "check")]
         out += (
             f"\nPeak RSS over the step's start, per raster step ({a['partitions']} -> {b['partitions']} partitions), bytes: "
             + ", ".join(per)
@@ -116,14 +134,26 @@ def render(rows: list[dict]) -> str:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--partitions", type=int, nargs="+", default=[2, 8, 32, 96])
+    ap.add_argument("--whole-check", action="store_true", help="check the whole text (check_file), as before")
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: one length in this process
     a = ap.parse_args(argv)
     if a.one is not None:
-        print(json.dumps(one(a.one)), flush=True)
+        print(json.dumps(one(a.one, a.whole_check)), flush=True)
         return
     rows = []
     for p in a.partitions:
-        r = subprocess.run([sys.executable, "-m", "bench.export_scale", "--one", str(p)], cwd=REPO, capture_output=True)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "bench.export_scale",
+                "--one",
+                str(p),
+                *(["--whole-check"] if a.whole_check else []),
+            ],
+            cwd=REPO,
+            capture_output=True,
+        )
         if r.returncode:
             sys.stderr.write(r.stderr.decode(errors="replace")[-3000:])
             print(json.dumps({"partitions": p, "rc": r.returncode}), flush=True)

@@ -169,7 +169,7 @@ def test_optimize_never_reports_zero_violations_for_a_failing_output(variants, c
     import dtoc.optimize.run as run_mod
     from dtoc.seq.check import Violation
 
-    real = run_mod.check_file
+    real = run_mod.check_file_pieces  # what write_checked calls (a text of one piece: check_file)
 
     def failing(*a, **k):
         res = real(*a, **k)
@@ -188,7 +188,7 @@ def test_optimize_never_reports_zero_violations_for_a_failing_output(variants, c
         )
         return res
 
-    monkeypatch.setattr(run_mod, "check_file", failing)
+    monkeypatch.setattr(run_mod, "check_file_pieces", failing)
     out = tmp_path / "o.seq"
     code, so, err = run_cli(
         capsys, "optimize", variants / "rf10.seq", "-o", out, "--ideal", "--gmax", "32", "--smax", "130",

@@ -42,7 +42,7 @@ from dtoc.optimize.twin import EdgeTwin
 from dtoc.seq.check import (
     SafetyChecks,
     base_timing_refusal,
-    check_file,
+    check_file_pieces,
     check_ir_limits,
     inherited_text,
     settle_inherited,
@@ -51,7 +51,7 @@ from dtoc.seq.ir import SequenceIR
 from dtoc.seq.seqtext import shared_parse
 from dtoc.seq.system import SystemSpec
 from dtoc.seq.versions import check_writable, version_str
-from dtoc.seq.write import output_version, preflight_write, seq_bytes_of
+from dtoc.seq.write import _verify_spans, output_version, preflight_write, seq_bytes_of
 from dtoc.sim import metrics
 from dtoc.sim.imager import Imager
 from dtoc.util.atomic import (
@@ -1425,7 +1425,9 @@ def write_checked(
             grad_raster_s=ir_out.raster_s,
             block_raster_s=_block_raster(ir_out),
         )
-        res = check_file(tmp, sysspec, safety, conventions=None)  # the format's rules and the limits, as given
+        # the format's rules and the limits, as given; a long text in the read-back's pieces (its parse and reading
+        # are ~570 bytes per raster step), with the whole check's result
+        res = check_file_pieces(tmp, _verify_spans(ir_out), sysspec, safety, conventions=None)
         lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector", "pns", "acoustic"}
         bad = [v for v in res.violations if v.rule in lim_rules]
         if bad:

@@ -179,13 +179,15 @@ def _block_numbers(ir: SequenceIR) -> list[int]:
     return list(ids) if ids and len(ids) == nb else list(range(1, nb + 1))
 
 
-def check_ir_limits(ir: SequenceIR, system: SystemSpec, grad_mT_per_m=None) -> list[Violation]:
+def check_ir_limits(ir: SequenceIR, system: SystemSpec, grad_mT_per_m=None, m0: int = 0) -> list[Violation]:
     """Amplitude and slew violations of the played demanded gradient (per axis and vector norm).
 
     Args:
         ir: the sequence (its fine grid and blocks).
         system: limits.
         grad_mT_per_m: optional (3, 2N+1) waveform to check instead of ``ir.grad_mT_per_m``.
+        m0: the fine-grid index of ``ir``'s first sample in a longer sequence it is a piece of (the times the
+            messages name are the longer sequence's).
     Returns:
         violations, one per (rule, block, axis) with the worst value.
     """
@@ -216,7 +218,7 @@ def check_ir_limits(ir: SequenceIR, system: SystemSpec, grad_mT_per_m=None) -> l
                     v,
                     limit,
                     unit,
-                    f"{what} {v:.4g} {unit} > {limit:.4g} at t = {i * dtf * 1e3:.3f} ms",
+                    f"{what} {v:.4g} {unit} > {limit:.4g} at t = {(i + m0) * dtf * 1e3:.3f} ms",
                 )
             )
 
@@ -371,21 +373,29 @@ def _raster_convention(rasters: dict[str, float], system: SystemSpec, out: list[
 
 
 def _event_rules(
-    seq, ir: SequenceIR | None, system: SystemSpec, out: list[Violation], conventions: bool, adc_segment: int | None
+    seq,
+    ir: SequenceIR | None,
+    system: SystemSpec,
+    out: list[Violation],
+    conventions: bool,
+    adc_segment: int | None,
+    names: dict | None = None,
 ) -> None:
     """Events on the file's own rasters and inside their blocks, continuity (format); with ``conventions`` the
     scanner's dead times, ring-down and ADC sample rules (``adc_segment``: the file's MaxAdcSegmentLength, the
-    interpreter splits a longer ADC into segments of that many samples)."""
+    interpreter splits a longer ADC into segments of that many samples).  ``names``: the number each block of
+    ``seq`` is reported by (a piece's blocks: the whole text's), default its own."""
     rasters = file_rasters(seq)
     r = rasters["grad"]
     keys = list(seq.block_events.keys())
     tol = system.continuity_tol_hz_per_m
     prev_last = np.zeros(3)  # value each axis has at the end of the previous block of non-zero duration, Hz/m
     prev_key = None  # that block (None: the sequence starts)
-    for key in keys:
+    for src_key in keys:
+        key = src_key if names is None else names[src_key]
         with quiet():
-            blk = seq.get_block(key)
-        dur = float(seq.block_durations[key])
+            blk = seq.get_block(src_key)
+        dur = float(seq.block_durations[src_key])
         if not _on_raster(dur, rasters["block"]):
             out.append(
                 Violation(
@@ -832,6 +842,50 @@ class SafetyChecks:
     rotation: Any = None
 
 
+def _head(path, st, system: SystemSpec | None, limits_source, conventions, signed: bool) -> CheckResult:
+    """:func:`check_file`'s result before any rule: the limits (given, or the file's definitions), the rules'
+    sources, what is not checked and the warnings the parse ``st`` of the text (or of a piece of it: the same
+    [VERSION] and [DEFINITIONS]) gives; ``signed``: the text has a [SIGNATURE]."""
+    source = "given"
+    if conventions == _AUTO:
+        conventions = f"system {system.name}" if system is not None else None
+    if system is None:
+        defs = {}
+        for k, v in st.definitions().items():
+            defs[k] = v.split()[0] if v.split() else v
+        try:
+            system = system_from_definitions(defs)
+        except InputError as e:
+            raise InputError(f"{path}: {e}") from None
+        if system is None:
+            raise InputError(
+                f"{path}: the file records no gradient limits (MaxGrad_mT_per_m / MaxSlew_T_per_m_per_s): give "
+                "--gmax and --smax or --system (limits are never assumed)"
+            )
+        source = "file definitions"
+    res = CheckResult(
+        path=str(path), system=system, limits_source=limits_source or source, definitions=dict(st.definitions())
+    )
+    version = ".".join(str(x) for x in st.version)
+    res.sources = {FORMAT: f"Pulseq format {version}", LIMITS: res.limits_source}
+    if conventions:
+        res.sources[CONVENTION] = conventions
+    else:
+        res.not_checked.append(
+            "vendor conventions (RF dead time and ring-down, ADC dead time, ADC sample count and segmenting, the "
+            "file's rasters against the scanner's): not checked, no scanner profile or --system names them"
+        )
+    if res.definitions.get("DtocInterrupted", "").split()[:1] == ["1"]:
+        res.warnings.append(
+            "written by an interrupted dtoc optimize (DtocInterrupted 1): a best-so-far, not a finished result"
+        )
+    if not signed:
+        res.warnings.append(
+            "unsigned (no [SIGNATURE]): the format allows it, but the interpreter cannot detect a modified file"
+        )
+    return res
+
+
 def check_file(
     path: str | Path,
     system: SystemSpec | None = None,
@@ -855,43 +909,8 @@ def check_file(
     """
     with shared_parse():  # one parse of the text for its rules here and for the reader (and the writer's, in an export)
         st = parse_seq_text(path)
-        source = "given"
-        if conventions == _AUTO:
-            conventions = f"system {system.name}" if system is not None else None
-        if system is None:
-            defs = {}
-            for k, v in st.definitions().items():
-                defs[k] = v.split()[0] if v.split() else v
-            try:
-                system = system_from_definitions(defs)
-            except InputError as e:
-                raise InputError(f"{path}: {e}") from None
-            if system is None:
-                raise InputError(
-                    f"{path}: the file records no gradient limits (MaxGrad_mT_per_m / MaxSlew_T_per_m_per_s): give "
-                    "--gmax and --smax or --system (limits are never assumed)"
-                )
-            source = "file definitions"
-        res = CheckResult(
-            path=str(path), system=system, limits_source=limits_source or source, definitions=dict(st.definitions())
-        )
-        version = ".".join(str(x) for x in st.version)
-        res.sources = {FORMAT: f"Pulseq format {version}", LIMITS: res.limits_source}
-        if conventions:
-            res.sources[CONVENTION] = conventions
-        else:
-            res.not_checked.append(
-                "vendor conventions (RF dead time and ring-down, ADC dead time, ADC sample count and segmenting, the "
-                "file's rasters against the scanner's): not checked, no scanner profile or --system names them"
-            )
-        if res.definitions.get("DtocInterrupted", "").split()[:1] == ["1"]:
-            res.warnings.append(
-                "written by an interrupted dtoc optimize (DtocInterrupted 1): a best-so-far, not a finished result"
-            )
-        if st.signature_hash is None:
-            res.warnings.append(
-                "unsigned (no [SIGNATURE]): the format allows it, but the interpreter cannot detect a modified file"
-            )
+        res = _head(path, st, system, limits_source, conventions, st.signature_hash is not None)
+        system, conventions = res.system, res.sources.get(CONVENTION)
         seg = _adc_segment(res.definitions.get("MaxAdcSegmentLength"))
         _text_rules(st, res.violations)
         seq = read_pypulseq(path, require_signature=False)[0]
@@ -909,6 +928,160 @@ def check_file(
         _pns_rule(ir, safety.pns, safety.rotation, res)
     if safety is not None and safety.acoustic_bands_hz:
         _acoustic_rule(ir, safety.acoustic_bands_hz, safety.acoustic_max_power_fraction, safety.rotation, res)
+    return _tag(res)
+
+
+#: the rules :func:`check_ir_limits` finds, in the order it lists them (per rule and axis, each in block order)
+_LIMIT_ORDER = {
+    k: i
+    for i, k in enumerate(
+        [(r, a) for a in AXES for r in ("grad_amplitude", "slew_rate")] + [("grad_vector", None), ("slew_vector", None)]
+    )
+}
+
+
+class _Played:
+    """The gradient a text plays, stitched from its pieces' readings: what :func:`_pns_rule` and
+    :func:`_acoustic_rule` read of a :class:`SequenceIR` (waveform, fine step, block edges and ids)."""
+
+    def __init__(self, grad_mT_per_m, dt_fine_s, block_edges_s, ids):
+        self.grad_mT_per_m, self.dt_fine_s, self.block_edges_s = grad_mT_per_m, dt_fine_s, block_edges_s
+        self.meta = {"block_ids": ids}
+
+
+def check_file_pieces(
+    path: str | Path,
+    spans: list[tuple[int, int, int, int]],
+    system: SystemSpec | None = None,
+    safety: SafetyChecks | None = None,
+    *,
+    limits_source: str | None = None,
+    conventions: str | None = _AUTO,
+) -> CheckResult:
+    """:func:`check_file` of a long text, in the pieces ``spans`` (``(c0, b0, b1, c1)`` per piece, as the written
+    text's read-back cuts it, :func:`dtoc.seq.write._verify_spans`): the same :class:`CheckResult`, holding one
+    piece's parse and reading at a time instead of the text's (~570 bytes per raster step).
+
+    Each piece (:mod:`dtoc.seq.pieces`: blocks ``c0`` .. ``c1 - 1`` with the library lines they use, each line
+    copied byte for byte, so block ids are the text's) is parsed, read and checked as a file: the per-block rules
+    (events, rasters, continuity, gradients ending at zero) and the limits (per sample and per raster segment) are
+    kept for its own blocks ``b0`` .. ``b1 - 1`` only -- the context blocks either side give a boundary block its
+    neighbour, as in the whole text, and their own rows are another piece's -- and the limits' times are the
+    whole text's (``m0``).  The rules of the whole file: line endings and the md5 signature on the text's bytes;
+    the definitions (and the rasters' convention, the warnings) from the first piece (every piece carries the
+    [DEFINITIONS] verbatim); the integer fields per piece (each line is in some piece); PNS and acoustics, which
+    integrate over time, on the stitched waveform of the pieces' own blocks (held only when ``safety`` asks for
+    them: 48 bytes per raster step).  Whenever a piece finds a rule whose figures would name the piece rather than
+    the text (a text rule's line number, a reading that fails, a malformed signature), and for one piece or a text
+    :mod:`dtoc.seq.pieces` does not cut, the text is checked whole by :func:`check_file` instead: the result is
+    always the whole check's."""
+
+    def whole() -> CheckResult:
+        return check_file(path, system, safety, limits_source=limits_source, conventions=conventions)
+
+    from dtoc.seq.pieces import PieceError, TextIndex, share, signature_ok
+
+    if len(spans) <= 1:
+        return whole()
+    data = Path(path).read_bytes()
+    try:
+        index = TextIndex(data)
+        extras = share(index.unused(), len(spans))
+    except PieceError:
+        return whole()
+    if b"\r" in data or not signature_ok(data) or index.n_blocks != spans[-1][3]:
+        return whole()
+    signed = b"\n[SIGNATURE]" in data
+    ids = [int(x) for x in index.rows["[BLOCKS]"].ids]
+    need_played = safety is not None and (safety.pns is not None or bool(safety.acoustic_bands_hz))
+    res: CheckResult | None = None
+    events: list[Violation] = []
+    limits: list[Violation] = []
+    played: list[np.ndarray] = []
+    edges: list[np.ndarray] = []
+    m_b0 = 0  # the whole text's fine-grid index of the piece's first own block
+    dtf = 0.0
+    seg: int | None = None
+    by_id = True  # every piece's reader numbered its blocks by their ids (else by position, as the whole's does)
+    import os
+    import tempfile
+
+    for k, (span, extra) in enumerate(zip(spans, extras, strict=True)):
+        c0, b0, b1, c1 = span
+        try:
+            piece = index.piece(c0, c1, extra)
+        except PieceError:
+            return whole()
+        fd, tmp = tempfile.mkstemp(suffix=".seq")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(piece)
+            del piece
+            try:
+                with shared_parse():
+                    st = parse_seq_text(tmp)
+                    text: list[Violation] = []
+                    _text_rules(st, text)
+                    seq = read_pypulseq(tmp, require_signature=False)[0]
+                    forget_shared_parse()
+            except InputError:
+                return whole()
+        finally:
+            os.unlink(tmp)
+        if text:
+            return whole()
+        if res is None:  # the first piece: what the whole file's [DEFINITIONS] and version say
+            res = _head(path, st, system, limits_source, conventions, signed)
+            system = res.system
+            conventions = res.sources.get(CONVENTION)
+            seg = _adc_segment(res.definitions.get("MaxAdcSegmentLength"))
+            if conventions:
+                _raster_convention(file_rasters(seq), system, res.violations)
+        del st
+        try:
+            ir = from_pypulseq(seq)
+        except InputError:
+            return whole()
+        keys = [int(x) for x in seq.block_events]
+        if len(keys) != c1 - c0:
+            return whole()
+        if keys == ids[c0:c1]:  # the reader numbers blocks by their ids: the pieces' are the text's
+            names = dict(zip(keys, keys, strict=True))
+        else:  # by their position: the whole text's position
+            names = {k: c0 + i + 1 for i, k in enumerate(keys)}
+            by_id = False
+        own = {names[k] for k in keys[b0 - c0 : b1 - c0]}
+        found: list[Violation] = []
+        _event_rules(seq, ir, system, found, bool(conventions), seg, names)
+        last = k == len(spans) - 1
+        events += [v for v in found if v.block in own or (v.block is None and last)]
+        del seq
+        m_e = np.round(np.asarray(ir.block_edges_s) / ir.dt_fine_s).astype(np.int64)
+        lo, hi = int(m_e[b0 - c0]), int(m_e[b1 - c0])
+        off = m_b0 - lo
+        for v in check_ir_limits(ir, system, m0=off):
+            v.block = names[v.block] if v.block is not None else None
+            if v.block in own:
+                limits.append(v)
+        dtf = ir.dt_fine_s
+        if need_played:
+            played.append(np.array(ir.grad_mT_per_m[:, lo : hi + (1 if last else 0)]))
+            edges.append(m_e[b0 - c0 : b1 - c0 + (1 if last else 0)] + off)
+        m_b0 = off + hi
+        del ir
+    assert res is not None
+    res.violations += events
+    limits.sort(key=lambda v: _LIMIT_ORDER[(v.rule, v.axis)])  # stable: each rule and axis in block order
+    res.violations += limits
+    if need_played:
+        assert safety is not None
+        g = np.concatenate(played, axis=1)
+        del played
+        whole_ir: Any = _Played(g, dtf, np.concatenate(edges) * dtf, ids if by_id else list(range(1, len(ids) + 1)))
+        if safety.pns is not None:
+            _pns_rule(whole_ir, safety.pns, safety.rotation, res)
+        if safety.acoustic_bands_hz:
+            _acoustic_rule(whole_ir, safety.acoustic_bands_hz, safety.acoustic_max_power_fraction, safety.rotation, res)
     return _tag(res)
 
 
@@ -995,5 +1168,6 @@ __all__ = [
     "SafetyChecks",
     "check_ir_limits",
     "check_file",
+    "check_file_pieces",
     "system_from_definitions",
 ]
