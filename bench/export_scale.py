@@ -59,7 +59,7 @@ def one(partitions: int, whole_check: bool = False) -> dict:
     from dtoc.seq.ir import edges_to_fine
     from dtoc.seq.load import load_sequence
     from dtoc.seq.system import SystemSpec
-    from dtoc.seq.write import _verify_spans, seq_bytes_of, verify_written, writable_version
+    from dtoc.seq.write import seq_bytes_of, verify_spans, verify_written, writable_version
 
     row: dict = {"partitions": partitions}
     with tempfile.TemporaryDirectory() as td:
@@ -92,7 +92,7 @@ def one(partitions: int, whole_check: bool = False) -> dict:
             res, row["check"] = _step(lambda: C.check_file(p, sysspec, None, conventions=None))
         else:
             res, row["check"] = _step(
-                lambda: C.check_file_pieces(p, _verify_spans(out), sysspec, None, conventions=None)
+                lambda: C.check_file_pieces(p, verify_spans(out), sysspec, None, conventions=None)
             )
     row.update(check_whole=whole_check, check_violations=len(res.violations))
     return row

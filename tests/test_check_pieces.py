@@ -41,7 +41,7 @@ def _written(tmp_path, data: bytes, spike=None, axes=(0, 1, 2)):
 
 def _small_pieces(monkeypatch, out, n=6):
     monkeypatch.setattr(W, "VERIFY_PIECE_RASTER", max(round(out.duration_s / out.raster_s / n), 1))
-    spans = W._verify_spans(out)
+    spans = W.verify_spans(out)
     assert len(spans) >= 4
     return spans
 

@@ -54,7 +54,7 @@ def test_every_line_of_the_text_is_in_a_piece_and_the_pieces_read_back(tmp_path,
     and the pieces' read-back passes as the whole text's does."""
     out, data, v = _written(tmp_path, make())
     monkeypatch.setattr(W, "VERIFY_PIECE_RASTER", max(round(out.duration_s / out.raster_s / 6), 1))
-    spans = W._verify_spans(out)
+    spans = W.verify_spans(out)
     assert len(spans) >= 4 or len(spans) == len(out.block_edges_s) - 1
     idx = TextIndex(data)
     extras = share(idx.unused(), len(spans))
@@ -78,7 +78,7 @@ def test_a_difference_in_a_late_piece_is_named_as_the_whole_text_names_it(tmp_pa
     with pytest.raises(DtocError) as whole:
         W.verify_written(out, bad, v)
     monkeypatch.setattr(W, "VERIFY_PIECE_RASTER", 64)
-    assert len(W._verify_spans(out)) >= 8
+    assert len(W.verify_spans(out)) >= 8
     with pytest.raises(DtocError) as pieces:
         W.verify_written(out, bad, v)
     assert str(pieces.value) == str(whole.value) and "plays another gradient" in str(whole.value)
@@ -125,7 +125,7 @@ def test_the_pieces_of_a_4x_longer_text_are_the_short_ones_size(tmp_path, monkey
     for nz in (2, 8):
         out, data, _ = _written(tmp_path, writers.gre3d(n=16, nz=nz), f"b{nz}.seq")
         monkeypatch.setattr(W, "VERIFY_PIECE_RASTER", 2048)
-        spans = W._verify_spans(out)
+        spans = W.verify_spans(out)
         idx = TextIndex(data)
         extras = share(idx.unused(), len(spans))
         held = sum(a.nbytes for r in (*idx.rows.values(), *idx.ext_rows.values(), idx.shapes) for a in vars(r).values())
@@ -144,7 +144,7 @@ def test_the_read_back_of_a_4x_longer_text_holds_a_piece(tmp_path, monkeypatch):
     long = _written(tmp_path, writers.gre3d(n=16, nz=4), "long.seq")
     assert len(long[1]) > 3.5 * len(short[1])
     monkeypatch.setattr(W, "VERIFY_PIECE_RASTER", 2048)
-    assert len(W._verify_spans(short[0])) >= 4
+    assert len(W.verify_spans(short[0])) >= 4
     p_short, p_long = _verify_peak(*short), _verify_peak(*long)
     assert p_long < 1.2 * p_short, (p_short, p_long)
     monkeypatch.setattr(W, "VERIFY_PIECE_RASTER", 1 << 30)  # the whole read-back (before): the sequence's reading

@@ -51,7 +51,7 @@ from dtoc.seq.ir import SequenceIR
 from dtoc.seq.seqtext import shared_parse
 from dtoc.seq.system import SystemSpec
 from dtoc.seq.versions import check_writable, version_str
-from dtoc.seq.write import _verify_spans, output_version, preflight_write, seq_bytes_of
+from dtoc.seq.write import output_version, preflight_write, seq_bytes_of, verify_spans
 from dtoc.sim import metrics
 from dtoc.sim.imager import Imager
 from dtoc.util.atomic import (
@@ -949,18 +949,12 @@ def held_limit_refusal(ir, free: np.ndarray, limits: Limits, extremes: dict | No
         j = k // 2
         seg = held[:, j] & held[:, np.minimum(j + 1, held.shape[1] - 1)]
         slew = np.abs(np.diff(g[:, s0 : k[-1] + 2], axis=1)) / ir.dt_fine_s * 1e-3  # T/m/s
-        v = np.where(seg & (slew > s_lim), slew, -1.0)
-        i = np.argmax(v, axis=1)
-        better = v[np.arange(3), i] > worst_s
-        worst_s, at_s = np.where(better, v[np.arange(3), i], worst_s), np.where(better, k[i], at_s)
+        worst_s, at_s = _keep_worst(worst_s, at_s, np.where(seg & (slew > s_lim), slew, -1.0), k)
     ge = ir.edge_grad_mT_per_m  # amplitude on the held raster edges themselves: a fine midpoint next to a free edge
     for e0 in range(0, ge.shape[1], EXTREMES_CHUNK):  # is not held
         e = np.arange(e0, min(e0 + EXTREMES_CHUNK, ge.shape[1]))
         amp = np.abs(np.asarray(ge[:, e], dtype=np.float64))
-        v = np.where(held[:, e] & (amp > g_lim), amp, -1.0)
-        i = np.argmax(v, axis=1)
-        better = v[np.arange(3), i] > worst_g
-        worst_g, at_g = np.where(better, v[np.arange(3), i], worst_g), np.where(better, e[i], at_g)
+        worst_g, at_g = _keep_worst(worst_g, at_g, np.where(held[:, e] & (amp > g_lim), amp, -1.0), e)
     if worst_s.max() < 0 and worst_g.max() < 0:
         return
     edges = np.asarray(ir.block_edges_s)
@@ -980,6 +974,15 @@ def held_limit_refusal(ir, free: np.ndarray, limits: Limits, extremes: dict | No
         "too, and dtoc never writes beyond the limits; correct the base (e.g. a step between blocks: at most smax x "
         "the gradient raster) or give limits it meets"
     )
+
+
+def _keep_worst(worst: np.ndarray, at: np.ndarray, v: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per axis, the running largest of ``worst`` and this piece's values ``v`` (3, n) and where it is (``at``, the
+    piece's indices ``idx``): the first occurrence is kept on ties."""
+    i = np.argmax(v, axis=1)
+    best = v[np.arange(3), i]
+    better = best > worst
+    return np.where(better, best, worst), np.where(better, idx[i], at)
 
 
 def report_image_reason(ir, cfg: OptimizeConfig, phantoms: list) -> tuple[Any, str | None]:
@@ -1427,7 +1430,7 @@ def write_checked(
         )
         # the format's rules and the limits, as given; a long text in the read-back's pieces (its parse and reading
         # are ~570 bytes per raster step), with the whole check's result
-        res = check_file_pieces(tmp, _verify_spans(ir_out), sysspec, safety, conventions=None)
+        res = check_file_pieces(tmp, verify_spans(ir_out), sysspec, safety, conventions=None)
         lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector", "pns", "acoustic"}
         bad = [v for v in res.violations if v.rule in lim_rules]
         if bad:

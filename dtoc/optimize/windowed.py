@@ -327,6 +327,14 @@ class _Scales:
         return out[0], out[1]
 
 
+def _own_errors_dk(sc, rd: np.ndarray, n_adc: int, n_mom: int, core_adc: slice, n_guard_mom: int):
+    """(ADC samples, moments) of ``sc.k_errors_dk`` (:meth:`_Scales.k_errors_dk`) that are the window's own: its
+    core's ADC rows ``core_adc`` and its moments after the ``n_guard_mom`` guarded ones (a part's rows of the parts
+    before)."""
+    ka, km = sc.k_errors_dk(rd, n_adc, n_mom)
+    return ka[core_adc], km[n_guard_mom:]
+
+
 #: windows of one structure whose unconstrained optima's k errors are computed together (:class:`_UnconstrainedErrors`)
 UNCONSTRAINED_BATCH = 64
 
@@ -367,9 +375,7 @@ class _UnconstrainedErrors:
         assert self.Hinv is not None
         rk -= J[: rk.shape[0]] @ (self.Hinv @ np.stack([it[1] for it in self.items], axis=1))
         for j, (_, _, _, _, sel_adc, core_adc, moment_rf, g) in enumerate(self.items):
-            ua, um = self.sc.k_errors_dk(rk[:, j], n_adc, n_mom)
-            ua_all[sel_adc] = ua[core_adc]
-            um_all[moment_rf] = um[g:]
+            ua_all[sel_adc], um_all[moment_rf] = _own_errors_dk(self.sc, rk[:, j], n_adc, n_mom, core_adc, g)
         self.items, self.J, self.Hinv, self.key = [], None, None, None
 
 
@@ -606,9 +612,10 @@ def windowed_warm_start(
         # the window's unconstrained optimum, tried unless the structure's last windows all needed the limits (then
         # only every DIRECT_RETRY-th: ADMM reaches that optimum too when it is within the limits)
         streak = c.get("limited", 0)
-        if streak % DIRECT_RETRY == 0:
+        try_direct = streak % DIRECT_RETRY == 0
+        if try_direct:
             x_p[fr] = x_sub[fr] - c["Hinv"] @ grad0
-        if streak % DIRECT_RETRY == 0 and P.is_feasible(x_p[:, rs]):
+        if try_direct and P.is_feasible(x_p[:, rs]):
             st.direct += 1
             c["limited"] = 0
         else:  # a limit is active: the same quadratic within the limits (ADMM, matrices cached per structure)
@@ -787,10 +794,10 @@ def _nbytes(c: dict) -> int:
 
 def _commit_errors(st: WindowStats, sc: _Scales, rd, n_adc, n_mom, sel_adc, core_adc, moment_rf, n_guard_mom) -> None:
     """Record a committed window's k errors (its residual rows ``rd``) of its own ADC samples and moments."""
-    ka, km = sc.k_errors_dk(rd, n_adc, n_mom)
     assert st.window_adc_dk is not None and st.window_moment_dk is not None
-    st.window_adc_dk[sel_adc] = ka[core_adc]
-    st.window_moment_dk[moment_rf] = km[n_guard_mom:]
+    st.window_adc_dk[sel_adc], st.window_moment_dk[moment_rf] = _own_errors_dk(
+        sc, rd, n_adc, n_mom, core_adc, n_guard_mom
+    )
 
 
 def _core_max_dk(core: tuple, d: np.ndarray | None = None, rd: np.ndarray | None = None) -> float:
@@ -798,8 +805,8 @@ def _core_max_dk(core: tuple, d: np.ndarray | None = None, rd: np.ndarray | None
     (or at its residual rows ``rd``); ``core``: (scales, residual rows r0d, J, ADC count, moment count, the core's
     ADC rows, guarded moments)."""
     sc, r0d, J, n_adc, n_mom, core_adc, n_guard_mom = core
-    ka, km = sc.k_errors_dk(r0d + J @ d if rd is None else rd, n_adc, n_mom)
-    return float(np.nanmax(np.r_[ka[core_adc], km[n_guard_mom:], 0.0]))
+    ka, km = _own_errors_dk(sc, r0d + J @ d if rd is None else rd, n_adc, n_mom, core_adc, n_guard_mom)
+    return float(np.nanmax(np.r_[ka, km, 0.0]))
 
 
 class _KStop:

@@ -959,7 +959,7 @@ def check_file_pieces(
     conventions: str | None = _AUTO,
 ) -> CheckResult:
     """:func:`check_file` of a long text, in the pieces ``spans`` (``(c0, b0, b1, c1)`` per piece, as the written
-    text's read-back cuts it, :func:`dtoc.seq.write._verify_spans`): the same :class:`CheckResult`, holding one
+    text's read-back cuts it, :func:`dtoc.seq.write.verify_spans`): the same :class:`CheckResult`, holding one
     piece's parse and reading at a time instead of the text's (~570 bytes per raster step).
 
     Each piece (:mod:`dtoc.seq.pieces`: blocks ``c0`` .. ``c1 - 1`` with the library lines they use, each line

@@ -382,7 +382,7 @@ def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> No
 
     Raises:
         DtocError: one line naming the first difference."""
-    spans = _verify_spans(ir)
+    spans = verify_spans(ir)
     index = None
     in_order = all(
         a.block <= b.block for ev in (ir.rf, ir.adc) for a, b in zip(ev, ev[1:])
@@ -417,7 +417,7 @@ def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> No
         _verify_text(ir, piece, version, (*span, gmax))
 
 
-def _verify_spans(ir: SequenceIR) -> list[tuple[int, int, int, int]]:
+def verify_spans(ir: SequenceIR) -> list[tuple[int, int, int, int]]:
     """The pieces of :func:`verify_written`: (c0, b0, b1, c1) per piece -- blocks ``b0`` .. ``b1 - 1`` compared,
     ``c0`` .. ``c1 - 1`` read (the compared ones and, either side, the next block of non-zero duration and the
     zero-duration blocks between)."""
