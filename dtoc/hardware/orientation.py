@@ -109,11 +109,15 @@ class RotatedChain:
     def __init__(self, hardware, R: np.ndarray) -> None:
         self.hardware = hardware
         self.R = np.asarray(R, dtype=np.float64)
+        self._R_on: dict = {}  # R as a tensor per (dtype, device), made once: a call moves no host data
 
     def __call__(self, g, dt_s: float):
         import torch  # kept off the import path of the light commands (docs/cli.md, start-up)
 
-        R = torch.as_tensor(self.R, dtype=g.dtype, device=g.device)
+        key = (g.dtype, str(g.device))
+        if key not in self._R_on:
+            self._R_on[key] = torch.as_tensor(self.R, dtype=g.dtype, device=g.device)
+        R = self._R_on[key]
         g_phys = torch.einsum("ij,...jm->...im", R, g)
         G_phys, b0 = self.hardware(g_phys, dt_s)
         return torch.einsum("ji,...jm->...im", R, G_phys), b0

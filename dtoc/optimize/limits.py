@@ -56,6 +56,7 @@ import torch
 
 from dtoc.constants import AXES, GAMMA_RAD_PER_S_PER_MT
 from dtoc.errors import LimitError
+from dtoc.util.replay import Replay
 
 
 @dataclass(frozen=True)
@@ -347,6 +348,11 @@ def _greedy_mean(xp, x, lo, hi, dlo, dhi, free_axes):
         )
         out[free_axes] = 0.5 * (p[:k] + f(p[k:]))
     return out
+
+
+#: devices whose tensors are projected on the host with numpy (:meth:`EdgeProjector.project`); elsewhere the same
+#: operations run in torch where the tensor lies (the GPU's path, which a test runs on the CPU by emptying this)
+HOST_DEVICES: frozenset[str] = frozenset({"cpu"})
 
 
 class _PairSet:
@@ -774,7 +780,7 @@ class EdgeProjector:
             the projected samples, same type/dtype/device as ``edges`` (detached for tensors).
         """
         is_t = isinstance(edges, torch.Tensor)
-        if is_t and edges.device.type != "cpu":
+        if is_t and edges.device.type not in HOST_DEVICES:
             return self._project_device(edges, n_iter, exact)
         # (a float64 tensor's numpy view, not a copy: np.where below makes the one copy)
         x0 = np.asarray(edges.detach().cpu().numpy() if is_t else edges, dtype=np.float64)
@@ -888,8 +894,10 @@ class EdgeProjector:
         key = str(device)
         if key not in self._on_device:
 
-            def t(a):
-                return torch.as_tensor(a, device=device)
+            def t(a):  # (a read-only view, e.g. a broadcast box, is copied: torch wants writable memory)
+                return torch.as_tensor(
+                    a if not isinstance(a, np.ndarray) or a.flags.writeable else a.copy(), device=device
+                )
 
             self._on_device[key] = {
                 **{k: t(getattr(self, k)) for k in ("lo", "hi", "base", "free", "pair_free", "dlo", "dhi")},
@@ -904,7 +912,11 @@ class EdgeProjector:
         whether they are done (one scalar each; a long chain of active limits finishes on the host)."""
         d = self._device_arrays(edges.device)
         x = torch.where(d["free"], edges.detach().to(torch.float64), d["base"])
-        y = _dykstra(_TORCH, x, d["layout"], self.step if self.uniform else None, n_iter)
+        key = ("dykstra", n_iter)
+        if key not in d:  # its ~25 n_iter small operations as one CUDA graph (dtoc.util.replay)
+            step = self.step if self.uniform else None
+            d[key] = Replay(lambda z: (_dykstra(_TORCH, z, d["layout"], step, n_iter),))
+        (y,) = d[key](x)
         if exact:
             y = self._repair_tensor(y, d)
         return torch.where(self._feasible_tensor(x, d, 0.0), x, y).to(edges.dtype)

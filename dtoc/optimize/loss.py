@@ -206,6 +206,18 @@ class TermValues(Mapping[str, float]):
             self._vals = dict(zip(keys, vals))
         return self._vals
 
+    def stacked(self) -> torch.Tensor:
+        """(T,) the terms' values (detached, in key order) as one tensor on their device: what a replayed
+        step (:class:`dtoc.util.replay.Replay`) returns, to be read back with :meth:`from_stacked`."""
+        if not self._terms:
+            return torch.zeros(0, dtype=torch.float64)
+        return torch.stack([v.detach() for v in self._terms.values()])
+
+    @classmethod
+    def from_stacked(cls, keys: list[str], values: torch.Tensor) -> TermValues:
+        """The terms ``keys`` from :meth:`stacked`'s tensor (no transfer until a value is read)."""
+        return cls({k: values[i] for i, k in enumerate(keys)})
+
     def __getitem__(self, key: str) -> float:
         return self._values()[key]
 

@@ -30,6 +30,7 @@ import torch
 from dtoc.optimize import loss as L
 from dtoc.optimize.config import PAPER_RESTARTS, OptimizeConfig
 from dtoc.sim import metrics
+from dtoc.util.replay import Replay
 
 ProgressFn = Callable[[str, int, int, float], None]
 
@@ -50,7 +51,22 @@ def set_deterministic(seed: int, threads: int, device: str = "cpu") -> None:
     np.random.seed(seed % (2**32))
     torch.set_num_threads(threads)
     if torch.device(device).type != "cpu":
+        _deterministic_kernels()
+
+
+def _deterministic_kernels() -> None:
+    """The eager kernels' deterministic switch, without ``torch.use_deterministic_algorithms``'s import of the
+    compiler's configuration (dtoc compiles nothing): that import took 3-6 s of the first run of a process on a
+    GPU host (docs/optimize.md, "Execution on a GPU").  Uninitialised memory is not filled with NaN (a debugging
+    aid of the switch: one extra kernel per allocation; dtoc reads no memory it has not written).  Falls back on
+    the public call where torch lacks the switches."""
+    set_det = getattr(torch._C, "_set_deterministic_algorithms", None)
+    set_fill = getattr(torch._C, "_set_deterministic_fill_uninitialized_memory", None)
+    if set_det is None or set_fill is None:
         torch.use_deterministic_algorithms(True, warn_only=True)
+        return
+    set_det(True, warn_only=True)
+    set_fill(False)
 
 
 @dataclass
@@ -83,11 +99,48 @@ def linear_objective(twin, ctx, weights):
     return f
 
 
-def _grad(f, x: torch.Tensor, free: torch.Tensor) -> tuple[torch.Tensor, float, dict]:
-    x = x.detach().requires_grad_(True)
-    val, terms = f(x)
-    (gx,) = torch.autograd.grad(val, x)
-    return torch.where(free, gx, torch.zeros_like(gx)), float(val.detach()), terms
+class _Steps:
+    """The two steps of :func:`constrained_least_squares` as :class:`~dtoc.util.replay.Replay` s (one CUDA graph
+    each on a GPU; eager, the same code, on the CPU): an evaluation ``x -> (gradient on the free entries, f, terms)``
+    and a projected FISTA iteration with its adaptive restart, decided on the device (nothing waits for it)."""
+
+    def __init__(self, f, free: torch.Tensor, P):
+        self.f, self.free, self.P = f, free, P
+        self.keys: list[str] = []
+        self.step = 0.0
+        self._eval = Replay(self._eval_step)
+        self._fista = Replay(self._fista_step)
+
+    def _value_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        x = x.detach().requires_grad_(True)
+        val, terms = self.f(x)
+        (gx,) = torch.autograd.grad(val, x)
+        self.keys = list(terms)
+        if isinstance(terms, L.TermValues):
+            stacked = terms.stacked()
+        else:  # a plain mapping of floats (an objective of the caller's): read here, eagerly
+            stacked = torch.as_tensor([float(v) for v in terms.values()], dtype=torch.float64)
+        return torch.where(self.free, gx, torch.zeros_like(gx)), val.detach(), stacked
+
+    def _eval_step(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return self._value_grad(x)
+
+    def _fista_step(self, y: torch.Tensor, x_prev: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        gy, fy, terms = self._value_grad(y)
+        x_new = self.P.project(y - self.step * gy, n_iter=8, exact=False)
+        # adaptive restart (O'Donoghue & Candes): momentum off when it points uphill
+        t = torch.where(((y - x_new) * (x_new - x_prev)).sum() > 0, torch.ones_like(t), t)
+        t_new = 0.5 * (1 + torch.sqrt(1 + 4 * t * t))
+        y_new = x_new + ((t - 1) / t_new) * (x_new - x_prev)
+        return x_new, y_new, t_new, fy, terms
+
+    def grad(self, x: torch.Tensor) -> tuple[torch.Tensor, float, L.TermValues]:
+        g, val, terms = self._eval(x)
+        return g, float(val), L.TermValues.from_stacked(self.keys, terms)
+
+    def fista(self, y: torch.Tensor, x_prev: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """(x_new, y_new, t_new, f(y) 0-dim, terms of y stacked): one iteration."""
+        return self._fista(y, x_prev, t)
 
 
 def warm_start(
@@ -166,11 +219,12 @@ def constrained_least_squares(
     if iters <= 0:
         return P.project(x0)
     n_cg = int(iters * cg_fraction)
-    g0, f0, terms0 = _grad(f, x0, free)
+    steps = _Steps(f, free, P)
+    g0, f0, terms0 = steps.grad(x0)
     hist.append({"stage": "warm", "it": 0, "loss": f0, **terms0})
 
     def hv(v):  # exact Hessian-vector product for a quadratic objective
-        gv, _, _ = _grad(f, x0 + v, free)
+        gv, _, _ = steps.grad(x0 + v)
         return gv - g0
 
     # --- CG on H d = -g0 (unconstrained least squares) ---
@@ -215,21 +269,19 @@ def constrained_least_squares(
             if lam <= 0:
                 break
             v = w / lam
-        step = 1.0 / (1.2 * max(lam, 1e-30))
+        steps.step = 1.0 / (1.2 * max(lam, 1e-30))
         y = x.clone()
         x_prev = x.clone()
-        t = 1.0
+        t = torch.ones((), dtype=torch.float64, device=x.device)
         f_prev = math.inf
         try:
             for j in range(1, n_fista + 1):
-                gy, fy, terms = _grad(f, y, free)
-                x_new = P.project(y - step * gy, n_iter=8, exact=False)
-                # adaptive restart (O'Donoghue & Candes): momentum off when it points uphill
-                if float(((y - x_new) * (x_new - x_prev)).sum()) > 0:
-                    t = 1.0
-                t_new = 0.5 * (1 + math.sqrt(1 + 4 * t * t))
-                y = x_new + ((t - 1) / t_new) * (x_new - x_prev)
-                x_prev, t = x_new, t_new
+                x_prev, y, t, fy_t, terms_t = steps.fista(y, x_prev, t)
+                # the objective is read back only where it is used: every 10th iteration (history), at the
+                # checks (every 20th) and for the progress line (nothing else waits for the device)
+                read = j % 10 == 0 or j == n_fista or (j > 20 and j % 20 == 1)
+                fy = float(fy_t) if read else math.nan
+                terms = L.TermValues.from_stacked(steps.keys, terms_t)
                 if j > 20 and j % 20 == 1:
                     if f_prev - fy <= max(rel_tol * abs(fy), 1e-6 * f0) or fy <= 1e-14:
                         if report is not None:
@@ -243,7 +295,7 @@ def constrained_least_squares(
                     if k_stop is not None and k_stop(P.project(x_prev, n_iter=60)):
                         report.stop_reason = "tolerance"
                         break
-                if progress:
+                if progress and read:
                     progress("warm", it + j, iters, fy)
                 if j % 10 == 0 or j == n_fista:
                     hist.append({"stage": "warm", "it": it + j, "loss": fy, **terms})

@@ -65,6 +65,7 @@ from dtoc.util.atomic import (
 )
 from dtoc.util.interrupt import deferred, fault_point
 from dtoc.util.jsonout import strict_json
+from dtoc.util.replay import totals as replay_totals
 from dtoc.version import package_versions
 
 
@@ -839,6 +840,8 @@ def plan_run(
         hardware = RotatedChain(hardware, R)  # the model acts on the physical axes
     if hasattr(hardware, "frozen"):
         hardware = hardware.frozen()  # the model is fixed here: no parameter gradients, cached GIRF spectra
+    if torch.device(device).type != "cpu" and hasattr(hardware, "to"):
+        hardware = hardware.to(device)  # its parameters on the device once, not copied there at every evaluation
     limits, sources = limits_and_sources(ir, cfg)
     limit_sources = {**sources, **(limit_sources or {})}
     phys_limits = limits
@@ -1250,6 +1253,8 @@ def export_stage(plan: Plan, sol: Solution, io: RunIO, t_start: float) -> RunOut
             },
             "versions": package_versions(),
             "device": str(plan.device),
+            # on CUDA: the steps replayed as CUDA graphs in this process so far (dtoc.util.replay; docs/optimize.md)
+            **({"cuda_graphs": replay_totals()} if str(plan.device).startswith("cuda") else {}),
             "phantom": _phantom_record(plan.phantom),
             "before": metrics.report_figures(before),
             "after": metrics.report_figures(after),

@@ -49,6 +49,7 @@ import numpy as np
 import torch
 
 from dtoc.constants import AXES
+from dtoc.util.replay import Replay
 
 #: at most this many samples are listed by name in a report (the count is always complete)
 MAX_NAMED = 8
@@ -215,16 +216,23 @@ class _Quadratic:
     def __init__(self, f, x0: torch.Tensor, free: torch.Tensor, budget: int):
         self.f, self.x0, self.free, self.budget = f, x0, free, budget
         self.n = 0
-        self.g0, self.f0 = self.grad(x0)
+        self._eval = Replay(self._step)  # one CUDA graph per evaluation on a GPU (dtoc.util.replay)
+        self.g0, f0 = self.grad(x0)
+        self.f0 = float(f0)
 
-    def grad(self, x: torch.Tensor) -> tuple[torch.Tensor, float]:
-        if self.n >= self.budget:
-            raise _Stop
-        self.n += 1
+    def _step(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = x.detach().requires_grad_(True)
         val, _ = self.f(x)
         (gx,) = torch.autograd.grad(val, x)
-        return torch.where(self.free, gx, torch.zeros_like(gx)), float(val.detach())
+        return torch.where(self.free, gx, torch.zeros_like(gx)), val.detach()
+
+    def grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(gradient on the free edges, objective as a 0-dim tensor: nothing waits for the device)."""
+        if self.n >= self.budget:
+            raise _Stop
+        self.n += 1
+        g, val = self._eval(x)
+        return g, val
 
     def hv(self, v: torch.Tensor) -> torch.Tensor:
         return self.grad(self.x0 + v)[0] - self.g0

@@ -76,6 +76,37 @@ def cumulative_at(g, dt: float, m: np.ndarray) -> torch.Tensor:
     return out
 
 
+class _Query:
+    """Where query times fall on a PWL waveform of ``M`` samples spaced ``dt``: each time's interval ``m`` (numpy,
+    clamped to the waveform) and its offset ``tau`` into it (s), with their tensors made once per device and dtype
+    (a repeated query moves nothing from the host)."""
+
+    def __init__(self, M: int, dt: float, t_s):
+        t = np.clip(np.asarray(t_s, dtype=np.float64), 0.0, (M - 1) * dt)
+        self.M, self.dt = M, dt
+        self.m = np.clip(np.floor(t / dt + 1e-9).astype(np.int64), 0, max(M - 2, 0))
+        self.tau = t - self.m * dt
+        self._on: dict = {}
+
+    def tensors(self, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(tau, m, m + 1) on ``device``; tau in ``dtype``."""
+        key = (dtype, str(device))
+        if key not in self._on:
+            mi = torch.as_tensor(self.m, device=device)
+            self._on[key] = (torch.as_tensor(self.tau, dtype=dtype, device=device), mi, mi + 1 if self.M > 1 else mi)
+        return self._on[key]
+
+    def integral(self, g: torch.Tensor, Cm: torch.Tensor | None = None) -> torch.Tensor:
+        """(..., Q) integrals of ``g`` (..., M) to the query times; ``Cm``: the running integral at the intervals'
+        starts (default: from :func:`pwl_cumulative`)."""
+        tau, mi, mi1 = self.tensors(g.dtype, g.device)
+        if Cm is None:
+            Cm = pwl_cumulative(g, self.dt)[..., mi]
+        g0 = g[..., mi]
+        g1 = g[..., mi1] if self.M > 1 else g0
+        return Cm + tau * g0 + 0.5 * tau * tau * (g1 - g0) / self.dt
+
+
 def pwl_integral_at(g, dt: float, t_s, cumulative: torch.Tensor | None = None) -> torch.Tensor:
     """Exact integral_0^t of a PWL waveform at arbitrary query times.
 
@@ -88,18 +119,11 @@ def pwl_integral_at(g, dt: float, t_s, cumulative: torch.Tensor | None = None) -
         (..., Q) integrals (units of g times s), differentiable w.r.t. ``g``.
     """
     g = _as_tensor(g)
-    M = g.shape[-1]
-    t = np.clip(np.asarray(t_s, dtype=np.float64), 0.0, (M - 1) * dt)
-    m = np.clip(np.floor(t / dt + 1e-9).astype(np.int64), 0, max(M - 2, 0))
-    tau = torch.as_tensor(t - m * dt, dtype=g.dtype, device=g.device)
-    mi = torch.as_tensor(m, device=g.device)
+    q = _Query(g.shape[-1], dt, t_s)
     if cumulative is None and _chunked(g):  # a long waveform without a graph: its running integral by chunks
-        Cm = cumulative_at(g, dt, m)
-    else:
-        Cm = (pwl_cumulative(g, dt) if cumulative is None else cumulative)[..., mi]
-    g0 = g[..., mi]
-    g1 = g[..., mi + 1] if M > 1 else g0
-    return Cm + tau * g0 + 0.5 * tau * tau * (g1 - g0) / dt
+        return q.integral(g, cumulative_at(g, dt, q.m))
+    _, mi, _ = q.tensors(g.dtype, g.device)
+    return q.integral(g, (pwl_cumulative(g, dt) if cumulative is None else cumulative)[..., mi])
 
 
 def kspace_at(g_mT_per_m, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_uses: _Seq[str] = ()) -> torch.Tensor:
@@ -123,10 +147,38 @@ def kspace_at(g_mT_per_m, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_use
         both = pwl_integral_at(g, dt, np.concatenate([t, t_rf]))
         integ, i_rf = both[..., : len(t)], (both[..., len(t) :] if events else None)
         return kspace_from_integrals(integ, i_rf, t, rf_centres_s, rf_uses)
-    C = pwl_cumulative(g, dt)
-    integ = pwl_integral_at(g, dt, t, cumulative=C)  # (..., 3, Q)
-    i_rf = None if not events else pwl_integral_at(g, dt, t_rf, cumulative=C)
-    return kspace_from_integrals(integ, i_rf, t, rf_centres_s, rf_uses)
+    return KspacePlan(g.shape[-1], dt, t, rf_centres_s, rf_uses)(g)
+
+
+class KspacePlan:
+    """:func:`kspace_at` for fixed query times and RF events on waveforms of ``M`` samples spaced ``dt``: the index
+    arithmetic done once on the host and its tensors made once per device and dtype, so that a call runs torch
+    operations alone (no host data moves, nothing waits for the device: a CUDA graph can hold it).  The same
+    numbers as :func:`kspace_at` bit for bit (which uses it); a long waveform without a graph is integrated by
+    chunks as there."""
+
+    def __init__(self, M: int, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_uses: _Seq[str] = ()):
+        self.M, self.dt = M, dt
+        self.t = np.asarray(t_s, dtype=np.float64)
+        self.rf_centres_s, self.rf_uses = list(rf_centres_s), list(rf_uses)
+        events = _k_events(rf_centres_s, rf_uses)
+        self.q = _Query(M, dt, self.t)
+        self.q_rf = _Query(M, dt, np.array([e[0] for e in events], dtype=np.float64)) if events else None
+        self.resets = _Resets(self.t, events)
+
+    def __call__(self, g) -> torch.Tensor:
+        """(..., 3, Q) k in rad/m of ``g`` (..., 3, M) mT/m, differentiable."""
+        g = _as_tensor(g)
+        if g.shape[-1] != self.M:
+            raise ValueError(f"KspacePlan of {self.M} samples applied to a waveform of {g.shape[-1]}")
+        if _chunked(g):
+            return kspace_at(g, self.dt, self.t, self.rf_centres_s, self.rf_uses)
+        C = pwl_cumulative(g, self.dt)
+        integ = self.q.integral(g, C[..., self.q.tensors(g.dtype, g.device)[1]])  # (..., 3, Q)
+        i_rf = None
+        if self.q_rf is not None:
+            i_rf = self.q_rf.integral(g, C[..., self.q_rf.tensors(g.dtype, g.device)[1]])
+        return self.resets.apply(integ, i_rf)
 
 
 def _k_events(rf_centres_s, rf_uses) -> list:
@@ -140,35 +192,53 @@ def kspace_from_integrals(
     """:func:`kspace_at` from the integrals it needs: ``integ`` (..., 3, Q) of the gradient from 0 to each query
     time ``t_s`` and ``i_rf`` (..., 3, E) to each RF event that resets or negates k (excitation, undefined,
     refocusing, in the order given; None when there is none)."""
-    t = np.asarray(t_s, dtype=np.float64)
-    events = _k_events(rf_centres_s, rf_uses)
-    if not events:
-        return GAMMA_RAD_PER_S_PER_MT * integ
-    assert i_rf is not None
-    tc = np.array([e[0] for e in events], dtype=np.float64)
-    # k right after event j: k_j; k(t) = gamma*(I(t) - I(t_j)) + k_j for t in [t_j, t_{j+1}).
-    if all(u != "refocusing" for _, u in events):
-        k_after_t = torch.zeros_like(i_rf)  # every event excites: k restarts at 0 (no loop over the events)
-    else:
-        k_after = []
-        k_prev = None  # k just before the current event
-        for j, (_, use) in enumerate(events):
-            if j == 0:
-                k_before = GAMMA_RAD_PER_S_PER_MT * i_rf[..., 0]
-            else:
-                k_before = GAMMA_RAD_PER_S_PER_MT * (i_rf[..., j] - i_rf[..., j - 1]) + k_prev
-            k_prev = -k_before if use == "refocusing" else torch.zeros_like(k_before)
-            k_after.append(k_prev)
-        k_after_t = torch.stack(k_after, dim=-1)  # (..., 3, E)
-    seg = np.searchsorted(tc, t, side="right") - 1  # -1: before first event
-    out = GAMMA_RAD_PER_S_PER_MT * integ
-    after = seg >= 0
-    if after.any():
-        idx = torch.as_tensor(np.where(after)[0], device=integ.device)
-        sj = torch.as_tensor(seg[after], device=integ.device)
-        val = GAMMA_RAD_PER_S_PER_MT * (integ[..., idx] - i_rf[..., sj]) + k_after_t[..., sj]
-        out = out.index_copy(-1, idx, val)
-    return out
+    return _Resets(np.asarray(t_s, dtype=np.float64), _k_events(rf_centres_s, rf_uses)).apply(integ, i_rf)
+
+
+class _Resets:
+    """The RF events' action on k at fixed query times ``t`` (s): which event each time follows (index tensors made
+    once per device)."""
+
+    def __init__(self, t: np.ndarray, events: list):
+        self.events = events
+        self._on: dict = {}
+        if events:
+            tc = np.array([e[0] for e in events], dtype=np.float64)
+            seg = np.searchsorted(tc, t, side="right") - 1  # -1: before first event
+            after = seg >= 0
+            self.idx, self.sj = np.where(after)[0], seg[after]
+
+    def apply(self, integ: torch.Tensor, i_rf: torch.Tensor | None) -> torch.Tensor:
+        events = self.events
+        if not events:
+            return GAMMA_RAD_PER_S_PER_MT * integ
+        assert i_rf is not None
+        # k right after event j: k_j; k(t) = gamma*(I(t) - I(t_j)) + k_j for t in [t_j, t_{j+1}).
+        if all(u != "refocusing" for _, u in events):
+            k_after_t = torch.zeros_like(i_rf)  # every event excites: k restarts at 0 (no loop over the events)
+        else:
+            k_after = []
+            k_prev = None  # k just before the current event
+            for j, (_, use) in enumerate(events):
+                if j == 0:
+                    k_before = GAMMA_RAD_PER_S_PER_MT * i_rf[..., 0]
+                else:
+                    k_before = GAMMA_RAD_PER_S_PER_MT * (i_rf[..., j] - i_rf[..., j - 1]) + k_prev
+                k_prev = -k_before if use == "refocusing" else torch.zeros_like(k_before)
+                k_after.append(k_prev)
+            k_after_t = torch.stack(k_after, dim=-1)  # (..., 3, E)
+        out = GAMMA_RAD_PER_S_PER_MT * integ
+        if self.idx.size:
+            key = str(integ.device)
+            if key not in self._on:
+                self._on[key] = (
+                    torch.as_tensor(self.idx, device=integ.device),
+                    torch.as_tensor(self.sj, device=integ.device),
+                )
+            idx, sj = self._on[key]
+            val = GAMMA_RAD_PER_S_PER_MT * (integ[..., idx] - i_rf[..., sj]) + k_after_t[..., sj]
+            out = out.index_copy(-1, idx, val)
+        return out
 
 
 def kspace_at_streamed(chunks, n: int, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_uses: _Seq[str] = ()):

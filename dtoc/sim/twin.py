@@ -76,6 +76,7 @@ class Twin:
         self.dtype = dtype
         self.device = torch.device(device)
         self._t_moments_s = np.array([r.t_center_s - 1e-9 for r in ir.rf[1:]], dtype=np.float64)
+        self._k_plans: dict = {}  # (what, samples) -> KspacePlan: the index tensors made once (:meth:`_plan`)
 
     @property
     def is_ideal(self) -> bool:
@@ -100,15 +101,28 @@ class Twin:
             G, b0 = out, None
         return G[0], (None if b0 is None else b0[0])
 
+    def _plan(self, what: str, n: int):
+        """The :class:`~dtoc.seq.kspace.KspacePlan` of the ADC samples ('adc') or the moments ('moments') on
+        waveforms of ``n`` fine samples, made on first use: a repeated forward moves nothing from the host (the
+        same numbers as :meth:`SequenceIR.kspace_rad_per_m`)."""
+        key = (what, n)
+        if key not in self._k_plans:
+            from dtoc.seq.kspace import KspacePlan
+
+            t = self.ir.adc_times_s if what == "adc" else self._t_moments_s
+            rf = self.ir.rf
+            self._k_plans[key] = KspacePlan(n, self.ir.dt_fine_s, t, [r.t_center_s for r in rf], [r.use for r in rf])
+        return self._k_plans[key]
+
     def kspace(self, G_fine: torch.Tensor) -> torch.Tensor:
         """(3, N_adc) k-space (rad/m) of a fine-grid waveform at the ADC samples."""
-        return self.ir.kspace_rad_per_m(G_fine)
+        return self._plan("adc", G_fine.shape[-1])(G_fine)
 
     def moments(self, G_fine: torch.Tensor) -> torch.Tensor | None:
         """(3, N_rf - 1) k-space moment (rad/m) just before each RF pulse after the first (None if < 2 pulses)."""
         if self._t_moments_s.size == 0:
             return None
-        return self.ir.kspace_rad_per_m(G_fine, times_s=self._t_moments_s)
+        return self._plan("moments", G_fine.shape[-1])(G_fine)
 
     def forward(self, grad_mT_per_m=None, *, moments: bool = True) -> Realization:
         """Play a demanded waveform (3, M) mT/m (default: the IR's) through the chain; see :class:`Realization`.
