@@ -37,7 +37,7 @@ import numpy as np
 from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
 from dtoc.seq.ir import SequenceIR
 from dtoc.sim.pdg_config import PDGConfig
-from dtoc.sim.pdg_graph_step import split_step
+from dtoc.sim.pdg_graph_step import emission_native, native_in_use, split_step, unique_bits
 from dtoc.sim.pdg_rows import CONJ, first_max_by_group
 
 
@@ -550,6 +550,8 @@ class _Emission:
 
     def exact(self, n: int, idx: np.ndarray) -> np.ndarray:
         """Emission bound of the transverse states ``idx`` of interval ``n`` at its ADC samples (max over them)."""
+        if native_in_use() and idx.size:
+            return self._exact_native(n, idx)
         R, bnd = self.raw[n], self.bnd
         out = np.empty(idx.size)
         dtt, mt = self._window(n)
@@ -563,6 +565,73 @@ class _Emission:
             tt = np.abs(R["tau"][idx[s0 : s0 + step]][:, None] + dtt[None, :])
             env = env * bnd.e2(dtt)[None, :] * np.exp(-tt / bnd.t2d)
             out[s0 : s0 + step] = env.max(axis=1)
+        return out
+
+    def _exact_native(self, n: int, idx: np.ndarray, best: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`exact` with the compiled core (``emission`` in ``dtoc/sim/_pdg_split.c``): every exactly rounded
+        operation there, the transcendental functions numpy's -- the T2' decay once per distinct tau and sample, the
+        spectrum's sincs only at the samples that can still hold a state's maximum (each state's sample of largest
+        upper bound, then those whose bound exceeds the value found there).  With ``best`` (the states' bounds
+        through their children, see :meth:`of`), a state or sample whose upper bound can change neither its latent
+        bound nor its emitter decision is left out as :meth:`of` leaves out states: the latent bounds and decisions
+        are those of the exact values, bit for bit; a value at or below ``best`` may be returned lower."""
+        R, bnd, spec = self.raw[n], self.bnd, self.spec
+        dtt, mt = self._window(n)
+        mt = np.ascontiguousarray(mt)
+        S, T = idx.size, dtt.size
+        ks = np.ascontiguousarray(R["k"][idx])
+        fixed = [bool(np.all(mt[:, a] == mt[0, a])) for a in range(3)]
+        vshape = {"box": 1, "sinc": 2}.get(bnd.voxel_shape, 0)
+        vd = [0.0 if (d is None or d <= 0) else float(d) for d in bnd.voxel_m]
+        if spec is None:
+            sshape, s3d, nsz, steps, sd, F = -1, 0, (1, 1, 1), (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), None
+        else:
+            s3d = int(spec.F.ndim == 3)
+            sshape = {"box": 1, "sinc": 2}.get(spec.shape, 0)
+            nsz = (spec.F.shape[-1], spec.F.shape[-2], spec.F.shape[0] if s3d else 1)
+            steps = (spec.step_x, spec.step_y, spec.step_z if s3d else 1.0)
+            sd = (spec.dx, spec.dy, spec.dz if s3d else 1.0)
+            F = np.ascontiguousarray(spec.F, dtype=np.float64).reshape(-1)
+        ut, it = unique_bits(R["tau"][idx])
+        etau = np.exp(-np.abs(ut[:, None] + dtt[None, :]) / bnd.t2d)
+        e2 = np.ascontiguousarray(bnd.e2(dtt))
+        thr = float(self.min_emitted) if best is not None else 0.0
+        params = (S, T, *fixed, vshape, *vd, sshape, s3d, *nsz, *steps, *sd, thr)
+        common = (
+            ks,
+            mt,
+            e2,
+            it,
+            np.ascontiguousarray(etau),
+            F,
+            None if best is None else np.ascontiguousarray(best, dtype=np.float64),
+            np.ascontiguousarray(R["mag"][idx], dtype=np.float64),
+            np.ascontiguousarray((e2[None, :] * etau).max(axis=1)),
+            None if (spec is None or s3d) else np.ascontiguousarray(spec.F.max(axis=1), dtype=np.float64),
+        )
+        out = np.empty(S)
+        tstar = np.empty(S, dtype=np.int64)
+        ub = np.empty((S, T))
+        ns = np.empty(S, dtype=np.int64)
+        N = emission_native(1, params, (*common, out, tstar, ub, ns))
+        if sshape != 1 or N == 0:
+            return out
+
+        def sincs(s_idx: np.ndarray, t_idx: np.ndarray) -> np.ndarray:
+            """(C, 3) numpy's sinc of each axis' k at the elements (state, sample), as exact() forms them."""
+            sv = np.zeros((s_idx.size, 3))
+            for a in range(3 if s3d else 2):
+                kk = ks[s_idx, a] + (mt[0, a] if fixed[a] else mt[t_idx, a])
+                sv[:, a] = np.sinc(kk * sd[a] / (2 * np.pi))
+            return sv
+
+        ns = ns[:N]
+        cs = np.empty(S * T, dtype=np.int64)
+        ct = np.empty(S * T, dtype=np.int64)
+        nc = emission_native(2, params, (*common, ns, tstar, ub, sincs(ns, tstar[ns]), out, cs, ct))
+        if nc:
+            cs, ct = cs[:nc], ct[:nc]
+            emission_native(3, params, (*common, cs, ct, sincs(cs, ct), out))
         return out
 
     def bound(self, n: int, idx: np.ndarray) -> np.ndarray:
@@ -589,7 +658,11 @@ class _Emission:
         R = self.raw[n]
         e = np.zeros(R["is_z"].size)
         tr = np.flatnonzero(~R["is_z"])
-        if self.adc_hi[n] > self.adc_lo[n] and tr.size:
+        if self.adc_hi[n] > self.adc_lo[n] and tr.size and native_in_use():
+            # the compiled core bounds every state sample by sample (tighter than bound()) and leaves out the same
+            use = best is not None and self.min_emitted > 0
+            e[tr] = self._exact_native(n, tr, best[tr] if use and best is not None else None)
+        elif self.adc_hi[n] > self.adc_lo[n] and tr.size:
             if best is not None and self.min_emitted > 0:
                 ub = self.bound(n, tr)
                 tr = tr[(ub > best[tr]) | (R["mag"][tr] * ub >= self.min_emitted)]

@@ -21,7 +21,9 @@ per-column formulation gave (tests/test_prepass_golden.py, tests/test_prepass_eq
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import os
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +32,39 @@ from dtoc.sim.pdg_rows import CONJ, add_rows_by_index, first_max_by_group, top_k
 
 #: largest packed key range (the keys stay below 2**62)
 _KEY_LIMIT = 2**62
+
+try:  # the optional compiled core (setup.py builds it when a C compiler is there); else the numpy steps below
+    from dtoc.sim import _pdg_split as _native  # type: ignore[attr-defined]
+except ImportError:  # pragma: no cover - depends on the install
+    _native = None
+_state = {"native": _native is not None and os.environ.get("DTOC_PREPASS_NATIVE", "1") != "0"}
+
+
+def native_available() -> bool:
+    """True when the compiled merge of the RF split (``dtoc/sim/_pdg_split.c``) was built at install."""
+    return _native is not None
+
+
+def native_in_use() -> bool:
+    """True when :func:`split_step` runs its compiled merge (built, and not switched off by
+    ``DTOC_PREPASS_NATIVE=0`` or :func:`prepass_backend`)."""
+    return bool(_state["native"])
+
+
+@contextlib.contextmanager
+def prepass_backend(name: str) -> Iterator[None]:
+    """Within the block, :func:`split_step` merges with ``name``: 'numpy' (always there) or 'native' (the
+    compiled merge; ValueError when it was not built).  The graphs are the same bit for bit either way."""
+    if name not in ("numpy", "native"):
+        raise ValueError(f"prepass backend {name!r}: expected 'numpy' or 'native'")
+    if name == "native" and _native is None:
+        raise ValueError("prepass backend 'native': the compiled merge was not built at install")
+    old = _state["native"]
+    _state["native"] = name == "native"
+    try:
+        yield
+    finally:
+        _state["native"] = old
 
 
 @dataclass
@@ -118,6 +153,10 @@ def split_step(
     np.multiply(coef[:, 1], np.conjugate(amp_end), out=ccand[:, 1])
     ccand = ccand.reshape(3 * S, P)
     cand = estimate(ccand)
+    if _state["native"] and max_states >= 1:
+        return _split_native(
+            is_z, k_end, tau_end, cand, ccand, qk, qt, tau_ignored, min_magnitude, max_states, estimate
+        )
     kept = np.flatnonzero(cand >= min_magnitude)  # candidate edges in (parent, slot) order
     par = kept // 3
     slot = kept - 3 * par
@@ -190,3 +229,121 @@ def split_step(
         e_kind=kind[ekeep],
         e_cand=cand[ekeep],
     )
+
+
+def _split_native(
+    is_z: np.ndarray,
+    k_end: np.ndarray,
+    tau_end: np.ndarray,
+    cand: np.ndarray,
+    ccand: np.ndarray,
+    qk: float,
+    qt: float,
+    tau_ignored: bool,
+    min_magnitude: float,
+    max_states: int,
+    estimate: Callable[[np.ndarray], np.ndarray],
+) -> SplitResult:
+    """The rest of :func:`split_step` (from the candidates' estimates ``cand`` (3 S,) and probe amplitudes ``ccand``
+    (3 S, P)) with the compiled merge: the same arrays bit for bit.  The children's amplitude estimate (complex abs,
+    whose bits depend on the numpy build) stays ``estimate``, in numpy."""
+    assert _native is not None
+    S = is_z.size
+    P = ccand.shape[1]
+    E3 = 3 * S
+    par = np.empty(E3, dtype=np.int64)
+    slot = np.empty(E3, dtype=np.int64)
+    kind = np.empty(E3, dtype=np.int64)
+    cand_k = np.empty(E3)
+    inv = np.empty(E3 + 1, dtype=np.int64)
+    child_z = np.empty(E3 + 1, dtype=bool)
+    camp = np.empty((E3 + 1, P), dtype=np.complex128)
+    rep = np.empty(E3 + 1, dtype=np.int64)
+    ins = (
+        np.ascontiguousarray(cand, dtype=np.float64),
+        np.ascontiguousarray(is_z, dtype=bool),
+        np.ascontiguousarray(k_end, dtype=np.float64),
+        np.ascontiguousarray(tau_end, dtype=np.float64),
+        np.ascontiguousarray(ccand, dtype=np.complex128),
+    )
+    E, nU, eq_new = _native.merge(
+        S,
+        P,
+        float(min_magnitude),
+        float(qk),
+        float(qt),
+        bool(tau_ignored),
+        (*ins, par, slot, kind, cand_k, inv, child_z, camp, rep),
+    )
+    camp = camp[:nU]
+    cmag = np.ascontiguousarray(estimate(camp), dtype=np.float64)
+    z = np.empty(nU, dtype=bool)
+    k = np.empty((nU, 3))
+    tau = np.empty(nU)
+    mag = np.empty(nU)
+    amp = np.empty((nU, P), dtype=np.complex128)
+    e_child = np.empty(E, dtype=np.int64)
+    e_par = np.empty(E, dtype=np.int64)
+    e_kind = np.empty(E, dtype=np.int64)
+    e_cand = np.empty(E)
+    nS, nE, eq = _native.finish(
+        nU,
+        P,
+        E,
+        eq_new,
+        S,
+        float(min_magnitude),
+        int(max_states),
+        (
+            cmag,
+            rep,
+            inv,
+            par,
+            slot,
+            kind,
+            cand_k,
+            ins[2],
+            ins[3],
+            child_z,
+            camp,
+            z,
+            k,
+            tau,
+            mag,
+            amp,
+            e_child,
+            e_par,
+            e_kind,
+            e_cand,
+        ),
+    )
+    return SplitResult(
+        is_z=z[:nS],
+        k=k[:nS],
+        tau=tau[:nS],
+        mag=mag[:nS],
+        amp=amp[:nS],
+        eq=int(eq),
+        e_child=e_child[:nE],
+        e_par=e_par[:nE],
+        e_kind=e_kind[:nE],
+        e_cand=e_cand[:nE],
+    )
+
+
+def unique_bits(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distinct values of the float64 array ``x`` by their bits, in order of first occurrence; the index of each
+    value among them), with the compiled core (:func:`native_in_use` must be true)."""
+    assert _native is not None
+    v = np.ascontiguousarray(x, dtype=np.float64).reshape(-1)
+    u = np.empty(v.size)
+    inv = np.empty(v.size, dtype=np.int64)
+    U = _native.unique_bits(v.size, (v, u, inv))
+    return u[:U], inv
+
+
+def emission_native(pass_: int, params: tuple, arrays: tuple) -> int:
+    """One pass of the compiled emission bound (``emission`` in ``dtoc/sim/_pdg_split.c``; the caller is
+    :meth:`dtoc.sim.pdg_graph._Emission.exact`): ``params`` its scalars, ``arrays`` its arrays (C-contiguous)."""
+    assert _native is not None
+    return int(_native.emission(pass_, *params, arrays))
