@@ -575,7 +575,7 @@ typedef struct {
     double step[3], sd[3];
     const double *ks, *mt, *e2, *etau, *F;
     const int64_t *it;
-    double mtmin[3], mtmax[3], fmax;
+    double mtmin[3], mtmax[3], fmax, inv_n[3];
 } em_t;
 
 static const double SINC_MARGIN = 1.0 + 1e-9;
@@ -619,9 +619,15 @@ static inline void em_axis(const em_t *m, int a, double k, ax_t *o) {
     if (m->sshape >= 0 && (a < 2 || m->s3d)) {
         int64_t v = (int64_t)rint_fast(k / m->step[a]);
         const int64_t n = (int64_t)m->n[a];
-        if (v < 0 || v >= n) {
-            v %= n;
-            if (v < 0) v += n;
+        if (v < 0 || v >= n) { /* floor modulo (numpy's %) without an integer division where v is not huge */
+            if (v > -((int64_t)1 << 52) && v < ((int64_t)1 << 52)) {
+                v -= (int64_t)((double)v * m->inv_n[a]) * n; /* truncated: off by at most one */
+                while (v < 0) v += n;
+                while (v >= n) v -= n;
+            } else {
+                v %= n;
+                if (v < 0) v += n;
+            }
         }
         o->ix = v;
         if (m->sshape == 1) {
@@ -649,8 +655,8 @@ static inline double em_combine(const em_t *m, const ax_t *x, Py_ssize_t s, Py_s
             val = val * (x[0].ok && x[1].ok ? 1.0 : 0.0);
             if (m->s3d) val = val * (x[2].ok ? 1.0 : 0.0);
         }
-        if (!(val <= 1.0)) val = 1.0; /* np.minimum(val, 1.0) (no NaN here) */
-        if (val < env) env = val;     /* np.minimum(e, spec) */
+        val = val < 1.0 ? val : 1.0; /* np.minimum(val, 1.0) (no NaN here) */
+        env = val < env ? val : env; /* np.minimum(e, spec) */
     }
     env = env * m->e2[t];
     return env * m->etau[m->it[s] * m->T + t];
@@ -769,6 +775,7 @@ static PyObject *emission(PyObject *self, PyObject *args) {
             if (v > m.mtmax[a]) m.mtmax[a] = v;
         }
     }
+    for (int a = 0; a < 3; a++) m.inv_n[a] = 1.0 / (double)(m.n[a] > 0 ? m.n[a] : 1);
     m.fmax = 1.0;
     if (!bad && m.sshape >= 0) {
         m.fmax = 0.0;
@@ -864,7 +871,122 @@ static PyObject *emission(PyObject *self, PyObject *args) {
     return PyLong_FromSsize_t(ret);
 }
 
+/* ---- prune ---------------------------------------------------------------------------------------------------- */
+
+/* prune(S, E, Sprev, eq, thr_latent, thr_emit, has_adc, arrays) -> (nS, nE, n_emit, eqn): one interval (n > 0) of
+   pdg_graph._prune -- keep the states whose amplitude bound x latent bound reaches thr_latent (and the
+   restriction's; the equilibrium always) and that keep an edge from a kept parent; re-index; the kept edges, each
+   state's representative (largest candidate estimate, lowest edge on ties) and the emitters.
+   arrays: mag, latent (S) f8, restrict (S) bool or None, e_child, e_par, e_kind (E) i8, e_cand (E) f8, prev_keep
+   (Sprev) bool, prev_newi (Sprev) i8, emit_b (S) f8, is_z (S) bool, k (S,3) f8, tau (S) f8; out: keep (S) bool,
+   newi (S) i8, ec, ep, ek (E) i8, rep (S) i8, rconj (S) bool, emit (S) i8, z (S) bool, k_sel (S,3), tau_sel (S),
+   mag_sel (S) f8: 25 arrays. */
+static PyObject *prune(PyObject *self, PyObject *args) {
+    Py_ssize_t S, E, Sp, eq;
+    double thr_l, thr_e;
+    int has_adc;
+    PyObject *arrs;
+    if (!PyArg_ParseTuple(args, "nnnnddpO", &S, &E, &Sp, &eq, &thr_l, &thr_e, &has_adc, &arrs)) return NULL;
+    if (S < 1 || E < 0 || Sp < 0 || eq < 0 || eq >= S || !PyTuple_Check(arrs) || PyTuple_GET_SIZE(arrs) != 25) {
+        PyErr_SetString(PyExc_ValueError, "_pdg_split.prune: bad arguments");
+        return NULL;
+    }
+    const Py_ssize_t need[25] = {S * 8, S * 8, S,     E * 8, E * 8, E * 8, E * 8, Sp,    Sp * 8,
+                                 S * 8, S,     S * 24, S * 8, S,    S * 8, E * 8, E * 8, E * 8,
+                                 S * 8, S,     S * 8, S,     S * 24, S * 8, S * 8};
+    buf_t b[25];
+    memset(b, 0, sizeof(b));
+    for (int i = 0; i < 25; i++) {
+        PyObject *o = PyTuple_GET_ITEM(arrs, i);
+        if (o == Py_None && i == 2) continue; /* restrict */
+        if (get_buf(o, &b[i], i >= 13, need[i], "prune") < 0) {
+            release(b, 25);
+            return NULL;
+        }
+    }
+    const double *mag = (const double *)b[0].b.buf, *latent = (const double *)b[1].b.buf;
+    const uint8_t *restr = b[2].held ? (const uint8_t *)b[2].b.buf : NULL;
+    const int64_t *e_child = (const int64_t *)b[3].b.buf, *e_par = (const int64_t *)b[4].b.buf;
+    const int64_t *e_kind = (const int64_t *)b[5].b.buf;
+    const double *e_cand = (const double *)b[6].b.buf;
+    const uint8_t *prev_keep = (const uint8_t *)b[7].b.buf;
+    const int64_t *prev_newi = (const int64_t *)b[8].b.buf;
+    const double *emit_b = (const double *)b[9].b.buf;
+    const uint8_t *is_z = (const uint8_t *)b[10].b.buf;
+    const double *k = (const double *)b[11].b.buf, *tau = (const double *)b[12].b.buf;
+    uint8_t *keep = (uint8_t *)b[13].b.buf;
+    int64_t *newi = (int64_t *)b[14].b.buf, *ec = (int64_t *)b[15].b.buf, *ep = (int64_t *)b[16].b.buf;
+    int64_t *ek = (int64_t *)b[17].b.buf, *rep = (int64_t *)b[18].b.buf;
+    uint8_t *rconj = (uint8_t *)b[19].b.buf;
+    int64_t *emit = (int64_t *)b[20].b.buf;
+    uint8_t *z = (uint8_t *)b[21].b.buf;
+    double *k_sel = (double *)b[22].b.buf, *tau_sel = (double *)b[23].b.buf, *mag_sel = (double *)b[24].b.buf;
+    uint8_t *has_in = (uint8_t *)calloc((size_t)S, 1);
+    int64_t *best = (int64_t *)malloc((size_t)S * sizeof(int64_t));
+    double *bcand = (double *)malloc((size_t)S * sizeof(double));
+    if (!has_in || !best || !bcand) {
+        free(has_in);
+        free(best);
+        free(bcand);
+        release(b, 25);
+        return PyErr_NoMemory();
+    }
+    int bad = 0;
+    for (Py_ssize_t e = 0; e < E && !bad; e++)
+        bad = e_child[e] < 0 || e_child[e] >= S || e_par[e] < 0 || e_par[e] >= Sp || e_kind[e] < 0 || e_kind[e] > 5;
+    Py_ssize_t nS = 0, nE = 0, nem = 0;
+    if (!bad) {
+        for (Py_ssize_t s = 0; s < S; s++) keep[s] = (mag[s] * latent[s] >= thr_l && (!restr || restr[s])) || s == eq;
+        for (Py_ssize_t e = 0; e < E; e++)
+            if (keep[e_child[e]] && prev_keep[e_par[e]]) has_in[e_child[e]] = 1;
+        for (Py_ssize_t s = 0; s < S; s++) {
+            keep[s] = keep[s] && (has_in[s] || s == eq);
+            newi[s] = nS - 1 + keep[s];
+            if (keep[s]) {
+                z[nS] = is_z[s];
+                for (int a = 0; a < 3; a++) k_sel[3 * nS + a] = k[3 * s + a];
+                tau_sel[nS] = tau[s];
+                mag_sel[nS] = mag[s];
+                best[nS] = -1;
+                nS++;
+            }
+        }
+        /* the kept edges in edge order; each state's representative: the first edge of largest candidate estimate */
+        for (Py_ssize_t e = 0; e < E; e++) {
+            if (!(keep[e_child[e]] && prev_keep[e_par[e]])) continue;
+            const int64_t c = newi[e_child[e]];
+            ec[nE] = c;
+            ep[nE] = prev_newi[e_par[e]];
+            ek[nE] = e_kind[e];
+            if (best[c] < 0 || e_cand[e] > bcand[c]) {
+                best[c] = nE;
+                bcand[c] = e_cand[e];
+            }
+            nE++;
+        }
+        for (Py_ssize_t c = 0; c < nS; c++) {
+            rep[c] = best[c] >= 0 ? ep[best[c]] : -1;
+            rconj[c] = best[c] >= 0 && (ek[best[c]] == 1 || ek[best[c]] == 4);
+        }
+        rep[newi[eq]] = -1;
+        if (has_adc)
+            for (Py_ssize_t s = 0; s < S; s++)
+                if (!is_z[s] && mag[s] * emit_b[s] >= thr_e && keep[s]) emit[nem++] = newi[s];
+    }
+    const Py_ssize_t eqn = bad ? -1 : newi[eq];
+    free(has_in);
+    free(best);
+    free(bcand);
+    release(b, 25);
+    if (bad) {
+        PyErr_SetString(PyExc_ValueError, "_pdg_split.prune: edge index out of range");
+        return NULL;
+    }
+    return Py_BuildValue("nnnn", nS, nE, nem, eqn);
+}
+
 static PyMethodDef methods[] = {
+    {"prune", prune, METH_VARARGS, "prune(S, E, Sprev, eq, thr_latent, thr_emit, has_adc, arrays) -> (nS, nE, n_emit, eq)"},
     {"unique_bits", unique_bits, METH_VARARGS, "unique_bits(n, (values, uniq, inv)) -> U"},
     {"emission", emission, METH_VARARGS, "emission(pass, S, T, ..., arrays) -> int (see the source)"},
     {"merge", merge, METH_VARARGS, "merge(S, P, min_magnitude, qk, qt, tau_ignored, arrays) -> (E, nU, eq)"},

@@ -37,7 +37,7 @@ import numpy as np
 from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
 from dtoc.seq.ir import SequenceIR
 from dtoc.sim.pdg_config import PDGConfig
-from dtoc.sim.pdg_graph_step import emission_native, native_in_use, split_step, unique_bits
+from dtoc.sim.pdg_graph_step import emission_native, native_in_use, prune_native, split_step, unique_bits
 from dtoc.sim.pdg_rows import CONJ, first_max_by_group
 
 
@@ -711,9 +711,36 @@ def _prune(ctx, emit_b, latent, restrict=None) -> tuple[list, list]:
     keeps = []
     prev_keep: Any = None
     prev_newi: Any = None
+    native = native_in_use()
     for n in range(NI):
         R = raw[n]
         S = R["is_z"].size
+        if native and n > 0:
+            has_adc = bool(adc_hi[n] > adc_lo[n])
+            rs = None if restrict is None else restrict[n]
+            keepm, newi, arrs = prune_native(
+                R,
+                latent[n],
+                rs,
+                prev_keep,
+                prev_newi,
+                emit_b[n],
+                cfg.min_latent_signal,
+                cfg.min_emitted_signal,
+                has_adc,
+            )
+            intervals.append(
+                IntervalGraph(
+                    t_start_s=float(bounds_t[n]),
+                    t_end_s=float(bounds_t[n + 1]),
+                    adc_start=int(adc_lo[n]),
+                    adc_stop=int(adc_hi[n]),
+                    **arrs,
+                )
+            )
+            prev_keep, prev_newi = keepm, newi
+            keeps.append(keepm)
+            continue
         keepm = R["mag"] * latent[n] >= cfg.min_latent_signal
         if restrict is not None:
             keepm &= restrict[n]

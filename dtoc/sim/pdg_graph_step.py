@@ -347,3 +347,74 @@ def emission_native(pass_: int, params: tuple, arrays: tuple) -> int:
     :meth:`dtoc.sim.pdg_graph._Emission.exact`): ``params`` its scalars, ``arrays`` its arrays (C-contiguous)."""
     assert _native is not None
     return int(_native.emission(pass_, *params, arrays))
+
+
+def prune_native(R: dict, latent: np.ndarray, restrict, prev_keep, prev_newi, emit_b, thr_latent, thr_emit, has_adc):
+    """One interval (not the first) of :func:`dtoc.sim.pdg_graph._prune` with the compiled core (``prune`` in
+    ``dtoc/sim/_pdg_split.c``; only comparisons, products and index work): (keep mask over the raw states, their new
+    indices, and the interval's arrays: is_z, tau, k, eq, edge child/parent/kind, representative parent and
+    conjugation, emitters, mag), bit for bit those of the numpy formulation."""
+    assert _native is not None
+    c = np.ascontiguousarray
+    S = R["is_z"].size
+    E = R["e_child"].size
+    keep = np.empty(S, dtype=bool)
+    newi = np.empty(S, dtype=np.int64)
+    ec, ep, ek = (np.empty(E, dtype=np.int64) for _ in range(3))
+    rep = np.empty(S, dtype=np.int64)
+    rconj = np.empty(S, dtype=bool)
+    emit = np.empty(S, dtype=np.int64)
+    z = np.empty(S, dtype=bool)
+    k = np.empty((S, 3))
+    tau = np.empty(S)
+    mag = np.empty(S)
+    nS, nE, nem, eqn = _native.prune(
+        S,
+        E,
+        prev_keep.size,
+        int(R["eq"]),
+        float(thr_latent),
+        float(thr_emit),
+        bool(has_adc),
+        (
+            c(R["mag"], dtype=np.float64),
+            c(latent, dtype=np.float64),
+            None if restrict is None else c(restrict, dtype=bool),
+            c(R["e_child"], dtype=np.int64),
+            c(R["e_par"], dtype=np.int64),
+            c(R["e_kind"], dtype=np.int64),
+            c(R["e_cand"], dtype=np.float64),
+            c(prev_keep, dtype=bool),
+            c(prev_newi, dtype=np.int64),
+            c(emit_b, dtype=np.float64),
+            c(R["is_z"], dtype=bool),
+            c(R["k"], dtype=np.float64),
+            c(R["tau"], dtype=np.float64),
+            keep,
+            newi,
+            ec,
+            ep,
+            ek,
+            rep,
+            rconj,
+            emit,
+            z,
+            k,
+            tau,
+            mag,
+        ),
+    )
+    arrays = dict(
+        is_z=z[:nS],
+        tau_s=tau[:nS],
+        k_nom_rad_per_m=k[:nS],
+        eq_index=int(eqn),
+        edge_child=ec[:nE],
+        edge_parent=ep[:nE],
+        edge_kind=ek[:nE],
+        rep_parent=rep[:nS],
+        rep_conj=rconj[:nS],
+        emit=emit[:nem] if has_adc else np.zeros(0, dtype=np.int64),
+        mag=mag[:nS],
+    )
+    return keep, newi, arrays
