@@ -602,7 +602,7 @@ typedef struct {
     int ok;
 } ax_t;
 
-static inline void em_axis(const em_t *m, int a, double k, ax_t *o) {
+static inline void em_axis(const em_t *m, int a, double k, ax_t *o, int envelope) {
     o->vox = 1.0;
     if (m->vshape && m->vd[a] > 0) {
         const double ka = fabs(k);
@@ -631,8 +631,16 @@ static inline void em_axis(const em_t *m, int a, double k, ax_t *o) {
         }
         o->ix = v;
         if (m->sshape == 1) {
-            const double ax = fabs(M_PI * (k * m->sd[a] / (2 * M_PI)));
-            o->bnd = (ax > 1.0 ? 1.0 / ax : 1.0) * SINC_MARGIN;
+            /* |sin x| <= min(1, distance of x to the nearest multiple of pi), that distance computed with an
+               absolute allowance far above its rounding and numpy's error of sin */
+            const double x = M_PI * (k * m->sd[a] / (2 * M_PI)), ax = fabs(x);
+            if (ax > 1.0) {
+                /* envelope (1 / ax, non-increasing in abs(k)) for the state's bound over a range of k */
+                const double r = envelope ? 1.0 : fabs(x - rint_fast(x * M_1_PI) * M_PI) + (ax + 1.0) * 1e-12;
+                o->bnd = (r < 1.0 ? r : 1.0) / ax * SINC_MARGIN;
+            } else {
+                o->bnd = SINC_MARGIN;
+            }
         } else if (m->sshape == 2) {
             o->ok = fabs(k) <= M_PI / m->sd[a];
         }
@@ -665,7 +673,7 @@ static inline double em_combine(const em_t *m, const ax_t *x, Py_ssize_t s, Py_s
 /* the parts of element (s, t); the fixed axes' parts (from sample 0) are kept in x between the samples of a state */
 static inline void em_parts(const em_t *m, Py_ssize_t s, Py_ssize_t t, ax_t *x, int fixed_too) {
     for (int a = 0; a < 3; a++)
-        if (fixed_too || !m->fixed[a]) em_axis(m, a, m->ks[3 * s + a] + m->mt[3 * (m->fixed[a] ? 0 : t) + a], &x[a]);
+        if (fixed_too || !m->fixed[a]) em_axis(m, a, m->ks[3 * s + a] + m->mt[3 * (m->fixed[a] ? 0 : t) + a], &x[a], 0);
 }
 
 /* an upper bound of every element of state s (box spectrum): the voxel factors and the sinc bounds at each axis'
@@ -682,7 +690,7 @@ static double state_bound(const em_t *m, Py_ssize_t s, const double *gmax, const
             hi = k0 + m->mtmax[a];
         }
         const double dist = (lo <= 0 && hi >= 0) ? 0.0 : (fabs(lo) < fabs(hi) ? fabs(lo) : fabs(hi));
-        em_axis(m, a, dist, &x[a]);
+        em_axis(m, a, dist, &x[a], 1);
     }
     double env = 1.0;
     if (m->vshape)
@@ -691,7 +699,7 @@ static double state_bound(const em_t *m, Py_ssize_t s, const double *gmax, const
     double val = m->fmax;
     if (rowmax && !m->s3d && m->fixed[1]) {
         ax_t y;
-        em_axis(m, 1, m->ks[3 * s + 1] + m->mt[1], &y);
+        em_axis(m, 1, m->ks[3 * s + 1] + m->mt[1], &y, 1);
         val = rowmax[y.ix];
     }
     val = val * fabs(x[0].bnd * x[1].bnd);

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -231,6 +232,30 @@ def split_step(
     )
 
 
+_local = threading.local()
+
+
+def _scratch(E3: int, P: int) -> tuple:
+    """The merge's temporaries for up to ``E3`` candidate edges of ``P`` probes: views of this thread's buffers,
+    grown when needed and reused from one RF split to the next (fresh arrays of this size would be fresh pages,
+    zeroed by the kernel, at every split); nothing that outlives the split is kept in them."""
+    buf = getattr(_local, "merge", None)
+    if buf is None or buf[0].size < E3 or buf[6].shape[1] != P:
+        n = max(E3, 1024)
+        buf = (
+            np.empty(n, dtype=np.int64),
+            np.empty(n, dtype=np.int64),
+            np.empty(n, dtype=np.int64),
+            np.empty(n),
+            np.empty(n + 1, dtype=np.int64),
+            np.empty(n + 1, dtype=bool),
+            np.empty((n + 1, P), dtype=np.complex128),
+            np.empty(n + 1, dtype=np.int64),
+        )
+        _local.merge = buf
+    return tuple(b[:E3] for b in buf[:4]) + tuple(b[: E3 + 1] for b in buf[4:])
+
+
 def _split_native(
     is_z: np.ndarray,
     k_end: np.ndarray,
@@ -251,14 +276,7 @@ def _split_native(
     S = is_z.size
     P = ccand.shape[1]
     E3 = 3 * S
-    par = np.empty(E3, dtype=np.int64)
-    slot = np.empty(E3, dtype=np.int64)
-    kind = np.empty(E3, dtype=np.int64)
-    cand_k = np.empty(E3)
-    inv = np.empty(E3 + 1, dtype=np.int64)
-    child_z = np.empty(E3 + 1, dtype=bool)
-    camp = np.empty((E3 + 1, P), dtype=np.complex128)
-    rep = np.empty(E3 + 1, dtype=np.int64)
+    par, slot, kind, cand_k, inv, child_z, camp, rep = _scratch(E3, P)
     ins = (
         np.ascontiguousarray(cand, dtype=np.float64),
         np.ascontiguousarray(is_z, dtype=bool),
