@@ -716,7 +716,7 @@ static double em_value(const em_t *m, Py_ssize_t s, Py_ssize_t t, const double *
 }
 
 /* emission(pass, S, T, fx, fy, fz, vshape, vdx, vdy, vdz, sshape, s3d, nx, ny, nz, stepx, stepy, stepz, sdx, sdy,
-            sdz, thr, arrays) -> int
+            sdz, thr, fmax, arrays) -> int   (fmax: the spectrum's largest value, 1 without a spectrum)
    arrays: ks (S,3), mt (T,3), e2 (T), it (S) i8, etau (U,T), F (flat) or None, best (S) or None, mag (S),
    gmax (U) (the largest e2[t] * etau[u, t] of each tau), rowmax (ny) or None (each spectrum row's largest), then
      pass 1: out (S) f8, tstar (S) i8, ub (S,T) f8, ns (S) i8 -> the number of states ns that need pass 2: out
@@ -730,9 +730,10 @@ static PyObject *emission(PyObject *self, PyObject *args) {
     em_t m;
     double thr;
     PyObject *arrs;
-    if (!PyArg_ParseTuple(args, "inniiiidddiinnndddddddO", &pass, &m.S, &m.T, &m.fixed[0], &m.fixed[1], &m.fixed[2],
-                          &m.vshape, &m.vd[0], &m.vd[1], &m.vd[2], &m.sshape, &m.s3d, &m.n[0], &m.n[1], &m.n[2],
-                          &m.step[0], &m.step[1], &m.step[2], &m.sd[0], &m.sd[1], &m.sd[2], &thr, &arrs))
+    if (!PyArg_ParseTuple(args, "inniiiidddiinnndddddddd" "O", &pass, &m.S, &m.T, &m.fixed[0], &m.fixed[1],
+                          &m.fixed[2], &m.vshape, &m.vd[0], &m.vd[1], &m.vd[2], &m.sshape, &m.s3d, &m.n[0], &m.n[1],
+                          &m.n[2], &m.step[0], &m.step[1], &m.step[2], &m.sd[0], &m.sd[1], &m.sd[2], &thr, &m.fmax,
+                          &arrs))
         return NULL;
     const Py_ssize_t S = m.S, T = m.T;
     const int nin = 10, nout = pass == 1 ? 4 : (pass == 2 ? 7 : 4);
@@ -784,12 +785,7 @@ static PyObject *emission(PyObject *self, PyObject *args) {
         }
     }
     for (int a = 0; a < 3; a++) m.inv_n[a] = 1.0 / (double)(m.n[a] > 0 ? m.n[a] : 1);
-    m.fmax = 1.0;
-    if (!bad && m.sshape >= 0) {
-        m.fmax = 0.0;
-        for (Py_ssize_t i = 0; i < nF; i++)
-            if (m.F[i] > m.fmax) m.fmax = m.F[i];
-    }
+
     Py_ssize_t ret = 0;
     ax_t x[3];
     if (!bad && pass == 1) {

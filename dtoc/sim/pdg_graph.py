@@ -252,15 +252,25 @@ class ObjectSpectrum:
         self.step_y = 2 * np.pi / (pad * ny * self.dy)
         self.shape = phantom.voxel_shape
 
+    def row_max(self) -> np.ndarray:
+        """The largest value of each row (ky) of a 2D spectrum, computed once."""
+        if not hasattr(self, "_row_max"):
+            self._row_max = self.F.max(axis=1)
+        return self._row_max
+
+    def max_value(self) -> float:
+        """The spectrum's largest value, computed once."""
+        if not hasattr(self, "_max"):
+            self._max = float(self.F.max())
+        return self._max
+
     def bound_at_ky(self, ky: np.ndarray, dist_x: np.ndarray) -> np.ndarray:
         """An upper bound of :meth:`at_axes` over every kx with abs(kx) >= ``dist_x`` at the given ``ky`` (same
         row of the spectrum, same y factor) and any kz: the row's maximum times the x factor's envelope
         (abs(sinc(u)) <= 1 / (pi abs(u))).  3D phantoms: 1."""
         if self.F.ndim == 3:
             return np.ones(np.shape(ky))
-        if not hasattr(self, "_row_max"):
-            self._row_max = self.F.max(axis=1)
-        val = self._row_max[np.round(ky / self.step_y).astype(np.int64) % self.F.shape[-2]]
+        val = self.row_max()[np.round(ky / self.step_y).astype(np.int64) % self.F.shape[-2]]
         if self.shape == "box":
             with np.errstate(divide="ignore"):
                 xb = np.minimum(1.0, 2.0 / (dist_x * self.dx))
@@ -585,6 +595,7 @@ class _Emission:
         vd = [0.0 if (d is None or d <= 0) else float(d) for d in bnd.voxel_m]
         if spec is None:
             sshape, s3d, nsz, steps, sd, F = -1, 0, (1, 1, 1), (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), None
+            fmax, rowmax = 1.0, None
         else:
             s3d = int(spec.F.ndim == 3)
             sshape = {"box": 1, "sinc": 2}.get(spec.shape, 0)
@@ -592,11 +603,12 @@ class _Emission:
             steps = (spec.step_x, spec.step_y, spec.step_z if s3d else 1.0)
             sd = (spec.dx, spec.dy, spec.dz if s3d else 1.0)
             F = np.ascontiguousarray(spec.F, dtype=np.float64).reshape(-1)
+            fmax, rowmax = spec.max_value(), None if s3d else np.ascontiguousarray(spec.row_max(), dtype=np.float64)
         ut, it = unique_bits(R["tau"][idx])
         etau = np.exp(-np.abs(ut[:, None] + dtt[None, :]) / bnd.t2d)
         e2 = np.ascontiguousarray(bnd.e2(dtt))
         thr = float(self.min_emitted) if best is not None else 0.0
-        params = (S, T, *fixed, vshape, *vd, sshape, s3d, *nsz, *steps, *sd, thr)
+        params = (S, T, *fixed, vshape, *vd, sshape, s3d, *nsz, *steps, *sd, thr, fmax)
         common = (
             ks,
             mt,
@@ -607,7 +619,7 @@ class _Emission:
             None if best is None else np.ascontiguousarray(best, dtype=np.float64),
             np.ascontiguousarray(R["mag"][idx], dtype=np.float64),
             np.ascontiguousarray((e2[None, :] * etau).max(axis=1)),
-            None if (spec is None or s3d) else np.ascontiguousarray(spec.F.max(axis=1), dtype=np.float64),
+            rowmax,
         )
         out = np.empty(S)
         tstar = np.empty(S, dtype=np.int64)
