@@ -152,12 +152,16 @@ def main(argv: list[str] | None = None) -> None:
     if not a.no_write and not want:
         from bench._report import write_section
 
+        stamp = (
+            f"dtoc {_commit(tree)}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, load {load0[0]:.2f} "
+            f"{load0[1]:.2f} {load0[2]:.2f}, repeats {a.repeats}"
+        )
         body = (
-            f"{head}; load at the end {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}.  CPU time of this process (the "
+            f"{stamp}; load at the end {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}.  CPU time of this process (the "
             "steadier figure on a shared machine), the formulations alternated call by call; first call = the "
-            "process's first build, with the formulation that runs by default.  The graphs are the same bit for bit "
-            "(tests/test_prepass_native.py, tests/test_prepass_golden.py, tests/test_prepass_equivalence.py).\n\n"
-            + "\n".join(lines)
+            "case's first build in the process, with the formulation that runs by default (compiled where built).  "
+            "The graphs are the same bit for bit (tests/test_prepass_native.py, tests/test_prepass_golden.py, "
+            "tests/test_prepass_equivalence.py).\n\n" + "\n".join(lines)
         )
         print(f"wrote {write_section('prepass', 'PDG pre-pass (graph build)', body, 'python -m bench.prepass')}")
 
