@@ -54,7 +54,7 @@ def native_in_use() -> bool:
 
 @contextlib.contextmanager
 def prepass_backend(name: str) -> Iterator[None]:
-    """Within the block, :func:`split_step` merges with ``name``: 'numpy' (always there) or 'native' (the
+    """Within the block (process-wide, not per thread), the pre-pass runs with ``name``: 'numpy' (always there) or 'native' (the
     compiled merge; ValueError when it was not built).  The graphs are the same bit for bit either way."""
     if name not in ("numpy", "native"):
         raise ValueError(f"prepass backend {name!r}: expected 'numpy' or 'native'")
