@@ -17,6 +17,11 @@ per-column formulation gave (tests/test_prepass_golden.py, tests/test_prepass_eq
 * the children's amplitude sums add every edge's complex value in edge order from zero
   (:func:`dtoc.sim.pdg_graph.add_rows_by_index`: one ``np.bincount`` over the interleaved real and imaginary parts,
   the same additions in the same order as ``np.add.at``).
+
+Where a C compiler was there at install, an optional compiled core (``dtoc/sim/_pdg_split.c``, see
+:func:`native_available`) does the merge, the survivors and the cap of each split, the prune pass's per-interval
+index work (:func:`prune_native`) and the emission bound's per-sample work (:func:`emission_native`); it does only
+exactly rounded operations, so the graph is this module's numpy one bit for bit (tests/test_prepass_native.py).
 """
 
 from __future__ import annotations
@@ -42,20 +47,20 @@ _state = {"native": _native is not None and os.environ.get("DTOC_PREPASS_NATIVE"
 
 
 def native_available() -> bool:
-    """True when the compiled merge of the RF split (``dtoc/sim/_pdg_split.c``) was built at install."""
+    """True when the compiled core of the pre-pass (``dtoc/sim/_pdg_split.c``) was built at install."""
     return _native is not None
 
 
 def native_in_use() -> bool:
-    """True when :func:`split_step` runs its compiled merge (built, and not switched off by
-    ``DTOC_PREPASS_NATIVE=0`` or :func:`prepass_backend`)."""
+    """True when the pre-pass runs its compiled core (built, and not switched off by ``DTOC_PREPASS_NATIVE=0`` or
+    :func:`prepass_backend`)."""
     return bool(_state["native"])
 
 
 @contextlib.contextmanager
 def prepass_backend(name: str) -> Iterator[None]:
-    """Within the block (process-wide, not per thread), the pre-pass runs with ``name``: 'numpy' (always there) or 'native' (the
-    compiled merge; ValueError when it was not built).  The graphs are the same bit for bit either way."""
+    """Within the block (process-wide, not per thread), the pre-pass runs with ``name``: 'numpy' (always there) or
+    'native' (the compiled core; ValueError when it was not built).  The graphs are the same bit for bit either way."""
     if name not in ("numpy", "native"):
         raise ValueError(f"prepass backend {name!r}: expected 'numpy' or 'native'")
     if name == "native" and _native is None:
