@@ -432,6 +432,21 @@ static PyObject *finish(PyObject *self, PyObject *args) {
     int64_t *e_par = (int64_t *)b[17].b.buf;
     int64_t *e_kind = (int64_t *)b[18].b.buf;
     double *e_cand = (double *)b[19].b.buf;
+    /* the indices come from merge(); checked all the same (a wrong one would read outside the arrays) */
+    for (Py_ssize_t e = 0; e < E; e++) {
+        if (inv[e] < 0 || inv[e] >= nU || par[e] < 0 || par[e] >= S || slot[e] < 0 || slot[e] > 2) {
+            release(b, 20);
+            PyErr_SetString(PyExc_ValueError, "_pdg_split.finish: edge index out of range");
+            return NULL;
+        }
+    }
+    for (Py_ssize_t c = 0; c < nU; c++) {
+        if (rep[c] < -1 || rep[c] >= E) {
+            release(b, 20);
+            PyErr_SetString(PyExc_ValueError, "_pdg_split.finish: representative edge out of range");
+            return NULL;
+        }
+    }
     PyObject *ret = NULL;
     uint8_t *alive = (uint8_t *)malloc((size_t)nU);
     int64_t *new_idx = (int64_t *)malloc((size_t)nU * sizeof(int64_t));
