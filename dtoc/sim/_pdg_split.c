@@ -448,8 +448,9 @@ static PyObject *finish(PyObject *self, PyObject *args) {
         }
     }
     PyObject *ret = NULL;
-    uint8_t *alive = (uint8_t *)malloc((size_t)nU);
-    int64_t *new_idx = (int64_t *)malloc((size_t)nU * sizeof(int64_t));
+    const size_t nu = (size_t)(nU > 0 ? nU : 1); /* nU >= 1 (checked above); said again for the compiler */
+    uint8_t *alive = (uint8_t *)malloc(nu);
+    int64_t *new_idx = (int64_t *)malloc(nu * sizeof(int64_t));
     double *score = NULL;
     if (!alive || !new_idx) goto nomem;
     Py_ssize_t n_alive = 0;
