@@ -135,6 +135,22 @@ def test_native_and_numpy_build_the_same_graphs_tse_and_3d(tmp_path):
         assert _both(f"gre3d/{shape}", lambda ph3=ph3: build_graph(ir3, pdg.PDGConfig(), ph3)) > 100
 
 
+@needs_native
+def test_native_and_numpy_build_the_same_graphs_in_chunks(monkeypatch):
+    """The emission bound evaluated a few states at a time (as for long readouts x many states): the same graph as
+    in one piece, from both formulations."""
+    from dtoc.sim import pdg_graph
+
+    ir = load_sequence(REPO / "sequences" / "gre_small.seq")
+    ph = brain_phantom(32, fov_m=tuple(ir.fov_m[:2]), b0=True, b1=True)
+    with prepass_backend("numpy"):
+        whole = build_graph(ir, pdg.PDGConfig(), ph)
+    monkeypatch.setattr(pdg_graph, "EXACT_CHUNK_ELEMS", 5 * 64)  # a few states per piece
+    _both("chunks", lambda: build_graph(ir, pdg.PDGConfig(), ph))
+    with prepass_backend("native"):
+        _assert_identical(build_graph(ir, pdg.PDGConfig(), ph), whole, "chunks vs whole")
+
+
 def test_prepass_backend_switch():
     """The numpy formulation can always be chosen; the compiled one only where it was built; the default is the
     compiled one where it was built (unless DTOC_PREPASS_NATIVE=0)."""

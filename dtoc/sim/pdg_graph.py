@@ -539,6 +539,10 @@ def build_graph(
     return graph
 
 
+#: the emission bound is evaluated for at most this many (state, ADC sample) pairs at a time (memory bound)
+EXACT_CHUNK_ELEMS = 2**22
+
+
 class _Emission:
     """Emission bounds of the raw states of :func:`build_graph`: per state, the largest signal it can give at its
     interval's ADC samples per unit amplitude (voxel envelope, object spectrum, T2 and T2' decay; final
@@ -567,7 +571,7 @@ class _Emission:
         dtt, mt = self._window(n)
         fixed = [bool(np.all(mt[:, a] == mt[0, a])) for a in range(3)]
         # chunk over states to bound memory (S x T)
-        step = max(1, int(2**22 // max(1, dtt.size)))
+        step = max(1, int(EXACT_CHUNK_ELEMS // max(1, dtt.size)))
         for s0 in range(0, idx.size, step):
             ks = R["k"][idx[s0 : s0 + step]]
             # per axis (S, T), or (S, 1) where the nominal gradient is off during the window (same values)
@@ -587,6 +591,14 @@ class _Emission:
         are those of the exact values, bit for bit; a value at or below ``best`` may be returned lower."""
         R, bnd, spec = self.raw[n], self.bnd, self.spec
         dtt, mt = self._window(n)
+        step = max(1, int(EXACT_CHUNK_ELEMS // max(1, dtt.size)))  # states per call: bounded (states x samples)
+        if idx.size > step:
+            return np.concatenate(
+                [
+                    self._exact_native(n, idx[s0 : s0 + step], None if best is None else best[s0 : s0 + step])
+                    for s0 in range(0, idx.size, step)
+                ]
+            )
         mt = np.ascontiguousarray(mt)
         S, T = idx.size, dtt.size
         ks = np.ascontiguousarray(R["k"][idx])
