@@ -37,7 +37,7 @@ import numpy as np
 from dtoc.constants import GAMMA_RAD_PER_S_PER_MT
 from dtoc.seq.ir import SequenceIR
 from dtoc.sim.pdg_config import PDGConfig
-from dtoc.sim.pdg_graph_step import split_step
+from dtoc.sim.pdg_graph_step import emission_native, native_in_use, prune_native, split_step, unique_bits
 from dtoc.sim.pdg_rows import CONJ, first_max_by_group
 
 
@@ -252,15 +252,25 @@ class ObjectSpectrum:
         self.step_y = 2 * np.pi / (pad * ny * self.dy)
         self.shape = phantom.voxel_shape
 
+    def row_max(self) -> np.ndarray:
+        """The largest value of each row (ky) of a 2D spectrum, computed once."""
+        if not hasattr(self, "_row_max"):
+            self._row_max = self.F.max(axis=1)
+        return self._row_max
+
+    def max_value(self) -> float:
+        """The spectrum's largest value, computed once."""
+        if not hasattr(self, "_max"):
+            self._max = float(self.F.max())
+        return self._max
+
     def bound_at_ky(self, ky: np.ndarray, dist_x: np.ndarray) -> np.ndarray:
         """An upper bound of :meth:`at_axes` over every kx with abs(kx) >= ``dist_x`` at the given ``ky`` (same
         row of the spectrum, same y factor) and any kz: the row's maximum times the x factor's envelope
         (abs(sinc(u)) <= 1 / (pi abs(u))).  3D phantoms: 1."""
         if self.F.ndim == 3:
             return np.ones(np.shape(ky))
-        if not hasattr(self, "_row_max"):
-            self._row_max = self.F.max(axis=1)
-        val = self._row_max[np.round(ky / self.step_y).astype(np.int64) % self.F.shape[-2]]
+        val = self.row_max()[np.round(ky / self.step_y).astype(np.int64) % self.F.shape[-2]]
         if self.shape == "box":
             with np.errstate(divide="ignore"):
                 xb = np.minimum(1.0, 2.0 / (dist_x * self.dx))
@@ -529,6 +539,10 @@ def build_graph(
     return graph
 
 
+#: the emission bound is evaluated for at most this many (state, ADC sample) pairs at a time (memory bound)
+EXACT_CHUNK_ELEMS = 2**22
+
+
 class _Emission:
     """Emission bounds of the raw states of :func:`build_graph`: per state, the largest signal it can give at its
     interval's ADC samples per unit amplitude (voxel envelope, object spectrum, T2 and T2' decay; final
@@ -550,12 +564,14 @@ class _Emission:
 
     def exact(self, n: int, idx: np.ndarray) -> np.ndarray:
         """Emission bound of the transverse states ``idx`` of interval ``n`` at its ADC samples (max over them)."""
+        if native_in_use() and idx.size:
+            return self._exact_native(n, idx)
         R, bnd = self.raw[n], self.bnd
         out = np.empty(idx.size)
         dtt, mt = self._window(n)
         fixed = [bool(np.all(mt[:, a] == mt[0, a])) for a in range(3)]
         # chunk over states to bound memory (S x T)
-        step = max(1, int(2**22 // max(1, dtt.size)))
+        step = max(1, int(EXACT_CHUNK_ELEMS // max(1, dtt.size)))
         for s0 in range(0, idx.size, step):
             ks = R["k"][idx[s0 : s0 + step]]
             # per axis (S, T), or (S, 1) where the nominal gradient is off during the window (same values)
@@ -563,6 +579,83 @@ class _Emission:
             tt = np.abs(R["tau"][idx[s0 : s0 + step]][:, None] + dtt[None, :])
             env = env * bnd.e2(dtt)[None, :] * np.exp(-tt / bnd.t2d)
             out[s0 : s0 + step] = env.max(axis=1)
+        return out
+
+    def _exact_native(self, n: int, idx: np.ndarray, best: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`exact` with the compiled core (``emission`` in ``dtoc/sim/_pdg_split.c``): every exactly rounded
+        operation there, the transcendental functions numpy's -- the T2' decay once per distinct tau and sample, the
+        spectrum's sincs only at the samples that can still hold a state's maximum (each state's sample of largest
+        upper bound, then those whose bound exceeds the value found there).  With ``best`` (the states' bounds
+        through their children, see :meth:`of`), a state or sample whose upper bound can change neither its latent
+        bound nor its emitter decision is left out as :meth:`of` leaves out states: the latent bounds and decisions
+        are those of the exact values, bit for bit; a value at or below ``best`` may be returned lower."""
+        R, bnd, spec = self.raw[n], self.bnd, self.spec
+        dtt, mt = self._window(n)
+        step = max(1, int(EXACT_CHUNK_ELEMS // max(1, dtt.size)))  # states per call: bounded (states x samples)
+        if idx.size > step:
+            return np.concatenate(
+                [
+                    self._exact_native(n, idx[s0 : s0 + step], None if best is None else best[s0 : s0 + step])
+                    for s0 in range(0, idx.size, step)
+                ]
+            )
+        mt = np.ascontiguousarray(mt)
+        S, T = idx.size, dtt.size
+        ks = np.ascontiguousarray(R["k"][idx])
+        fixed = [bool(np.all(mt[:, a] == mt[0, a])) for a in range(3)]
+        vshape = {"box": 1, "sinc": 2}.get(bnd.voxel_shape, 0)
+        vd = [0.0 if (d is None or d <= 0) else float(d) for d in bnd.voxel_m]
+        if spec is None:
+            sshape, s3d, nsz, steps, sd, F = -1, 0, (1, 1, 1), (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), None
+            fmax, rowmax = 1.0, None
+        else:
+            s3d = int(spec.F.ndim == 3)
+            sshape = {"box": 1, "sinc": 2}.get(spec.shape, 0)
+            nsz = (spec.F.shape[-1], spec.F.shape[-2], spec.F.shape[0] if s3d else 1)
+            steps = (spec.step_x, spec.step_y, spec.step_z if s3d else 1.0)
+            sd = (spec.dx, spec.dy, spec.dz if s3d else 1.0)
+            F = np.ascontiguousarray(spec.F, dtype=np.float64).reshape(-1)
+            fmax, rowmax = spec.max_value(), None if s3d else np.ascontiguousarray(spec.row_max(), dtype=np.float64)
+        ut, it = unique_bits(R["tau"][idx])
+        etau = np.exp(-np.abs(ut[:, None] + dtt[None, :]) / bnd.t2d)
+        e2 = np.ascontiguousarray(bnd.e2(dtt))
+        thr = float(self.min_emitted) if best is not None else 0.0
+        params = (S, T, *fixed, vshape, *vd, sshape, s3d, *nsz, *steps, *sd, thr, fmax)
+        common = (
+            ks,
+            mt,
+            e2,
+            it,
+            np.ascontiguousarray(etau),
+            F,
+            None if best is None else np.ascontiguousarray(best, dtype=np.float64),
+            np.ascontiguousarray(R["mag"][idx], dtype=np.float64),
+            np.ascontiguousarray((e2[None, :] * etau).max(axis=1)),
+            rowmax,
+        )
+        out = np.empty(S)
+        tstar = np.empty(S, dtype=np.int64)
+        ub = np.empty((S, T))
+        ns = np.empty(S, dtype=np.int64)
+        N = emission_native(1, params, (*common, out, tstar, ub, ns))
+        if sshape != 1 or N == 0:
+            return out
+
+        def sincs(s_idx: np.ndarray, t_idx: np.ndarray) -> np.ndarray:
+            """(C, 3) numpy's sinc of each axis' k at the elements (state, sample), as exact() forms them."""
+            sv = np.zeros((s_idx.size, 3))
+            for a in range(3 if s3d else 2):
+                kk = ks[s_idx, a] + (mt[0, a] if fixed[a] else mt[t_idx, a])
+                sv[:, a] = np.sinc(kk * sd[a] / (2 * np.pi))
+            return sv
+
+        ns = ns[:N]
+        cs = np.empty(S * T, dtype=np.int64)
+        ct = np.empty(S * T, dtype=np.int64)
+        nc = emission_native(2, params, (*common, ns, tstar, ub, sincs(ns, tstar[ns]), out, cs, ct))
+        if nc:
+            cs, ct = cs[:nc], ct[:nc]
+            emission_native(3, params, (*common, cs, ct, sincs(cs, ct), out))
         return out
 
     def bound(self, n: int, idx: np.ndarray) -> np.ndarray:
@@ -589,7 +682,11 @@ class _Emission:
         R = self.raw[n]
         e = np.zeros(R["is_z"].size)
         tr = np.flatnonzero(~R["is_z"])
-        if self.adc_hi[n] > self.adc_lo[n] and tr.size:
+        if self.adc_hi[n] > self.adc_lo[n] and tr.size and native_in_use():
+            # the compiled core bounds every state sample by sample (tighter than bound()) and leaves out the same
+            use = best is not None and self.min_emitted > 0
+            e[tr] = self._exact_native(n, tr, best[tr] if use and best is not None else None)
+        elif self.adc_hi[n] > self.adc_lo[n] and tr.size:
             if best is not None and self.min_emitted > 0:
                 ub = self.bound(n, tr)
                 tr = tr[(ub > best[tr]) | (R["mag"][tr] * ub >= self.min_emitted)]
@@ -638,9 +735,36 @@ def _prune(ctx, emit_b, latent, restrict=None) -> tuple[list, list]:
     keeps = []
     prev_keep: Any = None
     prev_newi: Any = None
+    native = native_in_use()
     for n in range(NI):
         R = raw[n]
         S = R["is_z"].size
+        if native and n > 0:
+            has_adc = bool(adc_hi[n] > adc_lo[n])
+            rs = None if restrict is None else restrict[n]
+            keepm, newi, arrs = prune_native(
+                R,
+                latent[n],
+                rs,
+                prev_keep,
+                prev_newi,
+                emit_b[n],
+                cfg.min_latent_signal,
+                cfg.min_emitted_signal,
+                has_adc,
+            )
+            intervals.append(
+                IntervalGraph(
+                    t_start_s=float(bounds_t[n]),
+                    t_end_s=float(bounds_t[n + 1]),
+                    adc_start=int(adc_lo[n]),
+                    adc_stop=int(adc_hi[n]),
+                    **arrs,
+                )
+            )
+            prev_keep, prev_newi = keepm, newi
+            keeps.append(keepm)
+            continue
         keepm = R["mag"] * latent[n] >= cfg.min_latent_signal
         if restrict is not None:
             keepm &= restrict[n]
