@@ -156,13 +156,22 @@ def _epi256_spec():
     )
 
 
-def measure(fn, device: str, tmp: Path, count: bool) -> dict:
+def measure(fn, device: str, tmp: Path, count: bool, second: bool = False) -> dict:
+    from dtoc.util.replay import totals
+
     torch.manual_seed(0)
     _sync(device)
+    before = totals()["replays"]
     t0 = time.perf_counter()
     r = fn(device, tmp)
     _sync(device)
     r["time_s"] = time.perf_counter() - t0
+    r["replays"] = totals()["replays"] - before
+    if second:  # the same job again in this process: what a batch of jobs costs each after the first
+        t0 = time.perf_counter()
+        fn(device, tmp)
+        _sync(device)
+        r["time2_s"] = time.perf_counter() - t0
     if count:
         with _Count() as c:
             fn(device, tmp)
@@ -185,7 +194,9 @@ def _fmt(v, unit: str = "") -> str:
     return f"{v:.1f}{unit}" if isinstance(v, float) else f"{v}{unit}"
 
 
-def run(selected: list[str] | None, quick: bool, count: bool, devices: list[str], save: str = "") -> list[dict]:
+def run(
+    selected: list[str] | None, quick: bool, count: bool, devices: list[str], save: str = "", second: bool = False
+) -> list[dict]:
     rows = []
     allj = jobs(quick)
     for key, (label, fn) in allj.items():
@@ -195,7 +206,7 @@ def run(selected: list[str] | None, quick: bool, count: bool, devices: list[str]
         for dev in devices:
             with tempfile.TemporaryDirectory() as td:
                 try:
-                    row[dev] = measure(fn, dev, Path(td), count)
+                    row[dev] = measure(fn, dev, Path(td), count, second and dev.startswith("cuda"))
                 except Exception as e:  # one failing job must not lose the others' figures
                     row[dev] = {"error": f"{type(e).__name__}: {e}"[:200]}
         print(
@@ -221,10 +232,13 @@ def table(rows: list[dict], devices: list[str], quick: bool, merged: bool = Fals
         f"{'short settings (--quick: 4 full-loss and 100 warm-start iterations, 30 dummies); ' if quick else ''}"
         f"{'each job and device in its own process, side by side on this machine' if merged else 'both devices in one process'}, the same job each.  'ops' = aten operations dispatched, counted in a "
         "second run under a TorchDispatchMode (optimize jobs: the whole run's count over its warm-start + "
-        "full-loss iterations; simulator jobs: per call).  Times on a shared machine are noisy.",
+        "full-loss iterations; simulator jobs: per call).  'CUDA s': the job's first run in its process (after a "
+        "small FFT and matmul made the CUDA context, not timed); '2nd run': the same job again in the same "
+        "process (with --second; what each job after the first of a batch costs); 'steps replayed': calls of the "
+        "warm start's steps that ran as one CUDA graph each (dtoc.util.replay).  Times on a shared machine are noisy.",
         "",
-        "| job | CPU s | CUDA s | CUDA / CPU | CPU ops | CUDA ops | results (CUDA vs CPU) |",
-        "|---|---|---|---|---|---|---|",
+        "| job | CPU s | CUDA s | CUDA / CPU | CUDA s, 2nd run | steps replayed as CUDA graphs | CPU ops | CUDA ops | results (CUDA vs CPU) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         c = r.get("cpu", {})
@@ -237,8 +251,11 @@ def table(rows: list[dict], devices: list[str], quick: bool, merged: bool = Fals
         cres = c.get("result")
         if g is None and not isinstance(cres, torch.Tensor) and cres is not None:
             res = f"CPU {cres:.3f} %; CUDA not measured"
+        g2 = g.get("time2_s") if g else None
         lines.append(
-            f"| {r['label']} | {_fmt(ct)} | {_fmt(gt)} | {ratio} | {_fmt(c.get('ops'))} | {_fmt(g.get('ops') if g else None)} | {res} |"
+            f"| {r['label']} | {_fmt(ct)} | {_fmt(gt)} | {ratio} | {_fmt(g2) if g2 is not None else '-'} | "
+            f"{g.get('replays', '-') if g else 'not measured'} | {_fmt(c.get('ops'))} | "
+            f"{_fmt(g.get('ops') if g else None)} | {res} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -357,6 +374,7 @@ def main(argv: list[str] | None = None) -> int:
         "--jobs", default="", help="comma-separated job keys or prefixes (readme, gre_fig5, epi256, gre_dummies, sim)"
     )
     ap.add_argument("--no-count", action="store_true", help="skip the operation count (one run per job and device)")
+    ap.add_argument("--second", action="store_true", help="on CUDA, time each job a second time in the same process")
     ap.add_argument("--no-write", action="store_true", help="print only; do not update docs/benchmarks.md")
     ap.add_argument("--ops-only", action="store_true", help="only the operation-count table (printed, not written)")
     ap.add_argument(
@@ -386,7 +404,7 @@ def main(argv: list[str] | None = None) -> int:
             if d.startswith("cuda"):
                 z = torch.randn(64, 64, device=d, dtype=torch.complex64)
                 (torch.fft.fft(z) @ z).abs().sum().item()
-        rows = run([s for s in a.jobs.split(",") if s] or None, a.quick, not a.no_count, devices, a.save_rows)
+        rows = run([s for s in a.jobs.split(",") if s] or None, a.quick, not a.no_count, devices, a.save_rows, a.second)
         if a.save_rows:
             return 0
     text = table(rows, devices + ([] if "cuda" in devices else ["cuda-absent"]), a.quick, merged=bool(a.merge))
