@@ -138,6 +138,16 @@ def test_the_nominal_k_of_many_adc_samples_is_computed_in_pieces_bit_for_bit(tmp
         monkeypatch.setattr(K, "CUMULATIVE_CHUNK", chunk)
     whole = ir.kspace_rad_per_m().numpy()
     assert np.abs(whole).max() > 100  # rad/m: encoded
+    whole_k = ir.kspace_rad_per_m
+    asked: list[int] = []
+
+    def recorded(*a, times_s=None, **k):
+        asked.append(ir.n_adc_samples if times_s is None else len(times_s))
+        return whole_k(*a, times_s=times_s, **k)
+
+    monkeypatch.setattr(ir, "kspace_rad_per_m", recorded)
     for piece in (37, 256, 1 << 20):
         monkeypatch.setattr(I, "NOMINAL_K_PIECE", piece)
+        asked.clear()
         assert np.array_equal(ir.nominal_kspace_rad_per_m(), whole)
+        assert max(asked) == min(piece, 256) and len(asked) == -(-256 // piece)  # no query longer than a piece
