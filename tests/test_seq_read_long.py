@@ -6,6 +6,7 @@ IR is the one a decoding per event gives.  The file comes from our own pypulseq 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from dtoc.seq import read as R
 from dtoc.seq.ir import interp_fine
@@ -100,3 +101,53 @@ def test_fov_definition_in_millimetres_is_read_as_such(tmp_path):
         assert bool(said) == (name == "mm")
     assert np.allclose(grids["m"][0], grids["mm"][0], rtol=1e-12) and grids["m"][1] == grids["mm"][1]
     assert grids["m"][1] is not None and max(grids["m"][1]) < 64
+
+
+def test_the_readout_guess_interpolates_the_adc_gradient_in_pieces(tmp_path, monkeypatch):
+    """A file without axis definitions: the readout axis is guessed from the mean |g| over its ADC samples, read
+    piece by piece (a 5-minute 3D file has 5.8 M ADC samples: no (3, N_adc) temporaries); the means are those of
+    the whole interpolation bit for bit, whatever the piece, and the guess is their largest."""
+    from foreign.writers import gre
+
+    p = tmp_path / "gre.seq"
+    p.write_bytes(gre(n=16))
+    ir = R.read_seq(p)
+    whole = np.array([np.abs(ir.grad_at(ir.adc_times_s)[a]).mean() for a in range(3)])
+    assert ir.n_adc_samples == 256 and whole.max() > 0
+    for piece in (7, 100, 1 << 18):
+        monkeypatch.setattr(R, "ADC_PIECE", piece)
+        assert np.array_equal(R.mean_abs_grad_at_adc(ir), whole)
+    assert ir.meta.get("axes_guessed") and ir.readout_axis == int(np.argmax(whole))
+
+
+@pytest.mark.parametrize("chunk", [None, 64])
+def test_the_nominal_k_of_many_adc_samples_is_computed_in_pieces_bit_for_bit(tmp_path, monkeypatch, chunk):
+    """More ADC samples than ``NOMINAL_K_PIECE``: the nominal k piece by piece (no per-sample temporaries of the
+    whole acquisition) equals the whole computation bit for bit, with excitations and refocusing pulses (a TSE:
+    k is negated at each refocusing centre) and with the waveform's running integral whole or in chunks."""
+    from foreign.writers import tse
+
+    import dtoc.seq.ir as I
+    import dtoc.seq.kspace as K
+
+    p = tmp_path / "tse.seq"
+    p.write_bytes(tse(n=16, etl=4))
+    ir = R.read_seq(p)
+    assert any(r.refocuses for r in ir.rf) and ir.n_adc_samples == 256
+    if chunk is not None:
+        monkeypatch.setattr(K, "CUMULATIVE_CHUNK", chunk)
+    whole = ir.kspace_rad_per_m().numpy()
+    assert np.abs(whole).max() > 100  # rad/m: encoded
+    whole_k = ir.kspace_rad_per_m
+    asked: list[int] = []
+
+    def recorded(*a, times_s=None, **k):
+        asked.append(ir.n_adc_samples if times_s is None else len(times_s))
+        return whole_k(*a, times_s=times_s, **k)
+
+    monkeypatch.setattr(ir, "kspace_rad_per_m", recorded)
+    for piece in (37, 256, 1 << 20):
+        monkeypatch.setattr(I, "NOMINAL_K_PIECE", piece)
+        asked.clear()
+        assert np.array_equal(ir.nominal_kspace_rad_per_m(), whole)
+        assert max(asked) == min(piece, 256) and len(asked) == -(-256 // piece)  # no query longer than a piece

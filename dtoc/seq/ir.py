@@ -101,6 +101,10 @@ class ADCEvent:
         return self.t_start_s + (np.arange(self.num_samples) + 0.5) * self.dwell_s
 
 
+#: ADC samples per piece of :meth:`SequenceIR.nominal_kspace_rad_per_m` (its temporaries: ~230 bytes per sample)
+NOMINAL_K_PIECE = 1 << 20
+
+
 @dataclass
 class SequenceIR:
     """One sequence, as played.
@@ -206,8 +210,19 @@ class SequenceIR:
         return kspace_at(g, self.dt_fine_s, t, [r.t_center_s for r in self.rf], [r.use for r in self.rf])
 
     def nominal_kspace_rad_per_m(self) -> np.ndarray:
-        """(3, N_adc) target k-space at every ADC sample, rad/m (from the demanded = ideal gradient)."""
-        return self.kspace_rad_per_m().numpy()
+        """(3, N_adc) target k-space at every ADC sample, rad/m (from the demanded = ideal gradient).
+
+        More than :data:`NOMINAL_K_PIECE` ADC samples are computed piece by piece (a 5-minute 3D file: 5.8 M
+        samples, ~1.3 GB of per-sample temporaries at once otherwise): the same numbers bit for bit, as each
+        sample's k is its own running integral and reset (:func:`dtoc.seq.kspace.kspace_at`), whatever the other
+        query times; each piece integrates the waveform again (a pass per 2^20 samples)."""
+        t = self.adc_times_s
+        if len(t) <= NOMINAL_K_PIECE:
+            return self.kspace_rad_per_m().numpy()
+        out = np.empty((3, len(t)))
+        for i in range(0, len(t), NOMINAL_K_PIECE):
+            out[:, i : i + NOMINAL_K_PIECE] = self.kspace_rad_per_m(times_s=t[i : i + NOMINAL_K_PIECE]).numpy()
+        return out
 
     @property
     def dk_rad_per_m(self) -> np.ndarray | None:

@@ -140,6 +140,7 @@ def read_seq(
     from dtoc.seq.rfuse import block_rf_ids_of_text, resolve_rf_use
 
     resolve_rf_use(ir, st.version, block_rf_ids_of_text(st), rf_use)  # pre-1.5 files: detected (no use field)
+    ir.free_mask = None  # the IR's placeholder (3 bytes per fine sample) released before the mask is built
     ir.free_mask = default_free_mask(  # once, where the RF use is known (it fixes the samples around pulses)
         ir, free_slice_axis=free_slice_axis, free_unused_axes=free_unused_axes, rf_guard=rf_guard
     )
@@ -412,12 +413,30 @@ def _apply_metadata(ir: SequenceIR) -> None:
         ir.meta["name"] = d["Name"].strip()
     if ir.readout_axis is None and ir.adc:
         # guess: the axis with the largest mean |g| over all ADC samples
-        t = ir.adc_times_s
-        at = ir.grad_at(t)
-        gm = np.array([np.abs(at[a]).mean() for a in range(3)])  # (per axis: the sums' order of np.interp's rows)
+        gm = mean_abs_grad_at_adc(ir)
         if gm.max() > 0:
             ir.readout_axis = int(np.argmax(gm))
             ir.meta["axes_guessed"] = True
+
+
+#: ADC samples per piece where :func:`mean_abs_grad_at_adc` interpolates (its temporaries: a piece's, not the
+#: sequence's; a 5-minute 3D file has 5.8 M ADC samples: ~1 GB of whole-length temporaries at once)
+ADC_PIECE = 1 << 18
+
+
+def mean_abs_grad_at_adc(ir: SequenceIR) -> np.ndarray:
+    """(3,) the mean |demanded gradient| over every ADC sample, per axis: the numbers of
+    ``np.abs(ir.grad_at(ir.adc_times_s)[a]).mean()``, bit for bit (each |g| is elementwise, computed piece by piece
+    into one array per axis, then averaged whole as before), without the (3, N_adc) interpolation's temporaries."""
+    t = ir.adc_times_s
+    out = np.empty(3)
+    absg = np.empty(len(t))
+    for a in range(3):
+        for i in range(0, len(t), ADC_PIECE):
+            e = slice(i, i + ADC_PIECE)
+            absg[e] = np.abs(interp_fine(ir.grad_mT_per_m[a], t[e], ir.dt_fine_s))
+        out[a] = absg.mean()
+    return out
 
 
 #: the most points :func:`rf_bandwidth_hz` zero-pads a waveform to

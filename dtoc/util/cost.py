@@ -60,15 +60,21 @@ WHOLE_BYTES_PER_ADC = 45e3
 WHOLE_SECONDS_PER_FINE = 1.75e-4
 WHOLE_SECONDS_PER_ADC2 = 6.2e-8
 #: windowed solve (one excitation period at a time): the whole-sequence arrays (bytes per fine sample: the IR's
-#: waveform, the limit envelopes, the masks, the edges, the export's waveform, and what the CLI's allocator keeps),
-#: the dense matrices of the largest window (this many n_free x n_free float64 matrices held at once, with the
-#: cached ones of its structure), the largest window's own arrays (below) and CPU seconds per fine sample.
-#: Measured 2026-11-27 on this project's 2-core Intel Xeon machine, bench.long's MPRAGE-like (KCL 7 T GIRF,
-#: 32/130, at most 3,924 free and 160,681 fine samples a window; load 10-17): 4 / 16 s (788,481 / 3,151,361 fine
-#: samples) peaked at 2.34 / 2.72 GB (31 MB per second of sequence, 160 bytes per fine sample; before the
-#: figures were streamed and the reader's copy dropped: 2.35 / 2.82 GB, 39 MB/s); the model: 2.58 / 2.96 GB.
-#: CPU: mprage(shots=5) (5 s, 985,601 fine samples, 161 windows) 63 s CPU, 2.29 GB (load ~11).
-WINDOW_BYTES_PER_FINE = 160
+#: waveform and mask, the limit envelopes, the edges, the export's waveform; bytes per ADC sample: nominal and
+#: realized k, their errors and masks, the read-back of the written file's ADC events), the dense matrices of the
+#: largest window (this many n_free x n_free float64 matrices held at once, with the cached ones of its structure),
+#: the largest window's own arrays (below) and CPU seconds per fine and per ADC sample.  Refitted 2026-11-27 (the
+#: constants before, 160 bytes and 5e-5 s per fine sample and nothing per ADC sample, predicted 12 GiB and 49 min
+#: for the 4.9 min MPRAGE and refused it; it needs 9.67 GB and 20 CPU minutes) to four runs on this project's
+#: 2-core Intel Xeon machine, peak RSS from wait4 / VmHWM in bytes (the bench tables print KiB / 1e6), the CLI's
+#: allocator setting, KCL 7 T GIRF, 32/130: the MPRAGE 5 min row's command (bench.protocols' base and options;
+#: 58,880,257 fine and 5,767,168 ADC samples, at most 4,806 free and 225,659 fine samples a window, 22,529
+#: windows; load 4-8): 9.67 GB, 1,193 s CPU; its 16-shot cut (36.8 s, 7,360,001 / 720,896, the same windows;
+#: load ~8): 4.02 GB, ~170 s CPU; bench.long's MPRAGE-like at 16 / 64 s (3,151,361 / 12,605,441 fine and 16,384 /
+#: 65,536 ADC samples, at most 3,924 free and 160,681 fine samples a window; idle): 2.47 / 2.89 GB, 44 / 133 s CPU.
+#: The model is 3-8 % above each peak and within 10 % of each CPU time.
+WINDOW_BYTES_PER_FINE = 48
+WINDOW_BYTES_PER_ADC = 640
 WINDOW_DENSE_MATRICES = 12
 #: the window's own arrays, per fine sample of the longest window (its impulse responses over twice its length on
 #: every chain channel, their running integrals, its residual): measured 2026-11-27 on the 2-core Xeon (load ~15,
@@ -76,21 +82,47 @@ WINDOW_DENSE_MATRICES = 12
 #: 200,000 / 400,000 fine samples peaked at 1.08 / 1.86 GB, 3.9 KB per fine sample of the window.  An excitation
 #: period of a minute (CEST preparations: 6 M fine samples) needs ~24 GB: refused here before any work
 WINDOW_BYTES_PER_WINDOW_FINE = 3.9e3
-WINDOW_SECONDS_PER_FINE = 5e-5
+WINDOW_SECONDS_PER_FINE = 9.4e-6
+WINDOW_SECONDS_PER_ADC = 1.09e-4
 #: fixed seconds of a run (reading, the hardware model, the first evaluations)
 RUN_SECONDS = 10.0
 #: an optimization whose estimate reaches this many seconds prints its estimate (a windowed one always does)
 LONG_RUN_SECONDS = 60.0
 
 
-def check_fits(what: str, need_bytes: float, fraction: float = FIT_FRACTION, way_out: str = "") -> None:
-    """Refuse, before any work, a job whose estimated peak memory exceeds ``fraction`` of the available memory.
+def held_bytes() -> int:
+    """Resident memory this process already holds (VmRSS, Linux; 0 where unknown)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def job_memory_bytes() -> int:
+    """Memory this job may use: what the machine has available (MemAvailable, at most the cgroup limit) plus what
+    the process already holds.  An estimate is of the process's whole peak (the read base, the plan and the
+    process itself included: :data:`PROCESS_BYTES`), and MemAvailable no longer counts what the process holds
+    when the estimate is made (a 4.9 min MPRAGE: ~4 GB read and planned by then, its estimate 9.28 GiB, refused
+    against 75 % of 12 GiB "available" where 16 GiB were)."""
+    return available_memory_bytes() + held_bytes()
+
+
+def check_fits(
+    what: str, need_bytes: float, fraction: float = FIT_FRACTION, way_out: str = "", avail: float | None = None
+) -> None:
+    """Refuse, before any work, a job whose estimated peak memory exceeds ``fraction`` of the available memory
+    (``avail``; default :func:`available_memory_bytes`: an estimate of what the job adds; an estimate of the whole
+    process's peak passes :func:`job_memory_bytes`).
 
     Raises:
         InputError: ``"<what>: needs about X GiB ... (estimate, before any work), more than 75 % of the Y GiB
         available here: refused[; way out]"``.
     """
-    avail = available_memory_bytes()
+    avail = available_memory_bytes() if avail is None else avail
     if need_bytes > fraction * avail:
         raise InputError(
             f"{what}: needs about {gib(need_bytes)} of memory (estimate, before any work), more than "
@@ -185,22 +217,23 @@ def optimize_cost(n_fine: int, n_adc: int, window: dict | None = None) -> tuple[
     ``window``: None (whole solve) or the windowed plan's sizes: ``{"n_windows", "max_free", "max_fine"}``
     (windows, the most free variables of one window, the most fine samples of one window); the windowed
     memory is the whole-sequence arrays plus the largest window's dense matrices and its own arrays, so it
-    follows the plan's window sizes and not the duration alone."""
+    follows the plan's window sizes and not the duration alone; the whole-sequence arrays grow with the fine and
+    the ADC samples (a 3D protocol's millions of ADC samples weigh as much as its fine grid)."""
     n, a = float(n_fine), float(n_adc)
     if window is None:
         mem = PROCESS_BYTES + WHOLE_BYTES_PER_FINE * n + WHOLE_BYTES_PER_ADC * a
         sec = RUN_SECONDS + WHOLE_SECONDS_PER_FINE * n + WHOLE_SECONDS_PER_ADC2 * a * a
         return mem, sec, f"whole solve of {n_fine} fine and {n_adc} ADC samples"
     mf = float(window["max_free"])
-    mem = PROCESS_BYTES + WINDOW_BYTES_PER_FINE * n + WINDOW_DENSE_MATRICES * 8.0 * mf * mf
+    mem = PROCESS_BYTES + WINDOW_BYTES_PER_FINE * n + WINDOW_BYTES_PER_ADC * a + WINDOW_DENSE_MATRICES * 8.0 * mf * mf
     mem += WINDOW_BYTES_PER_WINDOW_FINE * float(window.get("max_fine", 0))
-    sec = RUN_SECONDS + WINDOW_SECONDS_PER_FINE * n
+    sec = RUN_SECONDS + WINDOW_SECONDS_PER_FINE * n + WINDOW_SECONDS_PER_ADC * a
     return (
         mem,
         sec,
         (
             f"{window['n_windows']} windows of at most {int(mf)} free variables and {window['max_fine']} fine samples, "
-            f"{n_fine} fine samples"
+            f"{n_fine} fine and {n_adc} ADC samples"
         ),
     )
 
@@ -220,7 +253,7 @@ def check_optimize_cost(
     long sequence is solved whole (its way out then does not offer the windowed solve).  Returns (bytes, seconds)."""
     mem, sec, src = optimize_cost(n_fine, n_adc, window)
     mem, sec = mem + sim[0], sec + sim[1]
-    avail = available_memory_bytes()
+    avail = job_memory_bytes()
     line = (
         f"estimate ({src}): ~{_duration(sec)} and {gib(mem)} peak memory; {gib(avail)} available on this machine "
         "(rough: docs/cli.md, Cost estimates)"
@@ -231,7 +264,7 @@ def check_optimize_cost(
         way_out = f"a shorter file (it cannot be solved period by period: {whole_why})"
     else:
         way_out = "the windowed solve holds less (windowed: on in --config)"
-    check_fits(f"{what}: {line}", mem, way_out=way_out)
+    check_fits(f"{what}: {line}", mem, way_out=way_out, avail=avail)
     if notes is not None and (sec >= LONG_RUN_SECONDS or window is not None):
         notes(line)
     return mem, sec
@@ -252,6 +285,8 @@ __all__ = [
     "dummy_cost",
     "emission_cost",
     "fine_per_repetition",
+    "held_bytes",
+    "job_memory_bytes",
     "optimize_cost",
     "simulation_cost",
 ]
