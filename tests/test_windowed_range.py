@@ -83,12 +83,14 @@ def test_a_window_residual_on_its_rows_range_equals_the_whole_window_one():
     fmask = np.zeros((3, T), dtype=bool)
     fmask[:, 999:1400] = True
     fine = np.cumsum(rng.normal(size=(3, T)), axis=1)
-    rfm = np.zeros(T, dtype=bool)
-    rfm[1700:1760] = True
+    late, early = np.zeros(T, dtype=bool), np.zeros(T, dtype=bool)
+    late[1765:1886] = True  # G-during-RF rows under the last pulse (9.12 ms +- 0.3 ms): past the last query
+    early[1700:1760] = True  # or before it (the last query ends the range)
     sc = SimpleNamespace(k_axes=np.array([0, 1, 2]), rf=0.3, reg=0.01)
     t_adc = 1e-3 * np.array([5.2, 5.5, 6.01, 7.3])
-    t_mom = 1e-3 * np.array([8.4999])
-    rf_c, rf_u = [1e-3, 4.2e-3, 6.5e-3, 8.5e-3], ["refocusing", "excitation", "refocusing", "excitation"]
+    # pulses off the fine grid (k restarts within a sample)
+    t_mom = 1e-3 * np.array([9.12349])
+    rf_c, rf_u = [1e-3, 4.20237e-3, 6.5e-3, 9.1235e-3], ["refocusing", "excitation", "refocusing", "excitation"]
     T_ = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
     xe = T_(x)[None]
     real_call = RangeRealizer.__call__
@@ -98,7 +100,8 @@ def test_a_window_residual_on_its_rows_range_equals_the_whole_window_one():
         calls.append(n_hi - n_lo)
         return real_call(self, g, n_lo, n_hi)
 
-    for t_a in (t_adc, np.r_[0.5e-3, t_adc]):  # the second: a query before the first reset
+    cases = ((t_adc, late), (t_adc, early), (np.r_[0.5e-3, t_adc], early))  # the last: a query before the reset
+    for t_a, rfm in cases:
         rows = (torch.as_tensor(fmask), T_(fine), T_(0.9 * fine), t_a, T_(rng.normal(size=(3, t_a.size))), t_mom,
                 T_(rng.normal(size=(3, 1))), rf_c, rf_u, rfm, sc, T_([1.0, 2.0, 3.0]), T_([0.5, 0.5, 0.5]))  # fmt: skip
         with torch.no_grad():
@@ -109,8 +112,8 @@ def test_a_window_residual_on_its_rows_range_equals_the_whole_window_one():
             finally:
                 RangeRealizer.__call__ = real_call
         np.testing.assert_allclose(got.numpy(), want.numpy(), rtol=0, atol=1e-11 * float(want.abs().max()))
-    assert len(calls) == 1  # the query before every reset: the whole window by the chain
-    assert calls[0] < T / 2  # from the excitation at 4.2 ms to the pulse at 8.5 ms and its G-during-RF samples
+    assert len(calls) == 2  # the query before every reset: the whole window by the chain
+    assert calls[0] < T / 2  # from the excitation at 4.2 ms to the last pulse's G-during-RF samples at 9.4 ms
 
 
 @pytest.mark.slow
