@@ -27,6 +27,7 @@ not built: :func:`reg_rows` gives the sparse matrix.  Units: mT/m, s, rad/m.
 from __future__ import annotations
 
 import numpy as np
+import scipy.fft
 import scipy.sparse as sp
 import torch
 
@@ -248,3 +249,65 @@ def reg_rows(fr: np.ndarray, fmask: np.ndarray, scale: float) -> sp.csr_matrix:
     return sp.csr_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(int(fmask.sum()), c0)
     )
+
+
+#: effect kinds whose response to a waveform that is zero outside its samples is one impulse response, shifted (zero-
+#: padded convolutions, zero-filled delays, gains: no affine offset, no wrap-around, no start-up at the record's first
+#: sample as the eddy currents' recursions have): :class:`RangeRealizer` may replace a chain of them that has one effect
+#: with memory (two would not do: the chain cuts the first one's output at the window's edges, which the second then
+#: delays into the window -- one shifted response of the whole chain differs there)
+_SHIFT_INVARIANT_KINDS = frozenset({"girf", "lti", "delay", "gain"})
+#: taps of the impulse response below this share of its largest are the FFT's round-off beyond the kernel's extent
+SUPPORT_REL = 1e-15
+
+
+class RangeRealizer:
+    """The realized gradient of a window on a range of its fine samples only, for a linear, shift-invariant chain.
+
+    ``G[b, p] = sum_a sum_n g[a, n] R[a, b, p - n]`` (the chain on the window, whose waveform is zero outside its
+    samples, :func:`impulse_responses`); the impulse response's support ``[l_min, l_max]`` (taps above
+    :data:`SUPPORT_REL` of its largest) is measured once.  The outputs ``[n_lo, n_hi)`` need the inputs
+    ``[n_lo - l_max, n_hi - l_min)``: one circular (overlap-save) FFT convolution of at least ``M + L - 1`` samples
+    (``M`` outputs, ``L`` taps; a 5-smooth length) instead of the chain's linear one over the whole window (a power
+    of two of at least ``T + L - 1``).
+    Same figures as the chain up to the FFTs' round-off and the dropped taps (below :data:`SUPPORT_REL`).
+    """
+
+    def __init__(self, R: np.ndarray, W: int, dtype=torch.float64, device="cpu"):
+        m = np.abs(R).max(axis=(0, 1))
+        nz = np.flatnonzero(m > SUPPORT_REL * max(float(m.max()), 1e-300))
+        lo, hi = (int(nz[0]), int(nz[-1])) if nz.size else (W, W)
+        self.l_min, self.l_max = lo - W, hi - W
+        self.taps = torch.as_tensor(np.ascontiguousarray(R[:, :, lo : hi + 1]), dtype=dtype, device=device)
+        self._spec: dict[int, torch.Tensor] = {}
+
+    @classmethod
+    def for_chain(cls, hardware, dt_s: float, W: int, dtype=torch.float64, device="cpu") -> RangeRealizer | None:
+        """The realizer of ``hardware`` for windows of at most ``W`` fine samples, or None where the chain is not one
+        effect of :data:`_SHIFT_INVARIANT_KINDS` with memory and gains (ideal hardware included: nothing to gain) or its
+        response is not shorter than ``W`` (no saving)."""
+        inner = getattr(hardware, "hardware", None) if hasattr(hardware, "R") else hardware  # a RotatedChain's model
+        kinds = [getattr(e, "kind", None) for e in getattr(inner, "effects", None) or [None]]
+        if hardware is None or not set(kinds) <= _SHIFT_INVARIANT_KINDS or len(kinds) - kinds.count("gain") != 1:
+            return None
+        r = cls(impulse_responses(hardware, dt_s, W, dtype, device), W, dtype, device)
+        return r if r.n_taps < W else None
+
+    @property
+    def n_taps(self) -> int:
+        return int(self.taps.shape[-1])
+
+    def __call__(self, g: torch.Tensor, n_lo: int, n_hi: int) -> torch.Tensor:
+        """(B, 3, n_hi - n_lo) the realized gradient on the fine samples ``[n_lo, n_hi)`` of ``g`` (B, 3, T)."""
+        M, L, T = n_hi - n_lo, self.n_taps, g.shape[-1]
+        N = scipy.fft.next_fast_len(M + L - 1, real=True)
+        spec = self._spec.get(N)
+        if spec is None:
+            spec = self._spec[N] = torch.fft.rfft(self.taps, n=N)  # (a, b, F)
+        n_a = n_lo - self.l_max  # the input sample that meets tap l_max at output n_lo
+        a0, a1 = max(n_a, 0), min(n_a + M + L - 1, T)
+        x = torch.zeros(g.shape[:-1] + (N,), dtype=g.dtype, device=g.device)
+        if a1 > a0:
+            x[..., a0 - n_a : a1 - n_a] = g[..., a0:a1]
+        Y = (torch.fft.rfft(x).unsqueeze(-2) * spec).sum(-3)  # (B, a, 1, F) * (a, b, F) summed over a
+        return torch.fft.irfft(Y, n=N)[..., L - 1 : L - 1 + M]

@@ -398,6 +398,7 @@ def windowed_warm_start(
     dense_max: int = DENSE_MAX,
     part_max: int = PART_MAX,
     k_tol_dk: float | None = None,
+    realize_range: bool = True,
 ) -> tuple[np.ndarray, WindowStats]:
     """Solve the warm start's objective period by period (module doc).
 
@@ -415,6 +416,9 @@ def windowed_warm_start(
         k_tol_dk: the run's k tolerance, dk: a window whose ADMM solution leaves a core sample or moment above
             :data:`REFINE_SHARE` of it runs ADMM on to :data:`ADMM_TOL_REFINE` (None: every window stops at
             :data:`ADMM_TOL`).
+        realize_range: a window's residual realizes the gradient only on the fine samples its rows read, by one
+            FFT convolution with the chain's impulse response (:class:`~dtoc.optimize.window_jacobian.RangeRealizer`,
+            where the chain allows it); False: the chain on the whole window (the same figures up to round-off).
     Returns:
         (3, N+1) edges within the limits, and :class:`WindowStats`.
     Raises:
@@ -462,6 +466,9 @@ def windowed_warm_start(
     adc_block = np.array([a.block for a in ir.adc], dtype=np.int64)
     t_ref = 0.0
     unconstrained = _UnconstrainedErrors(sc, st)
+    be = ir.block_edges_s
+    w_max = max((int(round(be[w.sub[1]] / dtf)) - int(round(be[w.sub[0]] / dtf)) + 1 for w in windows), default=0)
+    realizer = WJ.RangeRealizer.for_chain(hardware, dtf, w_max, dtype, device) if realize_range and w_max else None
     for wi, w in enumerate(windows):
         t0 = time.time()
         be = ir.block_edges_s
@@ -553,7 +560,7 @@ def windowed_warm_start(
 
         residual = window_residual(
             hardware, dtf, torch.as_tensor(fmask), T(fine_sub), T(g0_sub), t_adc, T(k0), t_mom, T(mom0),
-            rf_c, rf_u, rfm, sc, T(sc.k if w.starts_period else sk), T(sc.m),
+            rf_c, rf_u, rfm, sc, T(sc.k if w.starts_period else sk), T(sc.m), realizer,
         )  # fmt: skip
 
         tt["setup"] += time.time() - t0
@@ -586,7 +593,7 @@ def windowed_warm_start(
             _zero_guard_rows(r0n, n_guard, len(sc.k_axes), t_adc.size, t_mom.size)
         nd = c["J"].shape[0]
         r0d, r0r = r0n[:nd], r0n[nd:]
-        grad0 = c["J"].T @ r0d + c["S"].T @ r0r
+        grad0 = c["J"].T @ r0d + c["ST"] @ r0r
         # the core's own rows (a part's guarded rows come first, its end row last: not the core's samples)
         core_adc = slice(n_guard[0], n_guard[0] + len(sel_adc))
         unconstrained.add(key, c, r0d, grad0, t_adc.size, t_mom.size, sel_adc, core_adc, w.moment_rf, n_guard[1])
@@ -614,7 +621,7 @@ def windowed_warm_start(
         streak = c.get("limited", 0)
         try_direct = streak % DIRECT_RETRY == 0
         if try_direct:
-            x_p[fr] = x_sub[fr] - c["Hinv"] @ grad0
+            x_p[fr] = x_sub[fr] - _symv(c["Hinv"], grad0)
         if try_direct and P.is_feasible(x_p[:, rs]):
             st.direct += 1
             c["limited"] = 0
@@ -826,26 +833,68 @@ class _KStop:
         return len(self.seen) > REFINE_PATIENCE and e > (1 - REFINE_MIN_GAIN) * self.seen[-1 - REFINE_PATIENCE]
 
 
-def window_residual(hardware, dtf, fmask_t, fine_t, g0_t, t_adc, k0_t, t_mom, mom0_t, rf_c, rf_u, rfm, sc, sk_t, sm_t):
-    """The window's weighted residual vector as a function of edge arrays: (B, 3, Ne) -> (B, R)."""
+def window_residual(
+    hardware, dtf, fmask_t, fine_t, g0_t, t_adc, k0_t, t_mom, mom0_t, rf_c, rf_u, rfm, sc, sk_t, sm_t, realizer=None
+):
+    """The window's weighted residual vector as a function of edge arrays: (B, 3, Ne) -> (B, R).  ``realizer``
+    (:class:`dtoc.optimize.window_jacobian.RangeRealizer` of ``hardware``): the realized gradient only on the fine
+    samples the rows read (:func:`_rows_range`), else the chain on the whole window."""
     ka = torch.as_tensor(sc.k_axes)
+    rng = None if realizer is None else _rows_range(dtf, fine_t.shape[-1], t_adc, t_mom, rf_c, rf_u, rfm)
+    if rng is not None:  # the rows' times and samples relative to the range's first sample
+        n_lo, n_hi, first = rng
+        t0 = n_lo * dtf
+        t_adc, t_mom = t_adc - t0, t_mom - t0
+        rf_c, rf_u = [c - t0 for c in rf_c[first:]], rf_u[first:]
+        g0_rf = g0_t[..., n_lo:n_hi][..., rfm[n_lo:n_hi]]
+    else:
+        g0_rf = g0_t[..., rfm]
+    t_q = np.r_[np.asarray(t_adc, dtype=np.float64), np.asarray(t_mom, dtype=np.float64)]
 
     def residual(xe: torch.Tensor) -> torch.Tensor:
         g = torch.where(fmask_t, edges_to_fine(xe), fine_t)
-        G = g if hardware is None else hardware(g, dtf)[0]
+        if rng is not None:
+            G = realizer(g, rng[0], rng[1])
+            G_rf = G[..., rfm[rng[0] : rng[1]]]
+        else:
+            G = g if hardware is None else hardware(g, dtf)[0]
+            G_rf = G[..., rfm]
         parts = []
+        if (t_adc.size or t_mom.size) and ka.numel():  # one pass for both sets of queries (each query on its own)
+            km = kspace_at(G, dtf, t_q, rf_c, rf_u)
+            k, mm = km[..., : t_adc.size], km[..., t_adc.size :]
         if t_adc.size and ka.numel():
-            k = kspace_at(G, dtf, t_adc, rf_c, rf_u)
             parts.append(((k - k0_t) * (sk_t if sk_t.dim() == 2 else sk_t[:, None]))[:, ka].flatten(1))
         if t_mom.size and ka.numel():
-            mm = kspace_at(G, dtf, t_mom, rf_c, rf_u)
             parts.append(((mm - mom0_t) * sm_t[:, None])[:, ka].flatten(1))
         if rfm.any():
-            parts.append(((G - g0_t)[..., rfm] * sc.rf).flatten(1))
+            parts.append(((G_rf - g0_rf) * sc.rf).flatten(1))
         parts.append((g - g0_t)[:, fmask_t] * sc.reg)  # only samples that can change: the rest is a constant
         return torch.cat(parts, dim=1)
 
     return residual
+
+
+def _rows_range(dtf, T, t_adc, t_mom, rf_c, rf_u, rfm) -> tuple[int, int, int] | None:
+    """The fine samples ``[n_lo, n_hi)`` of a window that its rows read, and the first RF event that counts: k at a
+    query is the integral from the last pulse that resets k (excitation, undefined) before it
+    (:func:`dtoc.seq.kspace.kspace_at`), so the range starts at the last such pulse at or before every query
+    (the events before it are dropped) and ends after the last query and the last RF row's sample.  None: no query,
+    or a query before every reset (the whole window, from its start)."""
+    tq = np.r_[np.asarray(t_adc, dtype=np.float64), np.asarray(t_mom, dtype=np.float64)]
+    if not tq.size:
+        return None
+    rf_i = np.flatnonzero(rfm)
+    resets = [i for i, (c, u) in enumerate(zip(rf_c, rf_u)) if u in ("excitation", "undefined") and c <= tq.min()]
+    if not resets:
+        return None
+    first = resets[-1]
+    n_lo = int(math.floor(rf_c[first] / dtf + 1e-9))
+    n_hi = int(math.floor(tq.max() / dtf + 1e-9)) + 2
+    if rf_i.size:
+        n_lo, n_hi = min(n_lo, int(rf_i[0])), max(n_hi, int(rf_i[-1]) + 1)
+    n_lo, n_hi = max(n_lo, 0), min(n_hi, T)
+    return (n_lo, n_hi, first) if n_hi - n_lo >= 2 else None
 
 
 def _solve_key(structure: str, r0: np.ndarray, x_sub: np.ndarray, rel: float = 1e-6, edge_q: float = 1e-4) -> str:
@@ -882,7 +931,7 @@ def _factor(hardware, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc, dtype, 
     J = WJ.lti_jacobian(R, dtf, fr, fmask, t_adc, t_mom, rf_c, rf_u, rfm, sc.k_axes, ks, sc.m, sc.rf)
     S = WJ.reg_rows(fr, fmask, sc.reg)
     H = J.T @ J + (S.T @ S).toarray()
-    return {"J": J, "S": S, "Hinv": _spd_inverse(H), "normal": H}
+    return {"J": J, "S": S, "ST": S.T.tocsr(), "Hinv": _spd_inverse(H), "normal": H}
 
 
 def _spd_inverse(H: np.ndarray) -> np.ndarray:
@@ -901,6 +950,13 @@ def _spd_inverse(H: np.ndarray) -> np.ndarray:
         raise np.linalg.LinAlgError(f"normal matrix not invertible (dpotri info {info})")
     low = np.tril(inv)
     return low + np.tril(inv, -1).T
+
+
+def _symv(K: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``K @ v`` for a symmetric ``K`` (both triangles held, as :func:`_spd_inverse` makes it) by BLAS ``dsymv``: it
+    reads one triangle, about half the time of the general product (which is bound by reading ``K``); the same
+    figures up to the summation order."""
+    return sla.blas.dsymv(1.0, K.T, v)  # K.T: the Fortran-ordered view of the same memory (no copy)
 
 
 def _admm(
@@ -950,19 +1006,19 @@ def _admm(
         z, y = m["admm_zy"]
         z = np.clip(z, l, u)
     else:
-        z = np.clip(A @ -(c["Hinv"] @ grad0), l, u)
+        z = np.clip(A @ -(_symv(c["Hinv"], grad0)), l, u)
         y = np.zeros_like(z)
     d = np.zeros(n)
     it = refactor = 0
     for it in range(1, max_iter + 1):
-        d = Kinv @ (-grad0 + A.T @ (rho * z - y))
-        Ad_relaxed = alpha * (A @ d) + (1 - alpha) * z
+        d = _symv(Kinv, -grad0 + A.T @ (rho * z - y))
+        Ad = A @ d
+        Ad_relaxed = alpha * Ad + (1 - alpha) * z
         z_new = np.clip(Ad_relaxed + y / rho, l, u)
         y = y + rho * (Ad_relaxed - z_new)
         dz = z_new - z
         z = z_new
-        # the stopping rule each iteration: two sparse products, cheap beside the dense one above
-        Ad = A @ d
+        # the stopping rule each iteration: one more sparse product, cheap beside the dense one above
         r_p = np.abs(Ad - z).max()
         r_d = rho * np.abs(A.T @ dz).max()
         if r_p <= tol * max(1.0, np.abs(z).max()) and r_d <= tol * max(1.0, np.abs(grad0).max()):
