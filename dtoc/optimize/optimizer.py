@@ -29,6 +29,7 @@ import torch
 
 from dtoc.optimize import loss as L
 from dtoc.optimize.config import PAPER_RESTARTS, OptimizeConfig
+from dtoc.optimize.solver import free_gradient
 from dtoc.sim import metrics
 from dtoc.util.replay import Replay
 
@@ -108,22 +109,17 @@ class _Steps:
         self.f, self.free, self.P = f, free, P
         self.keys: list[str] = []
         self.step = 0.0
-        self._eval = Replay(self._eval_step)
+        self._eval = Replay(self._value_grad)
         self._fista = Replay(self._fista_step)
 
     def _value_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        x = x.detach().requires_grad_(True)
-        val, terms = self.f(x)
-        (gx,) = torch.autograd.grad(val, x)
+        g, val, terms = free_gradient(self.f, self.free, x)
         self.keys = list(terms)
         if isinstance(terms, L.TermValues):
             stacked = terms.stacked()
         else:  # a plain mapping of floats (an objective of the caller's): read here, eagerly
             stacked = torch.as_tensor([float(v) for v in terms.values()], dtype=torch.float64)
-        return torch.where(self.free, gx, torch.zeros_like(gx)), val.detach(), stacked
-
-    def _eval_step(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        return self._value_grad(x)
+        return g, val, stacked
 
     def _fista_step(self, y: torch.Tensor, x_prev: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, ...]:
         gy, fy, terms = self._value_grad(y)
@@ -281,7 +277,6 @@ def constrained_least_squares(
                 # checks (every 20th) and for the progress line (nothing else waits for the device)
                 read = j % 10 == 0 or j == n_fista or (j > 20 and j % 20 == 1)
                 fy = float(fy_t) if read else math.nan
-                terms = L.TermValues.from_stacked(steps.keys, terms_t)
                 if j > 20 and j % 20 == 1:
                     if f_prev - fy <= max(rel_tol * abs(fy), 1e-6 * f0) or fy <= 1e-14:
                         if report is not None:
@@ -298,6 +293,7 @@ def constrained_least_squares(
                 if progress and read:
                     progress("warm", it + j, iters, fy)
                 if j % 10 == 0 or j == n_fista:
+                    terms = L.TermValues.from_stacked(steps.keys, terms_t)
                     hist.append({"stage": "warm", "it": it + j, "loss": fy, **terms})
             x = x_prev
         except KeyboardInterrupt:

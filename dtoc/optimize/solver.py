@@ -42,7 +42,7 @@ Units: mT/m (edges), dk (k errors), s.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -210,6 +210,16 @@ class _Reached(Exception):
         self.d, self.it = d, it
 
 
+def free_gradient(f, free: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, Mapping]:
+    """One evaluation of an objective ``f`` (``x -> (loss, terms)``) and its gradient: (the gradient on the free
+    entries, zero elsewhere; the loss as a detached 0-dim tensor; the terms).  Nothing waits for the device: the
+    step a :class:`~dtoc.util.replay.Replay` holds (here and in :mod:`dtoc.optimize.optimizer`)."""
+    x = x.detach().requires_grad_(True)
+    val, terms = f(x)
+    (gx,) = torch.autograd.grad(val, x)
+    return torch.where(free, gx, torch.zeros_like(gx)), val.detach(), terms
+
+
 class _Quadratic:
     """f, its gradient and Hessian-vector products of a quadratic objective of the free edges."""
 
@@ -221,17 +231,14 @@ class _Quadratic:
         self.f0 = float(f0)
 
     def _step(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        x = x.detach().requires_grad_(True)
-        val, _ = self.f(x)
-        (gx,) = torch.autograd.grad(val, x)
-        return torch.where(self.free, gx, torch.zeros_like(gx)), val.detach()
+        return free_gradient(self.f, self.free, x)[:2]
 
     def grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(gradient on the free edges, objective as a 0-dim tensor: nothing waits for the device)."""
         if self.n >= self.budget:
             raise _Stop
         self.n += 1
-        g, val = self._eval(x)
+        g, val = self._eval(x)  # (Replay returns a tuple of any length: two here)
         return g, val
 
     def hv(self, v: torch.Tensor) -> torch.Tensor:

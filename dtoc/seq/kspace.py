@@ -89,21 +89,22 @@ class _Query:
         self._on: dict = {}
 
     def tensors(self, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(tau, m, m + 1) on ``device``; tau in ``dtype``."""
+        """(tau, m, m + 1) on ``device`` (m + 1 = m for a one-sample waveform); tau in ``dtype``."""
         key = (dtype, str(device))
         if key not in self._on:
             mi = torch.as_tensor(self.m, device=device)
             self._on[key] = (torch.as_tensor(self.tau, dtype=dtype, device=device), mi, mi + 1 if self.M > 1 else mi)
         return self._on[key]
 
-    def integral(self, g: torch.Tensor, Cm: torch.Tensor | None = None) -> torch.Tensor:
+    def starts(self, C: torch.Tensor) -> torch.Tensor:
+        """(..., Q) the running integral ``C`` (..., M) (:func:`pwl_cumulative`) at the query intervals' starts."""
+        return C[..., self.tensors(C.dtype, C.device)[1]]
+
+    def integral(self, g: torch.Tensor, Cm: torch.Tensor) -> torch.Tensor:
         """(..., Q) integrals of ``g`` (..., M) to the query times; ``Cm``: the running integral at the intervals'
-        starts (default: from :func:`pwl_cumulative`)."""
+        starts (:meth:`starts`, or :func:`cumulative_at` for a long waveform)."""
         tau, mi, mi1 = self.tensors(g.dtype, g.device)
-        if Cm is None:
-            Cm = pwl_cumulative(g, self.dt)[..., mi]
-        g0 = g[..., mi]
-        g1 = g[..., mi1] if self.M > 1 else g0
+        g0, g1 = g[..., mi], g[..., mi1]
         return Cm + tau * g0 + 0.5 * tau * tau * (g1 - g0) / self.dt
 
 
@@ -122,8 +123,7 @@ def pwl_integral_at(g, dt: float, t_s, cumulative: torch.Tensor | None = None) -
     q = _Query(g.shape[-1], dt, t_s)
     if cumulative is None and _chunked(g):  # a long waveform without a graph: its running integral by chunks
         return q.integral(g, cumulative_at(g, dt, q.m))
-    _, mi, _ = q.tensors(g.dtype, g.device)
-    return q.integral(g, (pwl_cumulative(g, dt) if cumulative is None else cumulative)[..., mi])
+    return q.integral(g, q.starts(pwl_cumulative(g, dt) if cumulative is None else cumulative))
 
 
 def kspace_at(g_mT_per_m, dt: float, t_s, rf_centres_s: _Seq[float] = (), rf_uses: _Seq[str] = ()) -> torch.Tensor:
@@ -174,10 +174,8 @@ class KspacePlan:
         if _chunked(g):
             return kspace_at(g, self.dt, self.t, self.rf_centres_s, self.rf_uses)
         C = pwl_cumulative(g, self.dt)
-        integ = self.q.integral(g, C[..., self.q.tensors(g.dtype, g.device)[1]])  # (..., 3, Q)
-        i_rf = None
-        if self.q_rf is not None:
-            i_rf = self.q_rf.integral(g, C[..., self.q_rf.tensors(g.dtype, g.device)[1]])
+        integ = self.q.integral(g, self.q.starts(C))  # (..., 3, Q)
+        i_rf = None if self.q_rf is None else self.q_rf.integral(g, self.q_rf.starts(C))
         return self.resets.apply(integ, i_rf)
 
 
