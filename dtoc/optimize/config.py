@@ -60,6 +60,10 @@ class OptimizeConfig(BaseModel):
         certify_groups: the worst groups of samples above ``k_tol_dk`` a whole solve certifies after it stops
             (:mod:`dtoc.optimize.certificate`: proven unreachable, reachable, or not proven; two small LPs per
             group, ~0.6 s each on the README job); 0 (default): none, the manifest says so.
+        minimax_rounds / minimax_budget: when the solve stops above ``k_tol_dk`` at its least-squares optimum,
+            up to this many rounds of Lawson's reweighting towards the smallest worst k error, within this many
+            further evaluations (each round at most ``solve_budget``; docs/optimize.md, "Minimax rounds");
+            0 rounds: the least-squares optimum (and the CG + FISTA fallback, as before these rounds).
         robust_rounds: rounds of iteratively reweighted least squares after the warm start (Cauchy
             weights on the per-sample k error, scale ``robust_scale_dk`` in dk): samples that cannot
             reach their target within the limits stop pulling the others off theirs (0 = plain LS).
@@ -106,6 +110,8 @@ class OptimizeConfig(BaseModel):
     k_tol_dk: float = Field(0.01, gt=0)
     solve_budget: int = Field(600, ge=8)
     certify_groups: int = Field(0, ge=0, le=64)
+    minimax_rounds: int = Field(8, ge=0)
+    minimax_budget: int = Field(1800, ge=0)
     robust_rounds: int = Field(0, ge=0)
     robust_scale_dk: float = Field(0.5, gt=0)
     iters: int = Field(60, ge=0)
@@ -140,6 +146,9 @@ KIND_DEFAULTS: dict[str, dict] = {
         # no warm_iters: the warm start is solved to k_tol_dk, the spoiler moments (k before each RF pulse)
         # included in the stopping rule (docs/optimize.md, "Solver")
         "robust_rounds": 3,
+        # the robust rounds down-weight the samples the limits leave far off (they are discarded, and the image
+        # decides): the minimax rounds would weight those very samples up, the opposite aim
+        "minimax_rounds": 0,
     },
     "epi": {
         "weights": {"image": 1.0, "kspace": 4.0, "rf": 1.0},

@@ -367,12 +367,20 @@ def solve_warm_start(
     state: StageState | None = None,
     progress: ProgressFn | None = None,
     x_init: torch.Tensor | None = None,
+    minimax_rounds: int = 0,
+    minimax_budget: int = 0,
 ):
     """The warm start's problem solved to a k-space tolerance (:mod:`dtoc.optimize.solver`); returns (x, report).
 
     An affine chain: preconditioned CG and active-set rounds (:func:`~dtoc.optimize.solver.solve_to_tolerance`).
-    Otherwise (e.g. a slew-rate-limited amplifier) the iterative path (:func:`constrained_least_squares`) with the
-    same stopping rule, checked every 20 iterations, within ``budget`` evaluations.
+    If they stop above the tolerance with the least-squares optimum ('converged' or 'rounds'), up to
+    ``minimax_rounds`` rounds reweight the samples towards the smallest worst error (:func:`minimax_rounds`,
+    within ``minimax_budget`` further evaluations; 0 rounds: the least-squares optimum, and the CG + FISTA
+    fallback below, as before).  Otherwise (the first projection moved much of the waveform: 'limits-bound') CG and
+    projected FISTA from the base on what is left of ``budget``.
+    A chain that is not affine (e.g. a slew-rate-limited amplifier): the iterative path
+    (:func:`constrained_least_squares`) with the same stopping rule, checked every 20 iterations, within ``budget``
+    evaluations.
     """
     from dtoc.hardware.memory import is_affine
     from dtoc.optimize import solver as SV
@@ -398,19 +406,28 @@ def solve_warm_start(
             return e
 
     if is_affine(twin.hardware):
-        x, rep = SV.solve_to_tolerance(
-            f, x0, twin.projector, twin.free_t, k_error, k_tol_dk=k_tol_dk, budget=budget,
-            sample_times_s=times, progress=progress, n_adc=n_adc,
-            cuts=np.array([round(r.t_center_s / twin.ir.raster_s) for r in twin.ir.rf if r.excites], dtype=np.int64),
-            model=(
-                path_model(twin, ctx, weights, use_moments)
-                if PATH_MODEL_PRECONDITIONER and any(r.refocuses for r in twin.ir.rf)
-                else None
-            ),
-        )  # fmt: skip
+        cuts = np.array([round(r.t_center_s / twin.ir.raster_s) for r in twin.ir.rf if r.excites], dtype=np.int64)
+        model = (
+            path_model(twin, ctx, weights, use_moments)
+            if PATH_MODEL_PRECONDITIONER and any(r.refocuses for r in twin.ir.rf)
+            else None
+        )
+
+        def solve(start: torch.Tensor, n: int):
+            return SV.solve_to_tolerance(
+                f, start, twin.projector, twin.free_t, k_error, k_tol_dk=k_tol_dk, budget=n,
+                sample_times_s=times, progress=progress, n_adc=n_adc, cuts=cuts, model=model,
+            )  # fmt: skip
+
+        x, rep = solve(x0, budget)
         left = budget - rep.evaluations
         above = max(rep.achieved_max_dk, rep.moment_max_dk or 0.0) > k_tol_dk
-        if rep.stop_reason not in ("tolerance", "interrupted") and above and left >= 40:
+        if minimax_rounds > 0 and above and rep.stop_reason in ("converged", "rounds"):
+            x, rep = minimax_rounds_solve(
+                solve, ctx, x, rep, k_error, twin.projector, times, n_adc, minimax_rounds, minimax_budget, budget,
+                state,
+            )  # fmt: skip
+        elif rep.stop_reason not in ("tolerance", "interrupted") and above and left >= 40:
             # above the tolerance (limits active over much of the waveform, or active-set rounds that stopped
             # paying -- a heuristic, not a certificate): CG then projected FISTA from the start (the fixed-count
             # algorithm) on what is left of the budget, with the same rule; kept if it lowers the objective
@@ -446,6 +463,104 @@ def solve_warm_start(
     return x, rep
 
 
+#: the minimax rounds stop after this many rounds in a row that did not lower the worst error by LAWSON_GAIN
+LAWSON_PATIENCE = 2
+#: a round counts as a gain when it lowers the best worst error by at least this fraction of it
+LAWSON_GAIN = 0.01
+#: each round multiplies a sample's weight by its error (floored at the tolerance) to this power (Lawson: 1; 2 measured
+#: faster on the EPI rows: docs/optimize.md, "Minimax rounds")
+LAWSON_POWER = 2.0
+#: the weights' largest ratio (a sample no waveform moves would otherwise take every weight)
+LAWSON_SPREAD = 1e6
+
+
+def minimax_rounds_solve(solve, ctx, x, rep, k_error, P, times, n_adc: int, rounds: int, budget: int,
+                         round_budget: int, state=None):  # fmt: skip
+    """Rounds of Lawson's reweighting (docs/optimize.md, "Minimax rounds"): the least-squares optimum within the
+    limits is not the waveform with the smallest worst k error; each round multiplies every ADC sample's weight
+    in the k term by its error (dk, floored at the tolerance: a sample within it keeps its share), normalises the
+    weights to mean 1, and solves the reweighted problem again (``solve(start, n)``, warm from the best
+    waveform so far, at most ``round_budget`` evaluations, all rounds within ``budget``).  For a linear objective
+    without limits the iteration converges to the minimax (Chebyshev) solution; with the limits it is a heuristic
+    that is not monotone, so the waveform with the smallest worst error (ADC samples and moments, every round's
+    waveform exactly within the limits) is kept.
+
+    Stops ('minimax stop'): ``tolerance`` (every sample reachable without the limits within it), ``stalled``
+    (:data:`LAWSON_PATIENCE` rounds in a row lowered the worst error by less than :data:`LAWSON_GAIN` of it),
+    ``rounds``, ``budget`` (fewer than 40 evaluations left), ``interrupted``.
+
+    Args:
+        solve: ``(start (3, N+1), evaluations) -> (x, SolveReport)``, the solver on the objective that reads
+            ``ctx.sample_weight``. ctx: the loss context (its ``sample_weight`` restored on return).
+        x, rep: the least-squares solve's waveform and report (its unconstrained errors say which samples are
+            reachable at all). k_error: ``x -> errors`` (dk; ``n_adc`` ADC samples, then the moments).
+        P: the limits' projector; times: the errors' times, s (to name the active limits).
+    Returns:
+        (the best waveform, ``rep`` updated in place: evaluations, errors, unreachable samples, ``minimax``).
+    """
+    from dtoc.optimize import solver as SV
+
+    tol = rep.k_tol_dk
+    err = k_error(x)
+    reach = np.ones(err.size, dtype=bool)
+    if rep.unconstrained_errors is not None and rep.unconstrained_converged:
+        reach = rep.unconstrained_errors <= tol  # a sample out of reach without the limits does not block 'tolerance'
+    best_x, best_err = x, err
+    first = float(err.max())
+    base_w = ctx.sample_weight
+    w = np.ones(n_adc) if base_w is None else base_w.detach().cpu().numpy().astype(np.float64)
+    spent, done, idle, stop = 0, 0, 0, "rounds"
+    try:
+        for _ in range(rounds):
+            n = min(round_budget, budget - spent)
+            if n < 40:
+                stop = "budget"
+                break
+            w = w * np.maximum(err[:n_adc], tol) ** LAWSON_POWER
+            w = np.maximum(w, w.max() / LAWSON_SPREAD)
+            w = w / w.mean()
+            ctx.sample_weight = torch.as_tensor(w, dtype=x.dtype, device=x.device)
+            x2, r2 = solve(best_x, n)
+            spent += r2.evaluations
+            done += 1
+            if r2.stop_reason == "interrupted":
+                stop = "interrupted"
+                break
+            err = k_error(x2)
+            prev = float(best_err.max())
+            if float(err.max()) < prev:
+                best_x, best_err = x2, err
+            idle = 0 if prev - float(err.max()) >= LAWSON_GAIN * prev else idle + 1
+            if bool(np.all(best_err[reach] <= tol)):
+                stop = "tolerance"
+                break
+            if idle >= LAWSON_PATIENCE:
+                stop = "stalled"
+                break
+    finally:
+        ctx.sample_weight = base_w
+    rep.evaluations += spent
+    rep.set_errors(best_err, n_adc)
+    if stop == "tolerance":
+        rep.stop_reason = "tolerance"
+    elif stop == "interrupted":
+        rep.stop_reason = "interrupted"
+        if state is not None:
+            state.interrupted = True
+    if rep.unconstrained_errors is not None:
+        rep.unreachable = SV.explain_unreachable(
+            best_x, best_err, rep.unconstrained_errors, tol, P, times, rep.unconstrained_converged, n_adc
+        )
+    rep.minimax = {
+        "rounds": done,
+        "evaluations": spent,
+        "stop_reason": stop,
+        "max_before_dk": first,
+        "max_after_dk": float(best_err.max()),
+    }
+    return best_x, rep
+
+
 def adc_sample_times_s(ir) -> np.ndarray:
     """(N_adc,) times of every ADC sample, s, in the order of the sequence's samples."""
     if not ir.adc:
@@ -465,6 +580,8 @@ def robust_warm_start(
     k_tol_dk: float = 0.01,
     budget: int = 600,
     reports: list | None = None,
+    minimax_rounds: int = 0,
+    minimax_budget: int = 0,
 ) -> torch.Tensor:
     """Warm start, then ``rounds`` of iteratively reweighted least squares on the k-space term.
 
@@ -483,7 +600,10 @@ def robust_warm_start(
 
     def solve(x_init=None, n=iters):
         if iters is None:
-            x, rep = solve_warm_start(twin, ctx, weights, k_tol_dk, budget - sum(spent), state, progress, x_init)
+            x, rep = solve_warm_start(
+                twin, ctx, weights, k_tol_dk, budget - sum(spent), state, progress, x_init,
+                minimax_rounds, minimax_budget,
+            )  # fmt: skip
             spent.append(rep.evaluations)
             if reports is not None:
                 reports.append(rep)

@@ -1124,6 +1124,8 @@ def warm_start_stage(plan: Plan, sol: Solution, report: Callable) -> torch.Tenso
         k_tol_dk=cfg.k_tol_dk,
         budget=cfg.solve_budget,
         reports=solves,
+        minimax_rounds=cfg.minimax_rounds,
+        minimax_budget=cfg.minimax_budget,
     )
     stage_times["warm_start_s"] = time.time() - t0
     if solves:

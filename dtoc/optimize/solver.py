@@ -161,6 +161,7 @@ class SolveReport:
     unconstrained_errors: np.ndarray | None = None  # (N_adc,) dk, at the unconstrained solve
     unconstrained_converged: bool = False
     fallback_stop: str | None = None  # the CG + FISTA fallback's own stop reason (None: it did not run)
+    minimax: dict | None = None  # the minimax rounds' record (None: they did not run; optimizer.minimax_rounds_solve)
 
     def as_dict(self) -> dict:
         return {
@@ -176,6 +177,7 @@ class SolveReport:
             "unconstrained_within_limits": self.within_limits_unconstrained,
             "unreachable": None if self.unreachable is None else self.unreachable.as_dict(),
             "fallback_stop_reason": self.fallback_stop,
+            "minimax": self.minimax,
         }
 
     def line(self) -> str:
@@ -186,6 +188,12 @@ class SolveReport:
             + ("" if self.moment_max_dk is None else f", moments before RF pulses {self.moment_max_dk:.3g} dk")
             + f" (tolerance {self.k_tol_dk:g} dk)"
         )
+        if self.minimax is not None:
+            m = self.minimax
+            s += (
+                f"; minimax rounds {m['rounds']} ({m['evaluations']} evaluations, {m['max_before_dk']:.3g} -> "
+                f"{m['max_after_dk']:.3g} dk, stop {m['stop_reason']})"
+            )
         if self.unreachable is not None and self.unreachable.indices.size:
             s += "; " + self.unreachable.summary()
         return s
