@@ -245,3 +245,55 @@ def test_what_the_process_already_holds_counts_as_memory_the_job_may_use(monkeyp
         cost.check_fits("x", 9.28 * 2**30)
     monkeypatch.undo()
     assert cost.held_bytes() > 50 << 20  # this test process (Python, numpy, dtoc): tens of MB at least
+
+
+def test_the_fit_fraction_is_read_when_the_check_runs(monkeypatch):
+    """``cost.FIT_FRACTION`` set at runtime counts (it was bound when ``check_fits`` was defined)."""
+    cost.check_fits("x", 0.6e9, avail=1e9)  # 60 % of the available memory: within 75 %
+    monkeypatch.setattr(cost, "FIT_FRACTION", 0.5)
+    with pytest.raises(InputError, match=r"more than 50% of the .* available here: refused"):
+        cost.check_fits("x", 0.6e9, avail=1e9)
+    cost.check_fits("x", 0.6e9, fraction=0.7, avail=1e9)  # an explicit fraction still wins
+
+
+def test_the_readers_guard_refuses_by_the_load_estimate(monkeypatch):
+    """One estimate of the read: the reader's size guard (dtoc.seq.seqtext) refuses exactly where
+    ``cost.load_bytes`` of the file's raster steps and ADC samples exceeds three quarters of the memory (its
+    ``max_file_bytes`` x 30), in one line that says it is an estimate of the read."""
+    import dtoc.seq.seqtext as seqtext
+
+    ir = load_sequence(GRE)
+    need = cost.load_bytes(round(ir.duration_s / ir.raster_s), ir.n_adc_samples)
+    assert need > cost.LOAD_BYTES
+    monkeypatch.setattr(seqtext, "max_file_bytes", lambda: int(need * 1.001 / 30))
+    load_sequence(GRE)  # within the budget: read
+    monkeypatch.setattr(seqtext, "max_file_bytes", lambda: int(need * 0.999 / 30))
+    with pytest.raises(InputError, match=r"ADC samples need ~.* GB to be read \(estimate\); this machine allows"):
+        load_sequence(GRE)
+
+
+#: measured reads (dtoc.seq.load.load_sequence alone, a process's peak RSS; dtoc/util/cost.py says where): gradient
+#: raster steps, ADC samples, peak RSS (bytes)
+MEASURED_LOADS = {
+    "3D FLASH 1 mm, 24 partitions": (2_995_200, 1_179_648, 0.8648e9),
+    "3D FLASH 1 mm, 96 partitions (bench.protocols gre3d_1mm)": (11_980_800, 4_718_592, 1.6667e9),
+    "MPRAGE 16 shots": (3_680_016, 720_896, 0.7714e9),
+    "MPRAGE 128 shots (mprage5)": (29_440_128, 5_767_168, 2.6811e9),
+    "MPRAGE 256 shots (mprage10)": (58_880_256, 11_534_336, 4.8597e9),
+}
+
+
+@pytest.mark.parametrize("name", list(MEASURED_LOADS))
+def test_the_load_estimate_is_within_its_band_of_the_measured_reads(name):
+    """Never below the measured peak of the read (the guard must not let through a file that cannot be read) and
+    at most 15 % above it (nor refuse one that can: the 9.8 min MPRAGE, refused at 35.7 GB)."""
+    n, a, peak = MEASURED_LOADS[name]
+    assert peak <= cost.load_bytes(n, a) <= 1.15 * peak, (name, cost.load_bytes(n, a) / peak)
+
+
+def test_the_runs_estimate_includes_the_read():
+    """The optimization's estimate is of the whole process: never below the read of the same base."""
+    for n_fine, n_adc in ((23_961_601, 4_718_592), (117_760_513, 11_534_336), (200_000, 1024)):
+        win = {"n_windows": 1, "max_free": 100, "max_fine": 1000}
+        assert cost.optimize_cost(n_fine, n_adc, win)[0] >= cost.load_bytes(n_fine // 2, n_adc)
+        assert cost.optimize_cost(n_fine, n_adc)[0] >= cost.load_bytes(n_fine // 2, n_adc)

@@ -388,6 +388,8 @@ def windowed_solver_record(plan: Plan, x: torch.Tensor, fine, st) -> dict:
     rec["achieved_max_moment_dk"] = float(e_mom.max(initial=0.0))
     if st.window_adc_dk is not None and np.isfinite(st.window_adc_dk).any():
         rec["window_model_max_adc_dk"] = float(np.nanmax(st.window_adc_dk))  # what the windows saw when committing
+    # the windows' per-sample figures end here (8 bytes per ADC sample each): not held through the write
+    st.unconstrained_adc_dk = st.window_adc_dk = st.unconstrained_moment_dk = st.window_moment_dk = None
     md = um.as_dict()
     for w in md["worst"]:
         w["rf_pulse"] = int(w.pop("sample"))

@@ -47,6 +47,24 @@ DUMMY_BYTES_PER_VOXEL = 70
 DUMMY_SECONDS_PER_FINE = 1.2e-6
 DUMMY_SECONDS_PER_REPETITION = 0.35
 
+# --- reading a base -------------------------------------------------------------------------------------
+#: the peak of reading a base (:func:`dtoc.seq.load.load_sequence`: the parsed text and pypulseq's objects, the IR's
+#: fine waveform and masks, the nominal k and the grid's inference, both in pieces) as a whole process: a fixed part
+#: (Python, torch, pypulseq, the pieces' temporaries) and bytes per gradient raster step and per ADC sample.  The
+#: reader's size guard (:func:`dtoc.seq.seqtext._check_sizes`: three quarters of the machine's memory) refuses only
+#: what this read cannot hold; a command's own estimate (:func:`optimize_cost`) includes it.  Measured 2026-11-27 on
+#: this project's 2-core Intel Xeon machine (``load_sequence`` alone in a process with the CLI's allocator setting,
+#: peak RSS from wait4 in bytes; bench.protocols' writers, pypulseq 32 mT/m / 130 T/m/s): the 3D FLASH 1 mm at 24 and
+#: 96 partitions (2,995,200 / 11,980,800 raster steps, 1,179,648 / 4,718,592 ADC samples) 0.865 / 1.667 GB, the
+#: MPRAGE at 16, 128 and 256 shots (3,680,016 / 29,440,128 / 58,880,256, 720,896 / 5,767,168 / 11,534,336) 0.771 /
+#: 2.681 / 4.860 GB.  Fitted to the three largest (0.50 GB + 51 B per raster step + 117 B per ADC sample), the fixed
+#: part raised to cover the smaller ones: 1-11 % above each.  Before, the guard counted 528 B per raster step and
+#: 400 B per ADC sample (11 whole-sequence fine copies of a long optimize, not the read): the 9.8 min MPRAGE, read in
+#: 4.86 GB, was refused at 35.7 GB.
+LOAD_BYTES = 0.58e9
+LOAD_BYTES_PER_RASTER = 52.0
+LOAD_BYTES_PER_ADC = 118.0
+
 # --- the optimizer ------------------------------------------------------------------------------------
 #: the process before any work (Python, torch, dtoc, the base read)
 PROCESS_BYTES = 0.35e9
@@ -90,6 +108,12 @@ RUN_SECONDS = 10.0
 LONG_RUN_SECONDS = 60.0
 
 
+def load_bytes(n_raster: float, n_adc: float) -> float:
+    """Estimated peak bytes of the process that reads a base of ``n_raster`` gradient raster steps and ``n_adc`` ADC
+    samples (constants above: measured, an estimate)."""
+    return LOAD_BYTES + LOAD_BYTES_PER_RASTER * float(n_raster) + LOAD_BYTES_PER_ADC * float(n_adc)
+
+
 def held_bytes() -> int:
     """Resident memory this process already holds (VmRSS, Linux; 0 where unknown)."""
     try:
@@ -112,16 +136,18 @@ def job_memory_bytes() -> int:
 
 
 def check_fits(
-    what: str, need_bytes: float, fraction: float = FIT_FRACTION, way_out: str = "", avail: float | None = None
+    what: str, need_bytes: float, fraction: float | None = None, way_out: str = "", avail: float | None = None
 ) -> None:
-    """Refuse, before any work, a job whose estimated peak memory exceeds ``fraction`` of the available memory
-    (``avail``; default :func:`available_memory_bytes`: an estimate of what the job adds; an estimate of the whole
-    process's peak passes :func:`job_memory_bytes`).
+    """Refuse, before any work, a job whose estimated peak memory exceeds ``fraction`` (None: :data:`FIT_FRACTION`
+    read at the call, so a value set at runtime counts) of the available memory (``avail``; default
+    :func:`available_memory_bytes`: an estimate of what the job adds; an estimate of the whole process's peak
+    passes :func:`job_memory_bytes`).
 
     Raises:
         InputError: ``"<what>: needs about X GiB ... (estimate, before any work), more than 75 % of the Y GiB
         available here: refused[; way out]"``.
     """
+    fraction = FIT_FRACTION if fraction is None else fraction
     avail = available_memory_bytes() if avail is None else avail
     if need_bytes > fraction * avail:
         raise InputError(
@@ -222,11 +248,13 @@ def optimize_cost(n_fine: int, n_adc: int, window: dict | None = None) -> tuple[
     n, a = float(n_fine), float(n_adc)
     if window is None:
         mem = PROCESS_BYTES + WHOLE_BYTES_PER_FINE * n + WHOLE_BYTES_PER_ADC * a
+        mem = max(mem, load_bytes(n / 2, a))  # the process reads the base first: never less than its read
         sec = RUN_SECONDS + WHOLE_SECONDS_PER_FINE * n + WHOLE_SECONDS_PER_ADC2 * a * a
         return mem, sec, f"whole solve of {n_fine} fine and {n_adc} ADC samples"
     mf = float(window["max_free"])
     mem = PROCESS_BYTES + WINDOW_BYTES_PER_FINE * n + WINDOW_BYTES_PER_ADC * a + WINDOW_DENSE_MATRICES * 8.0 * mf * mf
     mem += WINDOW_BYTES_PER_WINDOW_FINE * float(window.get("max_fine", 0))
+    mem = max(mem, load_bytes(n / 2, a))
     sec = RUN_SECONDS + WINDOW_SECONDS_PER_FINE * n + WINDOW_SECONDS_PER_ADC * a
     return (
         mem,
@@ -287,6 +315,7 @@ __all__ = [
     "fine_per_repetition",
     "held_bytes",
     "job_memory_bytes",
+    "load_bytes",
     "optimize_cost",
     "simulation_cost",
 ]
