@@ -233,7 +233,8 @@ def _stream_realization(twin: EdgeTwin, played) -> Callable[[int], tuple] | None
 
         kb = stream_kspace(ir, pieces())
         phase = None if kb.shape[0] == 3 else -kb[3].cpu().numpy() * 1e-3  # uT = 1e-3 mT, as b0_phase_at_adc_rad
-        return torch.cat(heads_g, dim=-1), torch.cat(heads_G, dim=-1), phase, kb[:3]
+        k = kb if kb.shape[0] == 3 else kb[:3].clone()  # k held alone (24 bytes per ADC sample), not with the B0 row
+        return torch.cat(heads_g, dim=-1), torch.cat(heads_G, dim=-1), phase, k
 
     return run
 
