@@ -80,20 +80,24 @@ WHOLE_SECONDS_PER_ADC2 = 6.2e-8
 #: windowed solve (one excitation period at a time): the whole-sequence arrays (bytes per fine sample: the IR's
 #: waveform and mask, the limit envelopes, the edges, the export's waveform; bytes per ADC sample: nominal and
 #: realized k, their errors and masks, the read-back of the written file's ADC events), the dense matrices of the
-#: largest window (this many n_free x n_free float64 matrices held at once, with the cached ones of its structure),
-#: the largest window's own arrays (below) and CPU seconds per fine and per ADC sample.  Refitted 2026-11-27 (the
-#: constants before, 160 bytes and 5e-5 s per fine sample and nothing per ADC sample, predicted 12 GiB and 49 min
-#: for the 4.9 min MPRAGE and refused it; it needs 9.67 GB and 20 CPU minutes) to four runs on this project's
-#: 2-core Intel Xeon machine, peak RSS from wait4 / VmHWM in bytes (the bench tables print KiB / 1e6), the CLI's
-#: allocator setting, KCL 7 T GIRF, 32/130: the MPRAGE 5 min row's command (bench.protocols' base and options;
-#: 58,880,257 fine and 5,767,168 ADC samples, at most 4,806 free and 225,659 fine samples a window, 22,529
-#: windows; load 4-8): 9.67 GB, 1,193 s CPU; its 16-shot cut (36.8 s, 7,360,001 / 720,896, the same windows;
-#: load ~8): 4.02 GB, ~170 s CPU; bench.long's MPRAGE-like at 16 / 64 s (3,151,361 / 12,605,441 fine and 16,384 /
-#: 65,536 ADC samples, at most 3,924 free and 160,681 fine samples a window; idle): 2.47 / 2.89 GB, 44 / 133 s CPU.
-#: The model is 3-8 % above each peak and within 10 % of each CPU time.
-WINDOW_BYTES_PER_FINE = 48
-WINDOW_BYTES_PER_ADC = 640
-WINDOW_DENSE_MATRICES = 12
+#: largest window (this many n_free x n_free float64 matrices: the structures' cache -- J, the normal matrix, its
+#: inverse and ADMM's, per structure, every one of them reused by later windows -- and the one being built), the
+#: largest window's own arrays (below) and CPU seconds per fine and per ADC sample.  Refitted 2026-11-27 (s8h2) after
+#: the window Jacobian's copies across the gap between a window's free runs (1.8 GB on the MPRAGE's longest window)
+#: and the inverses' temporaries were cut, to runs on this project's 2-core Intel Xeon machine, peak RSS from wait4 in
+#: bytes (the bench tables print KiB / 1e6), the CLI's allocator setting, KCL 7 T GIRF, 32/130, load 5-8:
+#: bench.protocols' MPRAGE base at 8 and 16 shots (18.4 / 36.8 s; 3,680,017 / 7,360,033 fine and 360,448 / 720,896
+#: ADC samples, at most 4,806 free and 225,659 fine samples a window): 2.84 / 3.21 GB (before the cut 3.82 / 4.02
+#: GB); the MPRAGE 5 min row (58,880,257 / 5,767,168, 22,529 windows): 9.47 GB, its peak now in the export's write
+#: and read-back (before the cut 9.47-9.67 GB, ~8.1 GB of it in the windows' stage); the 3D FLASH 1 mm row
+#: (23,961,601 / 4,718,592, at most 1,608 free and 11,561 fine samples a window): at least 5.87 GB (it ran past
+#: its 1,500 s wall limit in the export's read-back; before the cut 5.54-5.81 GB).  The model is 0-15 % above each.
+#: The peaks of the long rows are the export's (the written text, pypulseq's objects, the read-back), which grows
+#: with the ADC samples of a 3D protocol: hence the bytes per ADC sample.  CPU seconds from the earlier fit: 1,193 s
+#: for the MPRAGE 5 min, ~170 s for its 16-shot cut, bench.long's 16 / 64 s 44 / 133 s.
+WINDOW_BYTES_PER_FINE = 45
+WINDOW_BYTES_PER_ADC = 900
+WINDOW_DENSE_MATRICES = 8
 #: the window's own arrays, per fine sample of the longest window (its impulse responses over twice its length on
 #: every chain channel, their running integrals, its residual): measured 2026-11-27 on the 2-core Xeon (load ~15,
 #: freed memory returned to the system) on tests/test_windowed.py's idle GRE periods, Lti eddy kernel: 3 periods of
