@@ -92,7 +92,8 @@ WHOLE_SECONDS_PER_ADC2 = 6.2e-8
 #: and read-back (before the cut 9.47-9.67 GB, ~8.1 GB of it in the windows' stage); the 3D FLASH 1 mm row
 #: (23,961,601 / 4,718,592, at most 1,608 free and 11,561 fine samples a window): at least 5.87 GB (it ran past
 #: its 1,500 s wall limit in the export's read-back; before the cut 5.54-5.81 GB); bench.long's MPRAGE-like 16 s
-#: (3,151,361 / 16,384, at most 3,924 free and 160,681 fine samples a window): 1.89 GB (before 2.47 GB).  The model is
+#: and 64 s (3,151,361 / 12,605,441 fine, 16,384 / 65,536 ADC, at most 3,924 free and 160,681 fine samples a window):
+#: 1.89 / 2.41 GB (before 2.47 / 2.89 GB).  The model is
 #: 0-15 % above each.
 #: The peaks of the long rows are the export's (the written text, pypulseq's objects, the read-back), which grows
 #: with the ADC samples of a 3D protocol: hence the bytes per ADC sample.  CPU seconds from the earlier fit: 1,193 s
