@@ -233,7 +233,8 @@ def _stream_realization(twin: EdgeTwin, played) -> Callable[[int], tuple] | None
 
         kb = stream_kspace(ir, pieces())
         phase = None if kb.shape[0] == 3 else -kb[3].cpu().numpy() * 1e-3  # uT = 1e-3 mT, as b0_phase_at_adc_rad
-        return torch.cat(heads_g, dim=-1), torch.cat(heads_G, dim=-1), phase, kb[:3]
+        k = kb if kb.shape[0] == 3 else kb[:3].clone()  # k held alone (24 bytes per ADC sample), not with the B0 row
+        return torch.cat(heads_g, dim=-1), torch.cat(heads_G, dim=-1), phase, k
 
     return run
 
@@ -388,6 +389,8 @@ def windowed_solver_record(plan: Plan, x: torch.Tensor, fine, st) -> dict:
     rec["achieved_max_moment_dk"] = float(e_mom.max(initial=0.0))
     if st.window_adc_dk is not None and np.isfinite(st.window_adc_dk).any():
         rec["window_model_max_adc_dk"] = float(np.nanmax(st.window_adc_dk))  # what the windows saw when committing
+    # the windows' per-sample figures end here (8 bytes per ADC sample each): not held through the write
+    st.unconstrained_adc_dk = st.window_adc_dk = st.unconstrained_moment_dk = st.window_moment_dk = None
     md = um.as_dict()
     for w in md["worst"]:
         w["rf_pulse"] = int(w.pop("sample"))

@@ -258,13 +258,15 @@ class SequenceIR:
 
     # ---- edits -------------------------------------------------------------------------------
     def with_grad(self, grad_mT_per_m: np.ndarray) -> SequenceIR:
-        """A copy with another demanded gradient (same grid); ``source`` is shared, not copied."""
+        """A copy with another demanded gradient (same grid); ``source`` is shared, not copied, and so is the free
+        mask, as a read-only view (3 bytes per fine sample: a 4.9 min MPRAGE's 177 MB, held through the export)."""
         g = np.asarray(grad_mT_per_m, dtype=np.float64)
         if g.shape != self.grad_mT_per_m.shape:
             raise ValueError(f"gradient shape {g.shape} != {self.grad_mT_per_m.shape}")
         new = copy.copy(self)
         new.grad_mT_per_m = g
-        new.free_mask = self.free_mask.copy()
+        new.free_mask = self.free_mask.view()
+        new.free_mask.flags.writeable = False
         new.meta = dict(self.meta)
         return new
 

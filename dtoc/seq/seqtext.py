@@ -24,6 +24,7 @@ from typing import Any
 
 from dtoc.errors import InputError
 from dtoc.seq.versions import BINARY_MAGIC, KNOWN_EXTENSIONS, binary_to_text, check_known
+from dtoc.util.cost import load_bytes
 
 #: Number of fields (including the id) per line in each event section, by (major, minor).
 _FIELDS = {
@@ -446,17 +447,11 @@ def _extension_ids(st: SeqText, p: Path) -> set[int]:
     return out
 
 
-#: Memory estimates (bytes) behind :func:`_check_sizes`: per gradient-raster interval of the sequence (fine
-#: grid of 2 samples x 3 axes in float64, and the ~11 whole-sequence copies held at the peak of a long
-#: ``dtoc optimize``: measured 4.1 GB at 64 s, docs/benchmarks.md "Long sequences") and per ADC sample
-#: (k-space, signal, masks and the simulator's per-sample tables).
-BYTES_PER_RASTER = 2 * 3 * 8 * 11
-BYTES_PER_ADC_SAMPLE = 400
-
-
 def _check_sizes(st: SeqText, blocks: list[tuple[int, list[int]]], p: Path) -> None:
-    """Refuse, before anything is allocated, a sequence whose raster grid or ADC samples need more than
-    three quarters of this machine's memory (a duration or sample count off by orders of magnitude).
+    """Refuse, before anything is allocated, a sequence whose load (the read, the IR, its masks and the nominal k:
+    :func:`dtoc.util.cost.load_bytes`, measured constants) needs more than three quarters of this machine's memory
+    (a duration or sample count off by orders of magnitude).  Only what the read cannot hold is refused here: what a
+    command then does with the sequence is estimated by that command (an optimization: :mod:`dtoc.util.cost`).
     ``blocks``: (line, integer fields) of every [BLOCKS] row."""
     defs = st.definitions()
 
@@ -476,14 +471,14 @@ def _check_sizes(st: SeqText, blocks: list[tuple[int, list[int]]], p: Path) -> N
     n_raster = duration_s / grad_raster
     adc_num = {int(float(ln.tokens[0])): int(float(ln.tokens[1])) for ln in st.sections.get("[ADC]", [])}
     n_adc = sum(adc_num.get(t[6], 0) for _, t in blocks)
-    need = n_raster * BYTES_PER_RASTER + n_adc * BYTES_PER_ADC_SAMPLE
+    need = load_bytes(n_raster, n_adc)
     budget = max_file_bytes() * 30  # three quarters of the memory
     if need > budget:
         raise _err(
             p,
             f"{duration_s:.4g} s of sequence ({n_raster:.3g} gradient raster steps) and {n_adc:.3g} ADC samples need "
-            f"~{need / 1e9:.3g} GB; this machine allows {budget / 1e9:.3g} GB (a duration or sample count off by "
-            "orders of magnitude?)",
+            f"~{need / 1e9:.3g} GB to be read (estimate); this machine allows {budget / 1e9:.3g} GB (a duration or "
+            "sample count off by orders of magnitude?)",
         )
 
 

@@ -47,6 +47,24 @@ DUMMY_BYTES_PER_VOXEL = 70
 DUMMY_SECONDS_PER_FINE = 1.2e-6
 DUMMY_SECONDS_PER_REPETITION = 0.35
 
+# --- reading a base -------------------------------------------------------------------------------------
+#: the peak of reading a base (:func:`dtoc.seq.load.load_sequence`: the parsed text and pypulseq's objects, the IR's
+#: fine waveform and masks, the nominal k and the grid's inference, both in pieces) as a whole process: a fixed part
+#: (Python, torch, pypulseq, the pieces' temporaries) and bytes per gradient raster step and per ADC sample.  The
+#: reader's size guard (:func:`dtoc.seq.seqtext._check_sizes`: three quarters of the machine's memory) refuses only
+#: what this read cannot hold; a command's own estimate (:func:`optimize_cost`) includes it.  Measured 2026-11-27 on
+#: this project's 2-core Intel Xeon machine (``load_sequence`` alone in a process with the CLI's allocator setting,
+#: peak RSS from wait4 in bytes; bench.protocols' writers, pypulseq 32 mT/m / 130 T/m/s): the 3D FLASH 1 mm at 24 and
+#: 96 partitions (2,995,200 / 11,980,800 raster steps, 1,179,648 / 4,718,592 ADC samples) 0.865 / 1.667 GB, the
+#: MPRAGE at 16, 128 and 256 shots (3,680,016 / 29,440,128 / 58,880,256, 720,896 / 5,767,168 / 11,534,336) 0.771 /
+#: 2.681 / 4.860 GB.  Fitted to the three largest (0.50 GB + 51 B per raster step + 117 B per ADC sample), the fixed
+#: part raised to cover the smaller ones: 1-11 % above each.  Before, the guard counted 528 B per raster step and
+#: 400 B per ADC sample (11 whole-sequence fine copies of a long optimize, not the read): the 9.8 min MPRAGE, read in
+#: 4.86 GB, was refused at 35.7 GB.
+LOAD_BYTES = 0.58e9
+LOAD_BYTES_PER_RASTER = 52.0
+LOAD_BYTES_PER_ADC = 118.0
+
 # --- the optimizer ------------------------------------------------------------------------------------
 #: the process before any work (Python, torch, dtoc, the base read)
 PROCESS_BYTES = 0.35e9
@@ -62,20 +80,27 @@ WHOLE_SECONDS_PER_ADC2 = 6.2e-8
 #: windowed solve (one excitation period at a time): the whole-sequence arrays (bytes per fine sample: the IR's
 #: waveform and mask, the limit envelopes, the edges, the export's waveform; bytes per ADC sample: nominal and
 #: realized k, their errors and masks, the read-back of the written file's ADC events), the dense matrices of the
-#: largest window (this many n_free x n_free float64 matrices held at once, with the cached ones of its structure),
-#: the largest window's own arrays (below) and CPU seconds per fine and per ADC sample.  Refitted 2026-11-27 (the
-#: constants before, 160 bytes and 5e-5 s per fine sample and nothing per ADC sample, predicted 12 GiB and 49 min
-#: for the 4.9 min MPRAGE and refused it; it needs 9.67 GB and 20 CPU minutes) to four runs on this project's
-#: 2-core Intel Xeon machine, peak RSS from wait4 / VmHWM in bytes (the bench tables print KiB / 1e6), the CLI's
-#: allocator setting, KCL 7 T GIRF, 32/130: the MPRAGE 5 min row's command (bench.protocols' base and options;
-#: 58,880,257 fine and 5,767,168 ADC samples, at most 4,806 free and 225,659 fine samples a window, 22,529
-#: windows; load 4-8): 9.67 GB, 1,193 s CPU; its 16-shot cut (36.8 s, 7,360,001 / 720,896, the same windows;
-#: load ~8): 4.02 GB, ~170 s CPU; bench.long's MPRAGE-like at 16 / 64 s (3,151,361 / 12,605,441 fine and 16,384 /
-#: 65,536 ADC samples, at most 3,924 free and 160,681 fine samples a window; idle): 2.47 / 2.89 GB, 44 / 133 s CPU.
-#: The model is 3-8 % above each peak and within 10 % of each CPU time.
-WINDOW_BYTES_PER_FINE = 48
-WINDOW_BYTES_PER_ADC = 640
-WINDOW_DENSE_MATRICES = 12
+#: largest window (this many n_free x n_free float64 matrices: the structures' cache -- J, the normal matrix, its
+#: inverse and ADMM's, per structure, every one of them reused by later windows -- and the one being built), the
+#: largest window's own arrays (below) and CPU seconds per fine and per ADC sample.  Refitted 2026-11-27 (s8h2) after
+#: the window Jacobian's copies across the gap between a window's free runs (1.8 GB on the MPRAGE's longest window)
+#: and the inverses' temporaries were cut, to runs on this project's 2-core Intel Xeon machine, peak RSS from wait4 in
+#: bytes (the bench tables print KiB / 1e6), the CLI's allocator setting, KCL 7 T GIRF, 32/130, load 5-8:
+#: bench.protocols' MPRAGE base at 8 and 16 shots (18.4 / 36.8 s; 3,680,017 / 7,360,033 fine and 360,448 / 720,896
+#: ADC samples, at most 4,806 free and 225,659 fine samples a window): 2.84 / 3.21 GB (before the cut 3.82 / 4.02
+#: GB); the MPRAGE 5 min row (58,880,257 / 5,767,168, 22,529 windows): 9.47 GB, its peak now in the export's write
+#: and read-back (before the cut 9.47-9.67 GB, ~8.1 GB of it in the windows' stage); the 3D FLASH 1 mm row
+#: (23,961,601 / 4,718,592, at most 1,608 free and 11,561 fine samples a window): at least 5.87 GB (it ran past
+#: its 1,500 s wall limit in the export's read-back; before the cut 5.54-5.81 GB); bench.long's MPRAGE-like 16 s
+#: and 64 s (3,151,361 / 12,605,441 fine, 16,384 / 65,536 ADC, at most 3,924 free and 160,681 fine samples a window):
+#: 1.89 / 2.41 GB (before 2.47 / 2.89 GB).  The model is
+#: 0-15 % above each.
+#: The peaks of the long rows are the export's (the written text, pypulseq's objects, the read-back), which grows
+#: with the ADC samples of a 3D protocol: hence the bytes per ADC sample.  CPU seconds from the earlier fit: 1,193 s
+#: for the MPRAGE 5 min, ~170 s for its 16-shot cut, bench.long's 16 / 64 s 44 / 133 s.
+WINDOW_BYTES_PER_FINE = 45
+WINDOW_BYTES_PER_ADC = 900
+WINDOW_DENSE_MATRICES = 8
 #: the window's own arrays, per fine sample of the longest window (its impulse responses over twice its length on
 #: every chain channel, their running integrals, its residual): measured 2026-11-27 on the 2-core Xeon (load ~15,
 #: freed memory returned to the system) on tests/test_windowed.py's idle GRE periods, Lti eddy kernel: 3 periods of
@@ -88,6 +113,12 @@ WINDOW_SECONDS_PER_ADC = 1.09e-4
 RUN_SECONDS = 10.0
 #: an optimization whose estimate reaches this many seconds prints its estimate (a windowed one always does)
 LONG_RUN_SECONDS = 60.0
+
+
+def load_bytes(n_raster: float, n_adc: float) -> float:
+    """Estimated peak bytes of the process that reads a base of ``n_raster`` gradient raster steps and ``n_adc`` ADC
+    samples (constants above: measured, an estimate)."""
+    return LOAD_BYTES + LOAD_BYTES_PER_RASTER * float(n_raster) + LOAD_BYTES_PER_ADC * float(n_adc)
 
 
 def held_bytes() -> int:
@@ -112,16 +143,18 @@ def job_memory_bytes() -> int:
 
 
 def check_fits(
-    what: str, need_bytes: float, fraction: float = FIT_FRACTION, way_out: str = "", avail: float | None = None
+    what: str, need_bytes: float, fraction: float | None = None, way_out: str = "", avail: float | None = None
 ) -> None:
-    """Refuse, before any work, a job whose estimated peak memory exceeds ``fraction`` of the available memory
-    (``avail``; default :func:`available_memory_bytes`: an estimate of what the job adds; an estimate of the whole
-    process's peak passes :func:`job_memory_bytes`).
+    """Refuse, before any work, a job whose estimated peak memory exceeds ``fraction`` (None: :data:`FIT_FRACTION`
+    read at the call, so a value set at runtime counts) of the available memory (``avail``; default
+    :func:`available_memory_bytes`: an estimate of what the job adds; an estimate of the whole process's peak
+    passes :func:`job_memory_bytes`).
 
     Raises:
         InputError: ``"<what>: needs about X GiB ... (estimate, before any work), more than 75 % of the Y GiB
         available here: refused[; way out]"``.
     """
+    fraction = FIT_FRACTION if fraction is None else fraction
     avail = available_memory_bytes() if avail is None else avail
     if need_bytes > fraction * avail:
         raise InputError(
@@ -222,11 +255,13 @@ def optimize_cost(n_fine: int, n_adc: int, window: dict | None = None) -> tuple[
     n, a = float(n_fine), float(n_adc)
     if window is None:
         mem = PROCESS_BYTES + WHOLE_BYTES_PER_FINE * n + WHOLE_BYTES_PER_ADC * a
+        mem = max(mem, load_bytes(n / 2, a))  # the process reads the base first: never less than its read
         sec = RUN_SECONDS + WHOLE_SECONDS_PER_FINE * n + WHOLE_SECONDS_PER_ADC2 * a * a
         return mem, sec, f"whole solve of {n_fine} fine and {n_adc} ADC samples"
     mf = float(window["max_free"])
     mem = PROCESS_BYTES + WINDOW_BYTES_PER_FINE * n + WINDOW_BYTES_PER_ADC * a + WINDOW_DENSE_MATRICES * 8.0 * mf * mf
     mem += WINDOW_BYTES_PER_WINDOW_FINE * float(window.get("max_fine", 0))
+    mem = max(mem, load_bytes(n / 2, a))
     sec = RUN_SECONDS + WINDOW_SECONDS_PER_FINE * n + WINDOW_SECONDS_PER_ADC * a
     return (
         mem,
@@ -287,6 +322,7 @@ __all__ = [
     "fine_per_repetition",
     "held_bytes",
     "job_memory_bytes",
+    "load_bytes",
     "optimize_cost",
     "simulation_cost",
 ]
