@@ -294,6 +294,7 @@ def run_row(name: str, girf: Path, timeout_s: float, d: Path) -> dict:
             windows=w.get("windows"),
             reused=w.get("windows_reusing_a_solve"),
             unreachable=(sv.get("unreachable") or {}).get("n_samples"),
+            minimax=sv.get("minimax"),
         )
     return row
 
@@ -325,6 +326,9 @@ def render(rows: list[dict]) -> str:
             else f"{r['windows']} windows ({r['reused']} reused)"
         )
         stop = r["stop"] + (f", {r['unreachable']} samples named" if r.get("unreachable") else "")
+        mm = r.get("minimax")
+        if mm:  # the warm start's minimax rounds (docs/optimize.md, "Solver", 4.)
+            stop += f"; minimax rounds {mm['rounds']} ({mm['max_before_dk']:.3g} -> {mm['max_after_dk']:.3g} dk, {mm['stop_reason']})"
         lines.append(
             f"| {r['desc']} | {r['duration_s']:.3g} s | {r['n_adc']} | {r['wall_s']:.0f} s / {r['cpu_s']:.0f} s "
             f"| {r['rss_gb']:.2f} GB | {f(r['k_before'])} -> {f(r['k_after'])} "

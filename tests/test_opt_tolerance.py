@@ -117,7 +117,7 @@ def test_minimax_rounds_keep_the_best_round_and_stop_when_they_stall():
     assert float(x[0]) == 0.0298 and rep.achieved_max_dk == pytest.approx(0.0298)
     m = rep.minimax
     assert m["rounds"] == 4 and m["stop_reason"] == "stalled" and m["evaluations"] == 200
-    assert m["max_before_dk"] == 0.05 and rep.evaluations == 300
+    assert m["max_before_dk"] == 0.05 and rep.evaluations == 300 and m["round_max_dk"] == [0.08, 0.03, 0.0299, 0.0298]
     e0 = np.maximum(k_error(x0), 0.01) ** 2
     np.testing.assert_allclose(seen[0], e0 / e0.mean(), rtol=1e-12)
     # round 2's weights: round 1's times round 1's errors (its worse waveform's: where the errors showed up)

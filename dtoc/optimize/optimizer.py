@@ -510,6 +510,7 @@ def minimax_rounds_solve(solve, ctx, x, rep, k_error, P, times, n_adc: int, roun
     base_w = ctx.sample_weight
     w = np.ones(n_adc) if base_w is None else base_w.detach().cpu().numpy().astype(np.float64)
     spent, done, idle, stop = 0, 0, 0, "rounds"
+    worst: list[float] = []  # every round's worst error (kept or not)
     try:
         for _ in range(rounds):
             n = min(round_budget, budget - spent)
@@ -527,6 +528,7 @@ def minimax_rounds_solve(solve, ctx, x, rep, k_error, P, times, n_adc: int, roun
                 stop = "interrupted"
                 break
             err = k_error(x2)
+            worst.append(float(err.max()))
             prev = float(best_err.max())
             if float(err.max()) < prev:
                 best_x, best_err = x2, err
@@ -557,6 +559,7 @@ def minimax_rounds_solve(solve, ctx, x, rep, k_error, P, times, n_adc: int, roun
         "stop_reason": stop,
         "max_before_dk": first,
         "max_after_dk": float(best_err.max()),
+        "round_max_dk": worst,
     }
     return best_x, rep
 
