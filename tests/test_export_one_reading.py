@@ -5,6 +5,11 @@ and the check's rules; the record is the check of the written file, and a differ
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pypulseq
 import pytest
@@ -102,3 +107,31 @@ def test_a_difference_is_refused_as_the_read_back_alone_refuses_it(tmp_path, mon
         write_checked(out_ir, out, False, LIMITS)
     assert str(export.value) == str(alone.value) and "\n" not in str(export.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["base.seq"]
+
+
+REPO = Path(__file__).resolve().parents[1]
+GIRF = REPO / "girf" / "example_7T.npz"
+#: ``dtoc optimize`` with the written text read back and checked in pieces of 256 raster steps (a long-ish export)
+IN_PIECES = (
+    "import sys, dtoc.seq.write as W; W.VERIFY_PIECE_RASTER = 256; from dtoc.cli.main import run; run(sys.argv[1:])"
+)
+
+
+@pytest.mark.skipif(not GIRF.exists(), reason="girf/example_7T.npz absent")
+def test_a_sigterm_during_the_read_back_stops_the_export_with_nothing_written(tmp_path):
+    """SIGTERM at the export's read-back of the written text (its first piece, ``DTOC_FAULT_SIGNAL=verify``): exit
+    143 at once, one line, no output and no temporary left (the signal used to wait for the write, the read-back
+    and the check, then for the outputs to be complete)."""
+    base, outs = tmp_path / "base.seq", tmp_path / "out"
+    base.write_bytes(writers.gre3d(n=8, nz=4))
+    outs.mkdir()
+    r = subprocess.run(
+        [sys.executable, "-c", IN_PIECES, "optimize", base, "--girf", GIRF, "-o", outs / "o.seq", "--json",
+         outs / "o.json", "-q", "--gmax", "80", "--smax", "200", "--warm-iters", "20", "--iters", "2", "--threads", "1"],
+        cwd=REPO, capture_output=True, text=True, timeout=600,
+        env={**os.environ, "DTOC_FAULT_SIGNAL": "verify:SIGTERM"},
+    )  # fmt: skip
+    assert r.returncode == 143, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last == "dtoc: interrupted by SIGTERM: no output written" and "Traceback" not in r.stderr, r.stderr
+    assert list(outs.iterdir()) == []  # no .seq, manifest, side-car, nor a temporary of any

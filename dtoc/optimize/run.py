@@ -1175,14 +1175,15 @@ def discard_stage(plan: Plan, sol: Solution) -> None:
 
 def export_stage(plan: Plan, sol: Solution, io: RunIO, t_start: float) -> RunOutputs:
     """Stage 5: the final projection and verification, the figures, the manifest, and the outputs written
-    together (a signal waits until they are complete, then exits 130/143)."""
+    together.  A signal stops the stage at once, nothing written (the outputs are staged in temporaries, which go
+    with it), until the outputs are committed: during their renames it waits until they are complete, then exits
+    130/143."""
     ir, cfg, twin, ctx, imager, limits = plan.ir, plan.cfg, plan.twin, plan.ctx, plan.imager, plan.limits
     state, keep, thr, extra, R, free = sol.state, sol.keep, sol.thr, sol.extra, plan.R, plan.free
     before, warnings_out = plan.before, plan.warnings
     assert sol.x is not None
-    with deferred():  # from here on a signal waits until the outputs are complete, then exits 130/143
-        fault_point("export")
-
+    commit = deferred(held=False)  # a signal waits only while the outputs are committed (commit.hold() below)
+    with commit:
         # final projection (feasible by construction) and verification
         x = plan.projector.project(sol.x, n_iter=60, exact=True)
         fine = twin.export_fine(x)
@@ -1290,6 +1291,8 @@ def export_stage(plan: Plan, sol: Solution, io: RunIO, t_start: float) -> RunOut
                 None if io.safety is None else dataclasses.replace(io.safety, rotation=R),
                 adc_offsets,
             )
+            commit.hold()  # the renames of outputs_together: from here on a signal waits until they are complete
+            fault_point("export")
     return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)
 
 

@@ -49,6 +49,7 @@ from dtoc.seq.versions import (
     strip_signature,
     version_str,
 )
+from dtoc.util.interrupt import fault_point
 
 #: a block/axis counts as changed when any fine sample moved by more than this, mT/m
 CHANGE_TOL_MT_PER_M = 1e-9
@@ -515,6 +516,7 @@ class _SharedReadBack:
         self.done: set = set()
 
     def __call__(self, k: int | None, path: Path, version: tuple, seq, back: SequenceIR) -> None:
+        fault_point("verify")
         if not self.whole_ok or (k is None) != (len(self.spans) <= 1):
             raise _Mismatch
         back.meta["format_version"] = version_str(tuple(version))
