@@ -257,12 +257,13 @@ def seq_bytes_of(
     rotations, shims = ir.meta.get("rotations") or {}, ir.meta.get("rf_shims") or {}
     seq.use_block_cache = False  # pypulseq's write decodes every block (its timing check): none kept (to_pypulseq)
     if v >= (1, 5, 0):
-        data = seq_bytes(seq, in_place=True)  # (this function's copy)
+        # (this function's copy; without pypulseq's timing check, which only warns, silenced: the same text)
+        data = seq_bytes(seq, in_place=True, check_timing=False)
         if v != (1, 5, 0) or rotations or shims:
             text = set_revision(strip_signature(data), v)
             data = sign_text(add_kept_extensions(text, rotations, shims))
     else:
-        data = sign_text(set_revision(strip_signature(seq_bytes(seq, v141=True, in_place=True)), v))
+        data = sign_text(set_revision(strip_signature(seq_bytes(seq, v141=True, in_place=True, check_timing=False)), v))
     if verify:
         verify_written(ir, data, v, adc_offsets)
     return data
