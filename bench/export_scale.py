@@ -6,9 +6,10 @@ dtoc reads it (``load_sequence``); every free raster edge is moved by a smooth p
 within the limits: its slew is < 0.1 T/m/s; its period, sqrt(2) ms, shares no multiple with the TR, so no two TRs
 write the same shape), so every block with a free edge is rewritten as an arbitrary waveform,
 as an optimized output is.  Then the write path of ``dtoc optimize``'s export stage: ``seq_bytes_of(verify=False)``
-(the text), ``verify_written`` (the read-back of the written text) and the check ``write_checked`` makes of it
-(``check_file_pieces``: in pieces above ``VERIFY_PIECE_RASTER`` raster steps; ``--whole-check``: ``check_file`` on
-the whole text, as before), each timed (wall and CPU) with its peak resident
+(the text), then the read-back of the written text and the check ``write_checked`` makes of it, on one reading of
+each piece (``verify_and_check``: in pieces above ``VERIFY_PIECE_RASTER`` raster steps); ``--separate``: the
+read-back (``verify_written``) and the check (``check_file_pieces``; ``--whole-check``: ``check_file`` on the whole
+text) each on its own reading, as before.  Each step timed (wall and CPU) with its peak resident
 memory (``VmHWM`` reset before each step through ``/proc/self/clear_refs``).  Each length runs in its own process
 (the peaks do not mix); one JSON line per length on stdout, then a table.  Nothing is written to docs/.
 """
@@ -47,7 +48,7 @@ def _step(fn):
     return out, {**stats, "peak_mb": _rss_mb("VmHWM"), "rss_after_mb": _rss_mb("VmRSS")}
 
 
-def one(partitions: int, whole_check: bool = False) -> dict:
+def one(partitions: int, whole_check: bool = False, separate: bool = False) -> dict:
     """One length, in this process."""
     import tempfile
 
@@ -59,7 +60,7 @@ def one(partitions: int, whole_check: bool = False) -> dict:
     from dtoc.seq.ir import edges_to_fine
     from dtoc.seq.load import load_sequence
     from dtoc.seq.system import SystemSpec
-    from dtoc.seq.write import seq_bytes_of, verify_spans, verify_written, writable_version
+    from dtoc.seq.write import seq_bytes_of, verify_and_check, verify_spans, verify_written, writable_version
 
     row: dict = {"partitions": partitions}
     with tempfile.TemporaryDirectory() as td:
@@ -82,8 +83,16 @@ def one(partitions: int, whole_check: bool = False) -> dict:
     v = writable_version(out)
     data, row["write"] = _step(lambda: seq_bytes_of(out, version=v, verify=False))
     row["out_mb"] = len(data) / 1e6
-    _, row["verify"] = _step(lambda: verify_written(out, data, v))
     sysspec = SystemSpec(max_grad_mT_per_m=80.0, max_slew_T_per_m_per_s=200.0, grad_raster_s=out.raster_s)
+    if not (separate or whole_check):  # the export's: one reading of each piece for the read-back and the check
+        with tempfile.TemporaryDirectory() as td:
+            p = Path(td) / "out.seq"
+            p.write_bytes(data)
+            data = b""  # (write_checked holds no copy of the text while it checks the file)
+            res, row["verify_check"] = _step(lambda: verify_and_check(out, p, v, sysspec, None))
+        row.update(check_whole=False, check_violations=len(res.violations))
+        return row
+    _, row["verify"] = _step(lambda: verify_written(out, data, v))
     with tempfile.TemporaryDirectory() as td:  # the check reads the file, as write_checked's does
         p = Path(td) / "out.seq"
         p.write_bytes(data)
@@ -103,26 +112,42 @@ def _over(step: dict) -> float:
     return step["peak_mb"] - step["rss_start_mb"]
 
 
+def _read_back(r: dict) -> dict:
+    """The read-back and check of a row: the shared step, or the separate ones summed (times) and maxed (peaks)."""
+    if "verify_check" in r:
+        return r["verify_check"]
+    a, b = r["verify"], r["check"]
+    return {
+        "wall_s": a["wall_s"] + b["wall_s"],
+        "cpu_s": a["cpu_s"] + b["cpu_s"],
+        "rss_start_mb": a["rss_start_mb"],
+        "peak_mb": max(a["peak_mb"], b["peak_mb"]),
+    }
+
+
 def render(rows: list[dict]) -> str:
     head = (
         "| partitions | blocks | raster steps | duration (s) | output (MB) | RSS loaded (MB) | write: wall / CPU (s) | "
-        "write: peak RSS over its start (MB) | verify: wall / CPU (s) | verify: peak RSS over its start (MB) | "
-        "check: wall / CPU (s) | check: peak RSS over its start (MB) | export's peak RSS (MB) |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "write: peak RSS over its start (MB) | read-back and check: wall / CPU (s) | read-back and check: peak RSS "
+        "over its start (MB) | export: CPU (s) | export's peak RSS (MB) |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = [
         f"| {r['partitions']} | {r['blocks']} | {r['raster_steps']} | {r['duration_s']:.1f} | {r['out_mb']:.0f} | "
         f"{r['rss_before_export_mb']:.0f} | {r['write']['wall_s']:.1f} / {r['write']['cpu_s']:.1f} | "
-        f"{_over(r['write']):.0f} | {r['verify']['wall_s']:.1f} / {r['verify']['cpu_s']:.1f} | "
-        f"{_over(r['verify']):.0f} | {r['check']['wall_s']:.1f} / {r['check']['cpu_s']:.1f} | {_over(r['check']):.0f} | "
-        f"{max(r[k]['peak_mb'] for k in ('write', 'verify', 'check')):.0f} |"
+        f"{_over(r['write']):.0f} | {_read_back(r)['wall_s']:.1f} / {_read_back(r)['cpu_s']:.1f} | "
+        f"{_over(_read_back(r)):.0f} | {r['write']['cpu_s'] + _read_back(r)['cpu_s']:.1f} | "
+        f"{max(r['write']['peak_mb'], _read_back(r)['peak_mb']):.0f} |"
         for r in rows
     ]
     out = head + "\n".join(lines) + "\n"
-    if len(rows) > 1:
-        a, b = rows[0], rows[-1]
-        steps = b["raster_steps"] - a["raster_steps"]
-        per = [f"{k}: {(_over(b[k]) - _over(a[k])) * 2**20 / steps:.0f}" for k in ("write", "verify", "check")]
+    a, b = rows[0], rows[-1]
+    steps = b["raster_steps"] - a["raster_steps"]
+    if steps > 0:  # (two lengths or more)
+        per = [
+            f"{k}: {(_over(f(b)) - _over(f(a))) * 2**20 / steps:.0f}"
+            for k, f in (("write", lambda r: r["write"]), ("read-back and check", _read_back))
+        ]
         out += (
             f"\nPeak RSS over the step's start, per raster step ({a['partitions']} -> {b['partitions']} partitions), bytes: "
             + ", ".join(per)
@@ -135,10 +160,11 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--partitions", type=int, nargs="+", default=[2, 8, 32, 96])
     ap.add_argument("--whole-check", action="store_true", help="check the whole text (check_file), as before")
+    ap.add_argument("--separate", action="store_true", help="the read-back and the check each on its own reading")
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: one length in this process
     a = ap.parse_args(argv)
     if a.one is not None:
-        print(json.dumps(one(a.one, a.whole_check)), flush=True)
+        print(json.dumps(one(a.one, a.whole_check, a.separate)), flush=True)
         return
     rows = []
     for p in a.partitions:
@@ -150,6 +176,7 @@ def main(argv=None) -> None:
                 "--one",
                 str(p),
                 *(["--whole-check"] if a.whole_check else []),
+                *(["--separate"] if a.separate else []),
             ],
             cwd=REPO,
             capture_output=True,

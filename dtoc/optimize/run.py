@@ -51,7 +51,7 @@ from dtoc.seq.ir import SequenceIR
 from dtoc.seq.seqtext import shared_parse
 from dtoc.seq.system import SystemSpec
 from dtoc.seq.versions import check_writable, version_str
-from dtoc.seq.write import output_version, preflight_write, seq_bytes_of, verify_spans
+from dtoc.seq.write import output_version, preflight_write, seq_bytes_of, verify_and_check
 from dtoc.sim import metrics
 from dtoc.sim.imager import Imager
 from dtoc.util.atomic import (
@@ -1180,14 +1180,15 @@ def discard_stage(plan: Plan, sol: Solution) -> None:
 
 def export_stage(plan: Plan, sol: Solution, io: RunIO, t_start: float) -> RunOutputs:
     """Stage 5: the final projection and verification, the figures, the manifest, and the outputs written
-    together (a signal waits until they are complete, then exits 130/143)."""
+    together.  A signal stops the stage at once, nothing written (the outputs are staged in temporaries, which go
+    with it), until the outputs are committed: during their renames it waits until they are complete, then exits
+    130/143."""
     ir, cfg, twin, ctx, imager, limits = plan.ir, plan.cfg, plan.twin, plan.ctx, plan.imager, plan.limits
     state, keep, thr, extra, R, free = sol.state, sol.keep, sol.thr, sol.extra, plan.R, plan.free
     before, warnings_out = plan.before, plan.warnings
     assert sol.x is not None
-    with deferred():  # from here on a signal waits until the outputs are complete, then exits 130/143
-        fault_point("export")
-
+    commit = deferred(held=False)  # a signal waits only while the outputs are committed (commit.hold() below)
+    with commit:
         # final projection (feasible by construction) and verification
         x = plan.projector.project(sol.x, n_iter=60, exact=True)
         fine = twin.export_fine(x)
@@ -1295,6 +1296,8 @@ def export_stage(plan: Plan, sol: Solution, io: RunIO, t_start: float) -> RunOut
                 None if io.safety is None else dataclasses.replace(io.safety, rotation=R),
                 adc_offsets,
             )
+            commit.hold()  # the renames of outputs_together: from here on a signal waits until they are complete
+            fault_point("export")
     return RunOutputs(manifest=manifest, ir_out=ir_out, figures=figures)
 
 
@@ -1428,29 +1431,35 @@ def write_checked(
     ``definitions``: extra [DEFINITIONS] entries (e.g. ``DtocInterrupted 1`` on a best-so-far)."""
     outp = Path(out)
     version = ir_out.meta.get("output_format_version")
-    # the written text is parsed once: by the writer's read-back and by the check (dtoc.seq.seqtext.shared_parse)
     with tempfile.TemporaryDirectory(dir=outp.parent if str(outp.parent) else ".") as d, shared_parse():
         tmp = Path(d) / outp.name
-        tmp.write_bytes(seq_bytes_of(ir_out, definitions, adc_offsets, version))  # a private folder: checked first
+        tmp.write_bytes(seq_bytes_of(ir_out, definitions, adc_offsets, version, verify=False))  # a private folder
         sysspec = SystemSpec(
             max_grad_mT_per_m=limits.gmax_mT_per_m,
             max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
             grad_raster_s=ir_out.raster_s,
             block_raster_s=_block_raster(ir_out),
         )
-        # the format's rules and the limits, as given; a long text in the read-back's pieces (its parse and reading
-        # are ~570 bytes per raster step), with the whole check's result
-        res = check_file_pieces(tmp, verify_spans(ir_out), sysspec, safety, conventions=None)
+        # read back (it plays ir_out) and checked (the format's rules and the limits, as given) on one parse and one
+        # reading of each piece of the text (a long text in pieces: its parse and reading are ~570 bytes per raster
+        # step), with the whole check's result (dtoc.seq.write.verify_and_check)
         lim_rules = {"grad_amplitude", "slew_rate", "grad_vector", "slew_vector", "pns", "acoustic"}
-        bad = [v for v in res.violations if v.rule in lim_rules]
-        if bad:
-            raise ValidationFailed(f"written file fails dtoc check: {bad[0].message}; nothing written")
-        inherited = settle_inherited(res, ir_out.source, sysspec)  # steps the base has: reported; new ones: raise
+        settled: list = []
+
+        def judge(res) -> None:
+            bad = [v for v in res.violations if v.rule in lim_rules]
+            if bad:
+                raise ValidationFailed(f"written file fails dtoc check: {bad[0].message}; nothing written")
+            settled.append(settle_inherited(res, ir_out.source, sysspec))  # the base's steps: reported; new: raise
+
+        v_out = output_version(ir_out, version)
+        res = verify_and_check(ir_out, tmp, v_out, sysspec, safety, check_file_pieces, judge)
+        inherited = settled[0]
         result: dict[str, Any] = {
             "path": str(outp),
             "check_ok": res.ok,
             "check_other_rules": sorted(res.rules() - lim_rules),
-            "format_version": version_str(output_version(ir_out, version)),
+            "format_version": version_str(v_out),
             "check_failed": res.summary() if not res.ok else None,  # by kind, with the worst values
             "checks": list(res.checks),
             "check_not_checked": list(res.not_checked),

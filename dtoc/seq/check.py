@@ -30,6 +30,7 @@ from __future__ import annotations
 import copy
 import re
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -893,6 +894,7 @@ def check_file(
     *,
     limits_source: str | None = None,
     conventions: str | None = _AUTO,
+    read_back: ReadBack | None = None,
 ) -> CheckResult:
     """Validate a ``.seq`` file.  ``system=None``: the limits the file records (dtoc-built files); a file that
     records none is refused (limits are never assumed: give a :class:`SystemSpec`).  ``safety``: PNS and
@@ -903,6 +905,8 @@ def check_file(
         conventions: where the vendor conventions of ``system`` (dead times, ring-down, ADC samples, rasters) come
             from, e.g. "--scanner terra"; None: not checked (listed in ``not_checked``).  Default: checked when
             ``system`` is given (its name is the source), not when the limits come from the file.
+        read_back: called with the text's reading, ``read_back(None, path, version, seq, ir)`` (:data:`ReadBack`),
+            once it is read (so that a writer's read-back shares the check's reading of its text).
     Raises:
         InputError: only when the file cannot be opened or parsed at all (missing, binary, truncated
             structure); every other problem is a :class:`Violation`.
@@ -918,10 +922,12 @@ def check_file(
     if conventions:
         _raster_convention(file_rasters(seq), system, res.violations)
     try:
-        ir = from_pypulseq(seq)
+        ir = from_pypulseq(seq, free_mask=False)  # (no rule reads what an optimizer may change)
     except InputError as e:
         res.violations.append(Violation("block_raster", message=str(e)))
         return _tag(res)
+    if read_back is not None:
+        read_back(None, Path(path), st.version, seq, ir)
     _event_rules(seq, ir, system, res.violations, bool(conventions), seg)
     res.violations.extend(check_ir_limits(ir, system))
     if safety is not None and safety.pns is not None:
@@ -938,6 +944,12 @@ _LIMIT_ORDER = {
         [(r, a) for a in AXES for r in ("grad_amplitude", "slew_rate")] + [("grad_vector", None), ("slew_vector", None)]
     )
 }
+
+
+#: ``read_back(piece index or None, path of the text read, its format version, pypulseq Sequence, IR)``: what
+#: :func:`check_file` and :func:`check_file_pieces` hand a caller of each reading they make (the IR as
+#: :func:`dtoc.seq.read.from_pypulseq` gives it, without a free mask); it may raise to stop the check
+ReadBack = Callable[[int | None, Path, tuple, Any, SequenceIR], None]
 
 
 class _Played:
@@ -957,6 +969,7 @@ def check_file_pieces(
     *,
     limits_source: str | None = None,
     conventions: str | None = _AUTO,
+    read_back: ReadBack | None = None,
 ) -> CheckResult:
     """:func:`check_file` of a long text, in the pieces ``spans`` (``(c0, b0, b1, c1)`` per piece, as the written
     text's read-back cuts it, :func:`dtoc.seq.write.verify_spans`): the same :class:`CheckResult`, holding one
@@ -974,15 +987,19 @@ def check_file_pieces(
     them: 48 bytes per raster step).  Whenever a piece finds a rule whose figures would name the piece rather than
     the text (a text rule's line number, a reading that fails, a malformed signature), and for one piece or a text
     :mod:`dtoc.seq.pieces` does not cut, the text is checked whole by :func:`check_file` instead: the result is
-    always the whole check's."""
+    always the whole check's.
 
-    def whole() -> CheckResult:
-        return check_file(path, system, safety, limits_source=limits_source, conventions=conventions)
+    ``read_back`` (:data:`ReadBack`) is called with each piece's reading, ``read_back(k, piece path, version, seq,
+    ir)`` for piece ``k`` of ``spans``, or with the whole text's (``k`` None) when ``spans`` is one piece; a
+    check that goes whole after the first piece does not call it again (the caller sees which pieces it got)."""
+
+    def whole(rb: ReadBack | None = None) -> CheckResult:
+        return check_file(path, system, safety, limits_source=limits_source, conventions=conventions, read_back=rb)
 
     from dtoc.seq.pieces import PieceError, TextIndex, share, signature_ok
 
     if len(spans) <= 1:
-        return whole()
+        return whole(read_back)
     data = Path(path).read_bytes()
     try:
         index = TextIndex(data)
@@ -1026,22 +1043,25 @@ def check_file_pieces(
                     forget_shared_parse()
             except InputError:
                 return whole()
+            if text:
+                return whole()
+            if res is None:  # the first piece: what the whole file's [DEFINITIONS] and version say
+                res = _head(path, st, system, limits_source, conventions, signed)
+                system = res.system
+                conventions = res.sources.get(CONVENTION)
+                seg = _adc_segment(res.definitions.get("MaxAdcSegmentLength"))
+                if conventions:
+                    _raster_convention(file_rasters(seq), system, res.violations)
+            version = st.version
+            del st
+            try:
+                ir = from_pypulseq(seq, free_mask=False)  # (no rule reads what an optimizer may change)
+            except InputError:
+                return whole()
+            if read_back is not None:  # (while the piece's file exists: the caller may read it too)
+                read_back(k, Path(tmp), version, seq, ir)
         finally:
             os.unlink(tmp)
-        if text:
-            return whole()
-        if res is None:  # the first piece: what the whole file's [DEFINITIONS] and version say
-            res = _head(path, st, system, limits_source, conventions, signed)
-            system = res.system
-            conventions = res.sources.get(CONVENTION)
-            seg = _adc_segment(res.definitions.get("MaxAdcSegmentLength"))
-            if conventions:
-                _raster_convention(file_rasters(seq), system, res.violations)
-        del st
-        try:
-            ir = from_pypulseq(seq)
-        except InputError:
-            return whole()
         keys = [int(x) for x in seq.block_events]
         if len(keys) != c1 - c0:
             return whole()

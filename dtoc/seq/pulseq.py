@@ -92,15 +92,22 @@ def representable_amplitudes(amps_hz_per_m) -> np.ndarray:
     return a
 
 
-def seq_bytes(seq, v141: bool = False, in_place: bool = False) -> bytes:
+def seq_bytes(seq, v141: bool = False, in_place: bool = False, check_timing: bool = True) -> bytes:
     """The signed Pulseq 1.5.0 text of a Sequence (pypulseq ``write``), as bytes; ``v141``: pypulseq's 1.4.1
     writer instead.  ``in_place``: ``seq`` is the caller's to change, and its duplicate events are removed in
     place (pypulseq's write otherwise removes them on a deep copy of every library: the same text, without that
-    copy)."""
+    copy).  ``check_timing`` False: without pypulseq's timing check, which only warns (silenced here) and decodes
+    every block (the same text; for a caller that checks the text it reads back)."""
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "out.seq"
         with quiet():
             if in_place:
                 seq.remove_duplicates(in_place=True)
-            seq.write(str(p), create_signature=True, v141_compat=v141, remove_duplicates=not in_place)
+            seq.write(
+                str(p),
+                create_signature=True,
+                v141_compat=v141,
+                remove_duplicates=not in_place,
+                check_timing=check_timing,
+            )
         return p.read_bytes()

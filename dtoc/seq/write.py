@@ -24,6 +24,7 @@ what an extended trapezoid plays); otherwise :class:`dtoc.errors.DtocError` is r
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,7 @@ import numpy as np
 from dtoc.constants import AXES, hz_per_m_from_mT_per_m
 from dtoc.errors import DtocError, InputError
 from dtoc.seq.ir import SequenceIR, edges_to_fine
+from dtoc.seq.pieces import signature_ok
 from dtoc.seq.pulseq import quiet, representable_amplitudes, seq_bytes
 from dtoc.seq.seqtext import sign_text
 from dtoc.seq.system import SystemSpec
@@ -47,6 +49,7 @@ from dtoc.seq.versions import (
     strip_signature,
     version_str,
 )
+from dtoc.util.interrupt import fault_point
 
 #: a block/axis counts as changed when any fine sample moved by more than this, mT/m
 CHANGE_TOL_MT_PER_M = 1e-9
@@ -254,12 +257,13 @@ def seq_bytes_of(
     rotations, shims = ir.meta.get("rotations") or {}, ir.meta.get("rf_shims") or {}
     seq.use_block_cache = False  # pypulseq's write decodes every block (its timing check): none kept (to_pypulseq)
     if v >= (1, 5, 0):
-        data = seq_bytes(seq, in_place=True)  # (this function's copy)
+        # (this function's copy; without pypulseq's timing check, which only warns, silenced: the same text)
+        data = seq_bytes(seq, in_place=True, check_timing=False)
         if v != (1, 5, 0) or rotations or shims:
             text = set_revision(strip_signature(data), v)
             data = sign_text(add_kept_extensions(text, rotations, shims))
     else:
-        data = sign_text(set_revision(strip_signature(seq_bytes(seq, v141=True, in_place=True)), v))
+        data = sign_text(set_revision(strip_signature(seq_bytes(seq, v141=True, in_place=True, check_timing=False)), v))
     if verify:
         verify_written(ir, data, v, adc_offsets)
     return data
@@ -451,7 +455,6 @@ def _verify_text(ir: SequenceIR, data: bytes, version, span) -> None:
     import os
     import tempfile
 
-    from dtoc.seq.pulseq import import_pypulseq
     from dtoc.seq.read import read_seq
 
     v = version_str(tuple(version))
@@ -468,16 +471,125 @@ def _verify_text(ir: SequenceIR, data: bytes, version, span) -> None:
             ) from None
         _compare_read_back(ir, back, v, version, span)
         del back
-        try:
-            if not any(f"\nextension {k} ".encode() in data for k in KEPT_EXTENSIONS):  # pypulseq 1.5.0 knows neither
-                with quiet():  # (its 1.4 port leaves unused gradients' edges None, which its de-duplication rounds)
-                    import_pypulseq().Sequence().read(tmp, remove_duplicates=tuple(version) >= (1, 5, 0))
-        except Exception as e:  # noqa: BLE001 - pypulseq raises anything
-            raise DtocError(
-                f"pypulseq cannot read the written format {v} text{where}: {type(e).__name__}: {e}"
-            ) from None
+        if not _has_kept_extensions(data):
+            _pypulseq_reads(tmp, version, where)
     finally:
         os.unlink(tmp)
+
+
+def _has_kept_extensions(data: bytes) -> bool:
+    """The text holds a 1.5.1 extension pypulseq 1.5.0 does not read (ROTATIONS, RF_SHIMS)."""
+    return any(f"\nextension {k} ".encode() in data for k in KEPT_EXTENSIONS)
+
+
+def _pypulseq_reads(path, version, where: str) -> None:
+    """pypulseq itself reads the written text at ``path`` (as written: not dtoc's rendering of it for pypulseq).
+
+    Raises:
+        DtocError: one line naming pypulseq's error (``where``: the piece)."""
+    from dtoc.seq.pulseq import import_pypulseq
+
+    try:
+        with quiet():  # (its 1.4 port leaves unused gradients' edges None, which its de-duplication rounds)
+            import_pypulseq().Sequence().read(str(path), remove_duplicates=tuple(version) >= (1, 5, 0))
+    except Exception as e:  # noqa: BLE001 - pypulseq raises anything
+        v = version_str(tuple(version))
+        raise DtocError(f"pypulseq cannot read the written format {v} text{where}: {type(e).__name__}: {e}") from None
+
+
+class _Mismatch(Exception):
+    """A piece's reading that :func:`verify_written` decides (a difference, or a reading it makes otherwise)."""
+
+
+class _SharedReadBack:
+    """:func:`verify_written`'s comparison on the check's reading of each piece (:data:`dtoc.seq.check.ReadBack`):
+    the piece parsed once by dtoc and read once by dtoc's reader for both.  Anything but a clean comparison raises
+    :class:`_Mismatch` (the caller then runs :func:`verify_written` itself, whose one line names the difference)."""
+
+    def __init__(self, ir: SequenceIR, data: bytes, version, spans: list):
+        self.ir, self.version, self.spans = ir, tuple(version), spans
+        self.v = version_str(self.version)
+        self.pypulseq_too = not _has_kept_extensions(data)
+        # the whole text's own checks (verify_written's, before any piece; the reader's of a text read whole): not
+        # met here, verify_written decides
+        self.whole_ok = b"\r" not in data and signature_ok(data) and _md5_signature(data)
+        self.gmax = _grad_peak(ir) if len(spans) > 1 else None
+        self.done: set = set()
+
+    def __call__(self, k: int | None, path: Path, version: tuple, seq, back: SequenceIR) -> None:
+        fault_point("verify")
+        if not self.whole_ok or (k is None) != (len(self.spans) <= 1):
+            raise _Mismatch
+        back.meta["format_version"] = version_str(tuple(version))
+        span = None if k is None else (*self.spans[k], self.gmax)
+        try:
+            _compare_read_back(self.ir, back, self.v, self.version, span)
+            if self.pypulseq_too:
+                _pypulseq_reads(path, self.version, "")
+        except DtocError:
+            raise _Mismatch from None
+        self.done.add(k)
+
+    def complete(self) -> bool:
+        return self.done == ({None} if len(self.spans) <= 1 else set(range(len(self.spans))))
+
+
+def _md5_signature(data: bytes) -> bool:
+    """The text's [SIGNATURE], if any, states no type but md5 (what the reader accepts)."""
+    i = data.find(b"\n[SIGNATURE]")
+    types = (
+        [] if i < 0 else [t[1] for t in (ln.split() for ln in data[i:].split(b"\n")) if len(t) == 2 and t[0] == b"Type"]
+    )
+    return types in ([], [b"md5"])
+
+
+def verify_and_check(
+    ir: SequenceIR,
+    path: Path,
+    version,
+    system,
+    safety=None,
+    check_pieces: Callable | None = None,
+    judge: Callable | None = None,
+):
+    """:func:`verify_written` of the text written at ``path`` and the check of that file
+    (:func:`dtoc.seq.check.check_file_pieces` in the read-back's pieces, :func:`verify_spans`; no vendor
+    conventions), on one reading of each piece: the check hands each reading to the read-back's comparison (and
+    pypulseq reads the piece as written).  Where the check reads the text otherwise (whole after a piece, a text
+    rule, a reading that fails) or a comparison fails, the check is finished without it and :func:`verify_written`
+    reads the text itself, so its refusal is the one line it gives alone.
+
+    ``check_pieces``: the check (default :func:`dtoc.seq.check.check_file_pieces`, or one with its signature);
+    ``judge(result)``: the caller's verdict on the check's result (it raises to refuse), given before a read-back
+    the shared readings did not settle is made: a refusal by the check's rules comes first.
+
+    Returns:
+        the check's :class:`dtoc.seq.check.CheckResult`.
+    Raises:
+        DtocError: the read-back's refusal (one line)."""
+    if check_pieces is None:
+        from dtoc.seq.check import check_file_pieces as check_pieces
+
+    spans = verify_spans(ir)
+    in_order = all(a.block <= b.block for ev in (ir.rf, ir.adc) for a, b in zip(ev, ev[1:]))
+    # (the text is not held while it is checked: the check reads it, and verify_written where it must)
+    rb = _SharedReadBack(ir, Path(path).read_bytes(), version, spans) if in_order or len(spans) <= 1 else None
+
+    def check(read_back):
+        return check_pieces(path, spans, system, safety, conventions=None, read_back=read_back)
+
+    try:
+        res = check(rb)
+    except _Mismatch:
+        res = check(None)
+    except InputError:  # a text the check cannot parse at all: the read-back's refusal
+        verify_written(ir, Path(path).read_bytes(), version)
+        raise
+    if judge is not None:
+        judge(res)
+    if rb is None or not rb.complete():
+        verify_written(ir, Path(path).read_bytes(), version)
+    return res
 
 
 def _in_blocks(events: list, b0: int, b1: int) -> list:

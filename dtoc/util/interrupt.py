@@ -58,7 +58,7 @@ def exit_code(signum: int | None = None) -> int:
 
 
 #: Stages a test can interrupt with ``DTOC_FAULT_SIGNAL=stage:SIGNAME``.
-FAULT_STAGES = ("setup", "warm_start", "full_loss", "export", "batch_job")
+FAULT_STAGES = ("setup", "warm_start", "full_loss", "verify", "export", "batch_job")
 
 
 def fault_point(stage: str) -> None:
@@ -96,15 +96,26 @@ class signals_ignored:
 class deferred:
     """Context manager: SIGINT/SIGTERM received inside the block are held until its end, then raised as
     :class:`Interrupted` (so that a block that writes outputs finishes them).  Main thread only; elsewhere
-    the block runs unprotected."""
+    the block runs unprotected.
 
-    def __init__(self) -> None:
+    ``held=False``: a signal raises :class:`Interrupted` at once, as outside the block, until :meth:`hold` is
+    called; from then on it waits for the block's end (a block that prepares its outputs for minutes, then
+    commits them: only the commit waits)."""
+
+    def __init__(self, held: bool = True) -> None:
         self._got: int | None = None
         self._old: dict[int, object] = {}
+        self._held = held
+
+    def hold(self) -> None:
+        """From now on a signal waits until the end of the block."""
+        self._held = True
 
     def _record(self, signum, frame) -> None:
         global _last_signal
         _last_signal = signum
+        if not self._held:
+            raise Interrupted(signum)
         self._got = self._got or signum
 
     def __enter__(self) -> deferred:
