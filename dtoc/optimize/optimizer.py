@@ -422,24 +422,33 @@ def solve_warm_start(
         x, rep = solve(x0, budget)
         left = budget - rep.evaluations
         above = max(rep.achieved_max_dk, rep.moment_max_dk or 0.0) > k_tol_dk
-        if minimax_rounds > 0 and above and rep.stop_reason in ("converged", "rounds"):
+        f_ls = float(f(x)[0].detach())  # the least-squares solve's objective: the fallback's target
+        minimax = minimax_rounds > 0 and above and rep.stop_reason in ("converged", "rounds")
+        if minimax:
             x, rep = minimax_rounds_solve(
                 solve, ctx, x, rep, k_error, twin.projector, times, n_adc, minimax_rounds, minimax_budget, budget,
                 state,
             )  # fmt: skip
-        elif rep.stop_reason not in ("tolerance", "interrupted") and above and left >= 40:
+            above = max(rep.achieved_max_dk, rep.moment_max_dk or 0.0) > k_tol_dk
+        if rep.stop_reason not in ("tolerance", "interrupted") and above and left >= 40:
             # above the tolerance (limits active over much of the waveform, or active-set rounds that stopped
             # paying -- a heuristic, not a certificate): CG then projected FISTA from the start (the fixed-count
-            # algorithm) on what is left of the budget, with the same rule; kept if it lowers the objective
+            # algorithm) on what is left of the budget, with the same rule; kept if it lowers the objective (after
+            # minimax rounds: if it lowers the worst error)
             sub = SV.SolveReport(method="cg-fista")
             x2 = constrained_least_squares(
                 f, x0, twin.projector, twin.free_t, left, None, progress, 0.5,
-                k_stop=lambda z: bool(k_error(z).max() <= k_tol_dk), report=sub, f_target=float(f(x)[0].detach()),
+                k_stop=lambda z: bool(k_error(z).max() <= k_tol_dk), report=sub, f_target=f_ls,
             )  # fmt: skip
             rep.fallback_stop = sub.stop_reason
             rep.evaluations += sub.evaluations
             rep.method = "pcg-active-set+cg-fista"
-            if float(f(x2)[0].detach()) < float(f(x)[0].detach()):
+            better = (
+                float(k_error(x2).max()) < float(k_error(x).max())
+                if minimax
+                else float(f(x2)[0].detach()) < float(f(x)[0].detach())
+            )
+            if better:
                 x = x2
                 err = k_error(x)
                 rep.set_errors(err, n_adc)
