@@ -423,7 +423,8 @@ def solve_warm_start(
         left = budget - rep.evaluations
         above = max(rep.achieved_max_dk, rep.moment_max_dk or 0.0) > k_tol_dk
         f_ls = float(f(x)[0].detach())  # the least-squares solve's objective: the fallback's target
-        minimax = minimax_rounds > 0 and above and rep.stop_reason in ("converged", "rounds")
+        # (the rounds reweight the ADC samples: not when only moments before RF pulses are above the tolerance)
+        minimax = minimax_rounds > 0 and rep.achieved_max_dk > k_tol_dk and rep.stop_reason in ("converged", "rounds")
         if minimax:
             x, rep = minimax_rounds_solve(
                 solve, ctx, x, rep, k_error, twin.projector, times, n_adc, minimax_rounds, minimax_budget, budget,
