@@ -29,6 +29,7 @@ from dtoc.constants import AXES
 from dtoc.errors import InputError
 from dtoc.hardware.convolution import fft_convolve, kernel_spectrum, resample_kernel
 from dtoc.hardware.recursion import exp_response, pole_response
+from dtoc.util.cplx import cexp
 
 
 def axis_index(name: str | None, what: str = "axis") -> int | None:
@@ -183,7 +184,7 @@ class DelayBandlimited(Delay):
         n = 2 * T
         f = torch.fft.rfftfreq(n, d=dt_s, dtype=x.dtype, device=x.device)
         X = torch.fft.rfft(x, n=n)
-        ph = torch.exp(-2j * math.pi * f * self._p("seconds", x))
+        ph = cexp(torch.zeros_like(f), -2 * math.pi * f * self._p("seconds", x))
         out = torch.fft.irfft(X * ph, n=n)[..., :T]
         return self._replace_axes(g, out), b0
 

@@ -29,6 +29,7 @@ the largest response of the channel; tests/test_recursion_fft.py); the CPU keeps
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from dtoc.hardware.convolution import conv_length
@@ -90,7 +91,7 @@ def _pole_scan(g: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
     already in the dtype of ``z``."""
     b = torch.expm1(z) / z
     dg = torch.diff(g, dim=-1)
-    u = torch.cat([g[..., :1].expand(torch.broadcast_shapes(g[..., :1].shape, b.shape)), b * dg], dim=-1)
+    u = torch.cat([g[..., :1].expand(np.broadcast_shapes(tuple(g[..., :1].shape), tuple(b.shape))), b * dg], dim=-1)
     return fft_scan(u, z) if batched(u.device) else linear_scan(u, z)
 
 

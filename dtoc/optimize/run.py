@@ -63,6 +63,7 @@ from dtoc.util.atomic import (
     sha256_file,
     unused_path,
 )
+from dtoc.util.cplx import cabs
 from dtoc.util.interrupt import deferred, fault_point
 from dtoc.util.jsonout import strict_json
 from dtoc.util.replay import totals as replay_totals
@@ -194,7 +195,7 @@ def quality(
                 out["ghost_ratio"] = m["ghost_ratio"]
                 out["ghost_ratio_ideal"] = m["ghost_ratio_ideal"]
                 out["ghost_ratio_excess"] = m["ghost_ratio"] - m["ghost_ratio_ideal"]  # what the hardware adds
-            out["_image"] = im.abs().cpu().numpy()
+            out["_image"] = cabs(im).cpu().numpy()
         out["_k"] = k.cpu().numpy()
         out["_G"] = _head(G, waveform_samples)
         out["_g"] = _head(g, waveform_samples)

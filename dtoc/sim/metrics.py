@@ -12,6 +12,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from dtoc.util.cplx import cabs
+
 
 def _t(x) -> torch.Tensor:
     return x if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x))
@@ -29,8 +31,8 @@ def nrmse(image, ideal) -> torch.Tensor:
         image: (..., ny, nx) realized image, complex or magnitude.
         ideal: (..., ny, nx) target image I0 from ideal hardware.
     """
-    a = _t(image).abs()
-    b = _t(ideal).abs().to(a.dtype)
+    a = cabs(_t(image))
+    b = cabs(_t(ideal)).to(a.dtype)
     return torch.linalg.vector_norm(a - b) / torch.linalg.vector_norm(b).clamp_min(1e-30)
 
 
@@ -77,7 +79,7 @@ def ghost_ratio(image, ideal, *, phase_dim: int = -2, threshold: float = 0.1) ->
     img = _t(image)
     obj = object_mask(ideal, threshold)
     gh = ghost_mask(obj, phase_dim)
-    p = img.abs() ** 2
+    p = cabs(img) ** 2
     o = torch.as_tensor(obj, device=p.device)
     g = torch.as_tensor(gh, device=p.device)
     return (p * g).sum() / (p * o).sum()
@@ -95,7 +97,7 @@ def no_signal_reason(ideal, rf_flips_rad=None) -> str | None:
     if rf_flips_rad is not None and (not flips or max(flips) < NO_EXCITATION_FLIP_RAD):
         top = f"{np.degrees(max(flips)):.3g} deg" if flips else "none"
         return f"no signal: the largest RF flip angle is {top}, nothing is excited (images empty, no image figures)"
-    a = _t(ideal).abs()
+    a = cabs(_t(ideal))
     n = float(torch.linalg.vector_norm(a))
     if not np.isfinite(n) or n <= 1e-30:
         return "no signal: the ideal image is empty (no image figures)"

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from dtoc.errors import InputError
+from dtoc.util.cplx import cabs, cexp, cis, cneg, sinc
 
 
 @dataclass
@@ -189,7 +190,7 @@ class VoxelData:
         k = K.to(self.x.dtype)
         ph = -(self.phase_of(k) + tau[:, None] * self.omega[None])
         mag = -(tau.abs()[:, None] * self.r2d[None])
-        E = torch.exp(torch.complex(mag, ph))
+        E = cexp(mag, ph)
         vf = voxel_factor(K, self).to(A.dtype)
         return (A * E * vf[:, None]).sum(0).real
 
@@ -220,9 +221,7 @@ class _SpatialPhase(torch.autograd.Function):
         return gx, gy, None, None, None, None, None, None
 
 
-def _cis(phase: torch.Tensor) -> torch.Tensor:
-    """exp(i phase) (complex, differentiable; cos + i sin, no exponential of the zero real part)."""
-    return torch.polar(torch.ones_like(phase), phase)
+_cis = cis
 
 
 def voxel_factor(k: torch.Tensor, vox: VoxelData) -> torch.Tensor:
@@ -234,10 +233,10 @@ def voxel_factor(k: torch.Tensor, vox: VoxelData) -> torch.Tensor:
             if d is None or d <= 0:
                 continue
             if vox.voxel_shape == "box":
-                f = f * torch.sinc(k[..., a] * (d / (2 * np.pi)))
+                f = f * sinc(k[..., a] * (d / (2 * np.pi)))
             else:  # band-limited ('sinc') voxel: rect in k
                 f = f * (k[..., a].abs() <= np.pi / d).to(k.dtype)
-    return f * torch.exp(torch.complex(torch.zeros_like(f), -k[..., 3]))
+    return f * cexp(torch.zeros_like(f), -k[..., 3])
 
 
 def _diffusion_b(Kj, mom, n, lo, hi, dtt_t):
@@ -327,7 +326,7 @@ def _exact(st: ExactStates, vox: VoxelData, cfg) -> torch.Tensor:
         if st.bD is not None:
             mag = mag - st.bD[:, sl, None] * vox.d[None, None, :]
         ph = -(vox.phase_of(st.kt[:, sl]) + ta[:, :, None] * vox.omega[None, None, :])
-        E = torch.exp(torch.complex(mag, ph))  # (J, t, V)
+        E = cexp(mag, ph)  # (J, t, V)
         out.append(torch.einsum("jtv,cjv->jct", E, AC) * st.vf[:, None, sl])
     return torch.cat(out, dim=2)
 
@@ -423,7 +422,7 @@ def emit_signal_gemm(iv, A, K, mom, n, vox: VoxelData, graph, bounds_t, cfg, sep
             mag_c = torch.clamp(mag_c, max=80.0)
         else:
             mag_c = mag0
-        C = torch.exp(torch.complex(mag_c, ph)) * Aj  # (J, V)
+        C = cexp(mag_c, ph) * Aj  # (J, V)
         if vox.coil is not None:
             C = vox.coil[:, None, :] * C[None]  # (Co, J, V)
         else:
@@ -524,7 +523,7 @@ def _kernel(mt_r, dtr, rate, vox: VoxelData, key=None) -> torch.Tensor:
             return vox.spatial_phase_of(mt_r) * tf
     kph = -(vox.phase_of(mt_r) + dtr[:, None] * vox.omega[None])
     # clamp: the mirrored (tau < 0) kernel grows as exp(+dt/T2'); only masked-out samples can get there
-    return torch.exp(torch.complex(torch.clamp(-dtr[:, None] * rate[None], max=80.0), kph))
+    return cexp(torch.clamp(-dtr[:, None] * rate[None], max=80.0), kph)
 
 
 _TIME_FACTOR_CACHE_ELEMS = 2**24  # largest total size (complex elements) of the cached time factors per simulate call
@@ -548,7 +547,7 @@ def _time_factor(dtr, rate, vox: VoxelData, key):
 def _decay_phase(dtr: torch.Tensor, rate: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
     """(t, V) exp(-dt (rate + i omega)) for times ``dtr`` (t,) s, rates (V,) 1/s and off-resonance (V,) rad/s
     (the exponent's real part clamped at +80: the mirrored T2' kernel only grows on masked-out samples)."""
-    return torch.exp(torch.complex(torch.clamp(-dtr[:, None] * rate[None], max=80.0), -dtr[:, None] * omega[None]))
+    return cexp(torch.clamp(-dtr[:, None] * rate[None], max=80.0), -dtr[:, None] * omega[None])
 
 
 def _time_key(dtt: np.ndarray, sgn: float):
@@ -577,7 +576,7 @@ def _on_grid(Cm, sgn, use_t2d, vox: VoxelData) -> tuple[torch.Tensor, torch.Tens
     full = torch.zeros((Cm.shape[0], ny * nx), dtype=Cm.dtype, device=Cm.device).index_copy(1, vox.index, Cm)
     lam_v = torch.complex(vox.r2 + (sgn * vox.r2d if use_t2d else 0.0), vox.omega)  # (V,)
     lam = torch.zeros(ny * nx, dtype=Cm.dtype, device=Cm.device).index_copy(0, vox.index, lam_v)
-    lam_max = float(lam_v.detach().abs().max()) if lam_v.numel() else 0.0
+    lam_max = float(cabs(lam_v.detach()).max()) if lam_v.numel() else 0.0
     return full, lam, lam_max
 
 
@@ -701,7 +700,7 @@ def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: in
     if mt_r.requires_grad:
         S += 2  # the derivative's series: T_n' grows as n^2, two more terms keep it below the tolerance
     # weights H (n_ro, n_pe, M R): Cm (-lam)^r / r!, formed once
-    powers = torch.stack([(-lam) ** r / math.factorial(r) for r in range(R)], 0)  # (R, V)
+    powers = torch.stack([cneg(lam) ** r / math.factorial(r) for r in range(R)], 0)  # (R, V)
     H = ro_pe(full[:, None, :] * powers[None]).permute(2, 3, 0, 1).reshape(n_ro, n_pe, M * R)
     with torch.no_grad():
         Pc = _cis(-m_c[:, None] * g_pe[None, :].detach())  # (nW, n_pe)
@@ -788,12 +787,12 @@ def _apply_kernel_separable(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg) ->
     dl = dt_p - tc[:, None]  # (nW, W)
     R = _taylor_terms(float(np.abs(dl).max()) * lam_max, cfg.taylor_tol)
     fact = np.cumprod([1.0] + [1.0 / r for r in range(1, R)])
-    powers = torch.stack([(-lam) ** r * float(fact[r]) for r in range(R)], 0)  # (R, V)
+    powers = torch.stack([cneg(lam) ** r * float(fact[r]) for r in range(R)], 0)  # (R, V)
     mt_p = torch.cat([mt_r, mt_r[-1:].expand(pad, -1)], 0) if pad else mt_r
     mx = mt_p[:, 0].reshape(nW, W, 1)
     my = mt_p[:, 1].reshape(nW, W, 1)
-    X = torch.exp(torch.complex(torch.zeros_like(mx * vox.xg), -mx * vox.xg))  # (nW, W, nx)
-    Y = torch.exp(torch.complex(torch.zeros_like(my * vox.yg), -my * vox.yg))  # (nW, W, ny)
+    X = cexp(torch.zeros_like(mx * vox.xg), -mx * vox.xg)  # (nW, W, nx)
+    Y = cexp(torch.zeros_like(my * vox.yg), -my * vox.yg)  # (nW, W, ny)
     dlp = torch.as_tensor(np.stack([dl**r for r in range(R)], -1), dtype=rdt, device=dev).to(cdt)  # (nW, W, R)
     tc_t = torch.as_tensor(tc, dtype=rdt, device=dev).to(cdt)
     # batches of windows bounded by chunk_elems for the (b, M, R, V) tensor

@@ -35,6 +35,7 @@ import torch
 from dtoc.sim import pdg_signal as _sig
 from dtoc.sim.pdg_rfsplit import add_rows_, take_rows
 from dtoc.sim.pdg_signal import _DIFF_TAYLOR_MAX, _cis, _decay_phase, _time_factor, _time_key, voxel_factor
+from dtoc.util.cplx import cexp
 
 
 def cat_views(pieces: list[torch.Tensor], dim: int = 0) -> torch.Tensor:
@@ -113,7 +114,7 @@ def _tau_factor(utau_t: torch.Tensor, sgn: float, vox) -> torch.Tensor:
         if vox.has_t2d
         else torch.zeros((utau_t.shape[0], vox.n), dtype=utau_t.dtype, device=utau_t.device)
     )
-    return torch.exp(torch.complex(mag, -utau_t[:, None] * vox.omega[None]))
+    return cexp(mag, -utau_t[:, None] * vox.omega[None])
 
 
 def _class_rows(cls, far, orders, own_np):

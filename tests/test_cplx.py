@@ -1,0 +1,56 @@
+"""dtoc.util.cplx: the formulations on compiled-in CUDA kernels equal torch's functions (values and gradients),
+checked on the CPU by asking for them; the default on the CPU is torch's own function, bit for bit."""
+
+import torch
+
+from dtoc.util import cplx
+
+
+def _grads(fn, *xs):
+    xs = [x.clone().requires_grad_(True) for x in xs]
+    y = fn(*xs)
+    w = torch.linspace(0.3, 1.7, y.numel(), dtype=torch.float64).reshape(y.shape)
+    loss = (y.real * w).sum() + ((y.imag * w.flip(-1)).sum() if y.is_complex() else 0.0)
+    return y.detach(), torch.autograd.grad(loss, xs)
+
+
+def test_cexp_cis_cneg_match_torch():
+    g = torch.Generator().manual_seed(3)
+    re = torch.randn(7, 5, generator=g, dtype=torch.float64) * 3
+    im = torch.randn(7, 5, generator=g, dtype=torch.float64) * 40
+    ref, gref = _grads(lambda a, b: torch.exp(torch.complex(a, b)), re, im)
+    new, gnew = _grads(lambda a, b: cplx.cexp(a, b, compiled_only=True), re, im)
+    assert torch.allclose(new, ref, rtol=1e-14, atol=0)
+    for a, b in zip(gnew, gref):
+        assert torch.allclose(a, b, rtol=1e-13, atol=1e-300)
+    ref, gref = _grads(lambda b: torch.polar(torch.ones_like(b), b), im)
+    new, gnew = _grads(lambda b: cplx.cis(b, compiled_only=True), im)
+    assert torch.allclose(new, ref, rtol=1e-14, atol=1e-16) and torch.allclose(gnew[0], gref[0], rtol=1e-13, atol=1e-15)
+    z = torch.complex(re, im)
+    ref, gref = _grads(lambda a: -a, z)
+    new, gnew = _grads(lambda a: cplx.cneg(a, compiled_only=True), z)
+    assert torch.equal(new, ref) and torch.equal(gnew[0], gref[0])
+
+
+def test_sinc_and_cabs_match_torch_including_zero():
+    x = torch.tensor([0.0, 1e-9, -0.37, 0.5, 2.0, -3.25], dtype=torch.float64)
+    ref, gref = _grads(torch.sinc, x)
+    new, gnew = _grads(lambda a: cplx.sinc(a, compiled_only=True), x)
+    assert new[0] == 1.0 and gnew[0][0] == 0.0  # 1 at 0, derivative 0 (as torch's)
+    assert torch.allclose(new, ref, rtol=1e-14, atol=1e-16) and torch.allclose(gnew[0], gref[0], rtol=1e-10, atol=1e-12)
+    z = torch.complex(torch.tensor([0.0, 3.0, -1e-3, 2.5]), torch.tensor([0.0, -4.0, 2e-3, 0.0])).to(torch.complex128)
+    ref, gref = _grads(torch.abs, z)
+    new, gnew = _grads(lambda a: cplx.cabs(a, compiled_only=True), z)
+    assert torch.allclose(new, ref, rtol=1e-15, atol=0)
+    assert torch.allclose(gnew[0], gref[0], rtol=1e-14, atol=0)  # the derivative at 0 is 0 (as torch's sgn)
+    assert cplx.cabs(z.conj(), compiled_only=True)[1] == 5.0  # a conjugate view is resolved first
+
+
+def test_cpu_default_is_torch_bit_for_bit():
+    g = torch.Generator().manual_seed(5)
+    re, im = torch.randn(64, generator=g, dtype=torch.float64), torch.randn(64, generator=g, dtype=torch.float64) * 9
+    assert torch.equal(cplx.cexp(re, im), torch.exp(torch.complex(re, im)))
+    assert torch.equal(cplx.cis(im), torch.polar(torch.ones_like(im), im))
+    assert torch.equal(cplx.sinc(im), torch.sinc(im))
+    z = torch.complex(re, im)
+    assert torch.equal(cplx.cabs(z), z.abs()) and torch.equal(cplx.cneg(z), -z)
