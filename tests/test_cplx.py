@@ -54,3 +54,17 @@ def test_cpu_default_is_torch_bit_for_bit():
     assert torch.equal(cplx.sinc(im), torch.sinc(im))
     z = torch.complex(re, im)
     assert torch.equal(cplx.cabs(z), z.abs()) and torch.equal(cplx.cneg(z), -z)
+
+
+def test_cuda_formulations_match_the_cpu():  # the default on CUDA: the compiled-in formulation
+    import pytest
+
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    g = torch.Generator().manual_seed(7)
+    re, im = torch.randn(256, generator=g, dtype=torch.float64), torch.randn(256, generator=g, dtype=torch.float64) * 30
+    dev = torch.device("cuda")
+    assert torch.allclose(cplx.cexp(re.to(dev), im.to(dev)).cpu(), torch.exp(torch.complex(re, im)), rtol=1e-13, atol=0)
+    assert torch.allclose(cplx.sinc(im.to(dev)).cpu(), torch.sinc(im), rtol=1e-12, atol=1e-15)
+    z = torch.complex(re, im)
+    assert torch.allclose(cplx.cabs(z.to(dev)).cpu(), z.abs(), rtol=1e-14, atol=0)
