@@ -1,17 +1,19 @@
 """Elementwise functions on the CUDA kernels torch ships compiled.
 
 On CUDA, torch builds some elementwise kernels at their first use in a process with NVRTC (its
-"jiterator"): among those dtoc uses, the complex exponential, ``sinc`` (every dtype) and ``sgn`` (the
-backward of a complex ``abs`` and of ``polar``).  On a machine without torch's kernel cache each costs
-0.2-1 s in the first optimize of a process (docs/benchmarks.md, "CPU and CUDA side by side").  These
+"jiterator"): among those dtoc uses, the complex exponential, ``abs`` and negation, ``sgn`` (the backward
+of a complex ``abs`` and of ``polar``) and ``sinc`` (every dtype).  On a machine without torch's kernel cache
+each costs 0.2-1 s in the first optimize of a process (docs/benchmarks.md, "CPU and CUDA side by side").  These
 functions form the same values from kernels that are compiled in (real ``exp``, ``cos``, ``sin``,
 ``vector_norm`` and complex construction), forward and backward.  On any other device they are the torch
 functions themselves, so CPU results are bit for bit what they were.
+
+``sinc`` stays torch's: ``sin(pi x) / (pi x)`` written out differentiates as ``cos/px - sin/px^2``, which cancels
+to garbage of order 1 where ``x`` is a rounding residue (1e-17) instead of 0; that version's gradient failed
+tests/test_sim_cuda.py on an H200 (2026-11-27) and was taken out.  A replacement needs a series near 0.
 """
 
 from __future__ import annotations
-
-import math
 
 import torch
 
@@ -35,15 +37,6 @@ def cis(phase: torch.Tensor, compiled_only: bool | None = None) -> torch.Tensor:
     if not _compiled_only(phase, compiled_only):
         return torch.polar(torch.ones_like(phase), phase)
     return torch.complex(torch.cos(phase), torch.sin(phase))
-
-
-def sinc(x: torch.Tensor, compiled_only: bool | None = None) -> torch.Tensor:
-    """The normalised sinc, sin(pi x) / (pi x), 1 at 0 (real x; differentiable, derivative 0 at 0)."""
-    if not _compiled_only(x, compiled_only):
-        return torch.sinc(x)
-    zero = x == 0
-    px = math.pi * torch.where(zero, torch.ones_like(x), x)
-    return torch.where(zero, torch.ones_like(x), torch.sin(px) / px)
 
 
 def cabs(z: torch.Tensor, compiled_only: bool | None = None) -> torch.Tensor:
