@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from dtoc.errors import InputError
-from dtoc.util.cplx import cabs, cexp, cis, cneg
+from dtoc.util.cplx import cabs, cexp, cis, cneg, sinc
 
 
 @dataclass
@@ -233,7 +233,7 @@ def voxel_factor(k: torch.Tensor, vox: VoxelData) -> torch.Tensor:
             if d is None or d <= 0:
                 continue
             if vox.voxel_shape == "box":
-                f = f * torch.sinc(k[..., a] * (d / (2 * np.pi)))  # torch's sinc (dtoc.util.cplx: why)
+                f = f * sinc(k[..., a] * (d / (2 * np.pi)))
             else:  # band-limited ('sinc') voxel: rect in k
                 f = f * (k[..., a].abs() <= np.pi / d).to(k.dtype)
     return f * cexp(torch.zeros_like(f), -k[..., 3])
