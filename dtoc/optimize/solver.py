@@ -162,6 +162,8 @@ class SolveReport:
     unconstrained_converged: bool = False
     fallback_stop: str | None = None  # the CG + FISTA fallback's own stop reason (None: it did not run)
     minimax: dict | None = None  # the minimax rounds' record (None: they did not run; optimizer.minimax_rounds_solve)
+    # with keep_worst: (x, errors) of the iterate with the smallest worst error (not in the manifest)
+    least_worst: tuple | None = None
 
     def as_dict(self) -> dict:
         return {
@@ -419,6 +421,7 @@ def solve_to_tolerance(
     stop_error: Callable[[torch.Tensor], np.ndarray] | None = None,
     model: PathModel | None = None,
     n_adc: int | None = None,
+    keep_worst: bool = False,
 ) -> tuple[torch.Tensor, SolveReport]:
     """Minimise the quadratic ``f`` within the limits of ``P`` to a k-space tolerance (module doc).
 
@@ -441,6 +444,10 @@ def solve_to_tolerance(
         model: the :class:`PathModel` of the objective (sampled points, moments, refocusing signs): the
             preconditioner is its exact inverse (:class:`_PathPrecond`); None: the unit path Laplacian (:class:`_Precond`).
         n_adc: how many of ``k_error``'s entries are ADC samples (None: all); the rest are moments, reported apart.
+        keep_worst: also keep, in ``SolveReport.least_worst``, the round iterate with the smallest worst error (the
+            minimax rounds' solves, :func:`dtoc.optimize.optimizer.minimax_rounds_solve`: their reweighted
+            objective is only the means; an iterate that does not lower it below the start's can still lower the
+            worst error).
         check_every: every this many iterations of the first (unconstrained) CG its iterate is projected onto the
             limits and its k error evaluated (one forward pass, not counted in ``budget``): when every sample is
             within ``k_tol_dk`` the CG stops there (stop reason ``tolerance``; ``unconstrained_max_dk`` is then
@@ -489,6 +496,8 @@ def solve_to_tolerance(
             gain = best["f"] - val
             if val < best["f"]:
                 best.update(x=x, f=val, err=err)
+            if keep_worst and (rep.least_worst is None or float(err.max()) < float(rep.least_worst[1].max())):
+                rep.least_worst = (x, err)
             moved = free & ((x - x_unc).abs() > 1e-9)
             new = moved & ~fixed
             fixed = fixed | moved
