@@ -209,3 +209,23 @@ def test_a_minimax_round_keeps_its_smallest_worst_error(tmp_path, scale):
     s = res.manifest["solver"]
     assert s["stop_reason"] == "tolerance" and s["achieved_max_dk"] <= 0.01
     assert s["minimax"]["rounds"] >= 1 and s["minimax"]["max_before_dk"] > 0.03
+
+
+def test_an_unconverged_solve_does_not_call_samples_out_of_reach():
+    """The CG cut at 3 iterations has not found what the samples can reach without the limits: a 'tolerance'
+    stop must then ask every sample to be within it (before, the samples that cut CG left above it were taken
+    for out of reach and 'tolerance' could stand with them above it)."""
+    from dtoc.optimize import solver as SV
+
+    ir, tw, ctx, w = _epi(32, 1.2, 400.0, 2000.0)
+    f = O.linear_objective(tw, ctx, w)
+    x, rep = SV.solve_to_tolerance(
+        f, tw.base_edges(), tw.projector, tw.free_t, lambda z: _kerr(tw, ctx, z), k_tol_dk=0.01, budget=60,
+        cg_max=3, cg_round_max=3, check_every=0,
+    )  # fmt: skip
+    err = _kerr(tw, ctx, x)
+    assert not rep.unconstrained_converged and rep.unconstrained_errors.max() > 0.01
+    assert err.max() > 0.01  # the cut solve leaves samples above the tolerance ...
+    assert rep.stop_reason != "tolerance"  # ... so it does not stop on it
+    assert SV.counted(np.array([0.005, 0.02]), True, 0.01).tolist() == [True, False]
+    assert SV.counted(np.array([0.005, 0.02]), False, 0.01).tolist() == [True, True]

@@ -516,9 +516,11 @@ def minimax_rounds_solve(solve, ctx, x, rep, k_error, P, times, n_adc: int, roun
 
     tol = rep.k_tol_dk
     err = k_error(x)
-    reach = np.ones(err.size, dtype=bool)
-    if rep.unconstrained_errors is not None and rep.unconstrained_converged:
-        reach = rep.unconstrained_errors <= tol  # a sample out of reach without the limits does not block 'tolerance'
+    reach = (
+        np.ones(err.size, dtype=bool)
+        if rep.unconstrained_errors is None
+        else SV.counted(rep.unconstrained_errors, rep.unconstrained_converged, tol)
+    )
     best_x, best_err = x, err
     first = float(err.max())
     base_w = ctx.sample_weight

@@ -508,7 +508,7 @@ def solve_to_tolerance(
             if progress is not None:
                 progress("warm", q.n, budget, val)
             assert err_unc is not None
-            if bool(np.all(best["err"][err_unc <= k_tol_dk] <= k_tol_dk)):
+            if bool(np.all(best["err"][counted(err_unc, unc_converged, k_tol_dk)] <= k_tol_dk)):
                 rep.stop_reason = "tolerance"
                 break
             if rnd == 0 and float(fixed.sum()) > held_max * float(free.sum()):
@@ -535,6 +535,15 @@ def solve_to_tolerance(
             best["x"], err, err_unc, k_tol_dk, P, sample_times_s, unc_converged, n_adc
         )
     return best["x"], rep
+
+
+def counted(err_unc: np.ndarray, unc_converged: bool, k_tol_dk: float) -> np.ndarray:
+    """(n,) bool: the samples a 'tolerance' stop asks to be within ``k_tol_dk``.  With a converged unconstrained
+    solve, those it brings within the tolerance (the others are out of reach without the limits, named 'fixed' or
+    'moments'); with an unconverged one, every sample (nothing is known out of reach)."""
+    if unc_converged:
+        return err_unc <= k_tol_dk
+    return np.ones(np.shape(err_unc), dtype=bool)
 
 
 def _tolerance_check(x, P, k_error, k_tol_dk: float, every: int):
