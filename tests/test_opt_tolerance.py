@@ -189,12 +189,12 @@ def test_fallback_stops_when_it_cannot_reach_the_solution_at_hand():
 
 
 @pytest.mark.parametrize("scale", [1e-13, 1e-9])
-def test_a_minimax_round_keeps_its_smallest_worst_error(tmp_path, scale):
+def test_an_iterate_within_the_tolerance_ends_the_rounds(tmp_path, scale):
     """The README job sits 0.5 % under its tolerance (docs/optimize.md, "Minimax rounds: measured"); its GIRF
-    scaled by 1 + 1e-13 (or 1e-9) takes another active-set path, on which a round's iterates raise the reweighted
-    objective above the round's start while lowering the worst error.  A round that kept its smallest objective
-    returned its start and the rounds stalled at 0.0106 dk (859 evaluations); keeping the smallest worst error,
-    the tolerance is reached."""
+    scaled by 1 + 1e-13 (or 1e-9) takes another active-set path, on which no iterate of a round lowers the
+    reweighted objective below the round's start, while one is within the tolerance.  Keeping only the smallest
+    objective, each round returned its start and the rounds stalled at 0.0106 dk (859 evaluations); an iterate that
+    meets the stopping rule now ends the solve."""
     import dtoc
     from dtoc.seq.load import load_sequence
 

@@ -413,10 +413,10 @@ def solve_warm_start(
             else None
         )
 
-        def solve(start: torch.Tensor, n: int, keep_worst: bool = False):
+        def solve(start: torch.Tensor, n: int):
             return SV.solve_to_tolerance(
                 f, start, twin.projector, twin.free_t, k_error, k_tol_dk=k_tol_dk, budget=n,
-                sample_times_s=times, progress=progress, n_adc=n_adc, cuts=cuts, model=model, keep_worst=keep_worst,
+                sample_times_s=times, progress=progress, n_adc=n_adc, cuts=cuts, model=model,
             )  # fmt: skip
 
         x, rep = solve(x0, budget)
@@ -427,8 +427,7 @@ def solve_warm_start(
         minimax = minimax_rounds > 0 and rep.achieved_max_dk > k_tol_dk and rep.stop_reason in ("converged", "rounds")
         if minimax:
             x, rep = minimax_rounds_solve(
-                lambda start, n: solve(start, n, keep_worst=True),  # a round keeps its smallest worst error
-                ctx, x, rep, k_error, twin.projector, times, n_adc, minimax_rounds, minimax_budget, budget,
+                solve, ctx, x, rep, k_error, twin.projector, times, n_adc, minimax_rounds, minimax_budget, budget,
                 state,
             )  # fmt: skip
             above = max(rep.achieved_max_dk, rep.moment_max_dk or 0.0) > k_tol_dk
@@ -503,9 +502,7 @@ def minimax_rounds_solve(solve, ctx, x, rep, k_error, P, times, n_adc: int, roun
 
     Args:
         solve: ``(start (3, N+1), evaluations) -> (x, SolveReport)``, the solver on the objective that reads
-            ``ctx.sample_weight``; the next weights come from its result's errors, and its report's
-            ``least_worst`` (``solve_to_tolerance(keep_worst=True)``), an iterate with a smaller worst error, is a
-            candidate for the best waveform too. ctx: the loss context (its ``sample_weight`` restored on return).
+            ``ctx.sample_weight``. ctx: the loss context (its ``sample_weight`` restored on return).
         x, rep: the least-squares solve's waveform and report (its unconstrained errors say which samples are
             reachable at all). k_error: ``x -> errors`` (dk; ``n_adc`` ADC samples, then the moments).
         P: the limits' projector; times: the errors' times, s (to name the active limits).
@@ -548,9 +545,6 @@ def minimax_rounds_solve(solve, ctx, x, rep, k_error, P, times, n_adc: int, roun
             prev = float(best_err.max())
             if float(err.max()) < prev:
                 best_x, best_err = x2, err
-            lw = r2.least_worst  # an iterate of the round below the round's result (and the best so far)
-            if lw is not None and float(lw[1].max()) < float(best_err.max()):
-                best_x, best_err = lw
             idle = 0 if prev - float(err.max()) >= LAWSON_GAIN * prev else idle + 1
             if bool(np.all(best_err[reach] <= tol)):
                 stop = "tolerance"

@@ -162,8 +162,6 @@ class SolveReport:
     unconstrained_converged: bool = False
     fallback_stop: str | None = None  # the CG + FISTA fallback's own stop reason (None: it did not run)
     minimax: dict | None = None  # the minimax rounds' record (None: they did not run; optimizer.minimax_rounds_solve)
-    # with keep_worst: (x, errors) of the iterate with the smallest worst error (not in the manifest)
-    least_worst: tuple | None = None
 
     def as_dict(self) -> dict:
         return {
@@ -421,7 +419,6 @@ def solve_to_tolerance(
     stop_error: Callable[[torch.Tensor], np.ndarray] | None = None,
     model: PathModel | None = None,
     n_adc: int | None = None,
-    keep_worst: bool = False,
 ) -> tuple[torch.Tensor, SolveReport]:
     """Minimise the quadratic ``f`` within the limits of ``P`` to a k-space tolerance (module doc).
 
@@ -444,10 +441,6 @@ def solve_to_tolerance(
         model: the :class:`PathModel` of the objective (sampled points, moments, refocusing signs): the
             preconditioner is its exact inverse (:class:`_PathPrecond`); None: the unit path Laplacian (:class:`_Precond`).
         n_adc: how many of ``k_error``'s entries are ADC samples (None: all); the rest are moments, reported apart.
-        keep_worst: also keep, in ``SolveReport.least_worst``, the round iterate with the smallest worst error (the
-            minimax rounds' solves, :func:`dtoc.optimize.optimizer.minimax_rounds_solve`: their reweighted
-            objective is only the means; an iterate that does not lower it below the start's can still lower the
-            worst error).
         check_every: every this many iterations of the first (unconstrained) CG its iterate is projected onto the
             limits and its k error evaluated (one forward pass, not counted in ``budget``): when every sample is
             within ``k_tol_dk`` the CG stops there (stop reason ``tolerance``; ``unconstrained_max_dk`` is then
@@ -494,10 +487,10 @@ def solve_to_tolerance(
             err = k_error(x)
             val = float(f(x)[0].detach())
             gain = best["f"] - val
-            if val < best["f"]:
+            assert err_unc is not None
+            within = bool(np.all(err[counted(err_unc, unc_converged, k_tol_dk)] <= k_tol_dk))
+            if val < best["f"] or within:  # an iterate that meets the stopping rule ends the solve, whatever its f
                 best.update(x=x, f=val, err=err)
-            if keep_worst and (rep.least_worst is None or float(err.max()) < float(rep.least_worst[1].max())):
-                rep.least_worst = (x, err)
             moved = free & ((x - x_unc).abs() > 1e-9)
             new = moved & ~fixed
             fixed = fixed | moved
@@ -507,8 +500,7 @@ def solve_to_tolerance(
             )
             if progress is not None:
                 progress("warm", q.n, budget, val)
-            assert err_unc is not None
-            if bool(np.all(best["err"][counted(err_unc, unc_converged, k_tol_dk)] <= k_tol_dk)):
+            if within or bool(np.all(best["err"][counted(err_unc, unc_converged, k_tol_dk)] <= k_tol_dk)):
                 rep.stop_reason = "tolerance"
                 break
             if rnd == 0 and float(fixed.sum()) > held_max * float(free.sum()):
