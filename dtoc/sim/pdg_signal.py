@@ -640,6 +640,79 @@ def _chebyshev(u: torch.Tensor, n: int) -> torch.Tensor:
     return torch.stack(t[:n], -1)
 
 
+def _line_batch_products(F, H, X, dlp, dq, mrs):
+    """The products of one batch of b line windows: E = F @ H (n_ro, b S, M R), rearranged to
+    (b, n_ro, M R S); U = X @ E (b, W, M R S); the window's sum over orders r and drift terms s,
+    out[b, w, m] = sum_{r,s} U[b, w, m, r, s] dlp[b, w, r] dq[b, w, s].  Returns (out, E, U)."""
+    M, R, S = mrs
+    b, W, n_ro = X.shape
+    E = torch.bmm(F, H).reshape(n_ro, b, S, M, R).permute(1, 0, 3, 4, 2)  # (b, n_ro, M, R, S)
+    E = E.reshape(b, n_ro, M * R * S)
+    U = torch.bmm(X, E).reshape(b, W, M, R, S)
+    return torch.einsum("bwmrs,bwr,bws->bwm", U, dlp, dq), E, U
+
+
+class _LineBatch(torch.autograd.Function):
+    """:func:`_line_batch_products` as one autograd node with a hand-written adjoint.
+
+    Differentiable inputs: H (n_ro, n_pe, M R) the weights, X (b, W, n_ro) the readout phases, dq (b, W, S) the
+    drift polynomials; F (n_ro, b S, n_pe) and dlp (b, W, R) are constants (no gradient).  Torch's convention for
+    a holomorphic product (out = A x gives grad_x = A^H grad_out) with the cotangent carried conjugated,
+    cG = conj(grad_out), so that only plain (un-conjugated) saved data enter the products
+    (conj(A)^T B = conj(A^T conj(B))):
+
+        conj(grad_U) = cG dlp dq                (b, W, M, R, S)
+        conj(grad_dq) = sum_{m,r} cG U dlp      (b, W, S)
+        conj(grad_X) = conj(grad_U) @ E^T       (b, W, n_ro)
+        conj(grad_E) = X^T @ conj(grad_U)       (b, n_ro, M R S)
+        conj(grad_H) = F^T @ conj(grad_E)       (n_ro, n_pe, M R), conj(grad_E) rearranged as the forward's E
+
+    and the three small results conjugated once.  dlp and dq hold real values (conj(dlp) = dlp, conj(dq) =
+    dq).  Only the tensors the wanted gradients read are saved.  No host synchronisation, no
+    branch on a tensor's value; elementwise complex ops are mul and conj only (compiled into torch's CUDA build).
+    """
+
+    @staticmethod
+    def forward(ctx, F, H, X, dlp, dq, mrs):
+        out, E, U = _line_batch_products(F, H, X, dlp, dq, mrs)
+        need_h, need_x, need_q = ctx.needs_input_grad[1], ctx.needs_input_grad[2], ctx.needs_input_grad[4]
+        ctx.mrs = mrs
+        # only what the wanted gradients read (released by autograd once this node has run)
+        ctx.save_for_backward(
+            dlp, dq, F if need_h else None, X if need_h else None, E if need_x else None, U if need_q else None
+        )
+        return out
+
+    @staticmethod
+    def backward(ctx, g):
+        M, R, S = ctx.mrs
+        dlp, dq, F, X, E, U = ctx.saved_tensors
+        b, W = dlp.shape[:2]
+        cg = g.conj_physical()  # (b, W, M)
+        cgU = (cg[:, :, :, None, None] * dlp[:, :, None, :, None]) * dq[:, :, None, None, :]  # (b, W, M, R, S)
+        gH = gX = gq = None
+        if U is not None:
+            gq = torch.einsum("bwm,bwmrs,bwr->bws", cg, U, dlp).conj_physical()
+        cgU = cgU.reshape(b, W, M * R * S)
+        if E is not None:
+            gX = torch.bmm(cgU, E.transpose(1, 2)).conj_physical()
+        if F is not None:
+            n_ro = X.shape[2]
+            cgE = torch.bmm(X.transpose(1, 2), cgU)  # (b, n_ro, M R S)
+            del cgU
+            cgE = cgE.reshape(b, n_ro, M, R, S).permute(1, 0, 4, 2, 3).reshape(n_ro, b * S, M * R)
+            gH = torch.bmm(F.transpose(1, 2), cgE).conj_physical()
+        return None, gH, gX, None, gq, None
+
+
+def _line_batch(F, H, X, dlp, dq, mrs):
+    """(b, W, M) line-window sums of one batch (:func:`_line_batch_products`), through :class:`_LineBatch`
+    where a gradient is wanted."""
+    if torch.is_grad_enabled() and (H.requires_grad or X.requires_grad or dq.requires_grad):
+        return _LineBatch.apply(F, H, X, dlp, dq, mrs)
+    return _line_batch_products(F, H, X, dlp, dq, mrs)[0]
+
+
 def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: int, wins: np.ndarray):
     """(M, T) = Cm (M, V) @ Kern(t, v)^T for readouts along lines of (nearly) constant phase-encoding moment.
 
@@ -701,7 +774,8 @@ def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: in
         S += 2  # the derivative's series: T_n' grows as n^2, two more terms keep it below the tolerance
     # weights H (n_ro, n_pe, M R): Cm (-lam)^r / r!, formed once
     powers = torch.stack([cneg(lam) ** r / math.factorial(r) for r in range(R)], 0)  # (R, V)
-    H = ro_pe(full[:, None, :] * powers[None]).permute(2, 3, 0, 1).reshape(n_ro, n_pe, M * R)
+    # (contiguous: the batched product would copy each of its n_ro strided matrices out, in every batch)
+    H = ro_pe(full[:, None, :] * powers[None]).permute(2, 3, 0, 1).reshape(n_ro, n_pe, M * R).contiguous()
     with torch.no_grad():
         Pc = _cis(-m_c[:, None] * g_pe[None, :].detach())  # (nW, n_pe)
         pw = (
@@ -710,9 +784,7 @@ def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: in
             else torch.as_tensor(_jacobi_anger(d_max * g_pe.detach().cpu().numpy(), S), device=dev).to(cdt)
         )  # (S, n_pe)
         lam64 = lam.to(torch.complex128)
-    X = _cis(-m_ro * g_ro)  # (nW, W, n_ro)
     dlp = torch.as_tensor(np.stack([dl**r for r in range(R)], -1), dtype=rdt, device=dev).to(cdt)  # (nW, W, R)
-    dq = _chebyshev(delta / d_max, S).to(cdt)  # (nW, W, S): T_s(delta / d_max)
     if LINE_MACS is not None:  # benchmark accounting: complex multiply-adds of the two products below
         LINE_MACS.append(nW * S * ny * nx * M * R + nW * W * n_ro * M * R * S)
     bs = max(1, int(cfg.chunk_elems // max(1, S * ny * nx)))
@@ -738,9 +810,12 @@ def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: in
             F = torch.empty((n_ro, b1 - b0, S, n_pe), dtype=cdt, device=dev)
             torch.mul(B[:, :, None, :], (Pc[b0:b1, None, :] * pw[None])[None], out=F)
             F = F.reshape(n_ro, (b1 - b0) * S, n_pe)
-        E = torch.bmm(F, H).reshape(n_ro, b1 - b0, S, M, R).permute(1, 0, 3, 4, 2)  # (b, n_ro, M, R, S)
-        U = torch.bmm(X[b0:b1], E.reshape(b1 - b0, n_ro, M * R * S)).reshape(b1 - b0, W, M, R, S)
-        out.append(torch.einsum("bwmrs,bwr,bws->bwm", U, dlp[b0:b1], dq[b0:b1]))
+        # the batch's readout phases X (b, W, n_ro) and drift polynomials dq (b, W, S): T_s(delta / d_max), formed
+        # per batch from the moments' rows (a slice of a whole-readout tensor would cost a whole-size zero
+        # gradient per batch in the backward)
+        X = _cis(-m_ro[b0:b1] * g_ro)
+        dq = _chebyshev(delta[b0:b1] / d_max, S).to(cdt)
+        out.append(_line_batch(F, H, X, dlp[b0:b1], dq, (M, R, S)))
     Sm = torch.cat(out, 0)  # (nW, W, M)
     vt = torch.as_tensor(valid.reshape(-1), device=dev)
     sel = torch.as_tensor(idx.reshape(-1)[valid.reshape(-1)], device=dev)
