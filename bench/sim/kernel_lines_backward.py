@@ -7,9 +7,9 @@ Case: the 128x128 single-shot EPI (sequences/epi_esp081.yaml at matrix 128, echo
 ``epi128_10us_p256`` of bench.sim.run) on a 256x256 brain phantom, with the gradient realized by the bundled
 example 7 T GIRF (its blip tails make the phase moment drift along every line: a 16-term drift series), graph
 built once.  Timed: one ``simulate`` forward + ``backward`` of sum |s|^2 w.r.t. the (3, 2N+1) gradient, wall and
-CPU seconds, with :func:`dtoc.sim.pdg_signal._line_batch` as shipped (custom node) and with the batch products
-left to torch's autograd ('autograd': :func:`_line_batch_products`), alternating autograd, custom, autograd, ...
-Both runs share every other change of the line path (per-batch readout phases, contiguous weights).  Printed:
+CPU seconds, with :func:`dtoc.sim.pdg_signal._line_products` as shipped (custom node) and with the batch products
+left to torch's autograd ('autograd': :func:`_line_batch_products` per batch on slices of the readout tensors, as
+before the node), alternating autograd, custom, autograd, ...  Both runs share the contiguous weights H.  Printed:
 per repeat the seconds, the minimum, the gain, and the gradients' largest difference relative to the largest
 entry.  Nothing is written.
 """
@@ -42,13 +42,15 @@ def main(argv: list[str] | None = None) -> None:
     graph = build_graph(ir, PDGConfig(), ph)
     G0 = dtoc.Twin(ir, dtoc.load_model(girf=str(REPO / "girf" / "example_7T.npz"))).forward().realized_grad_mT_per_m
     G0 = G0.detach().to(dt)
-    custom = S._line_batch
+    custom = S._line_products
 
-    def plain(F, H, X, dlp, dq, mrs):
-        return S._line_batch_products(F, H, X, dlp, dq, mrs)[0]
+    def plain(H, X, dq, dlp, batches, mrs):
+        return torch.cat(
+            [S._line_batch_products(F, H, X[b0:b1], dlp[b0:b1], dq[b0:b1], mrs)[0] for b0, b1, F in batches], 0
+        )
 
     def fwd_bwd(kind: str) -> tuple[float, float, torch.Tensor]:
-        S._line_batch = custom if kind == "custom" else plain
+        S._line_products = custom if kind == "custom" else plain
         try:
             G = G0.clone().requires_grad_(True)
             t, c = time.perf_counter(), time.process_time()
@@ -56,7 +58,7 @@ def main(argv: list[str] | None = None) -> None:
             (s.real**2 + s.imag**2).sum().backward()
             return time.perf_counter() - t, time.process_time() - c, G.grad
         finally:
-            S._line_batch = custom
+            S._line_products = custom
 
     kinds = ("autograd", "custom")
     for k in kinds:  # warm-up (first simulate of the process)
