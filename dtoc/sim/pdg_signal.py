@@ -667,9 +667,9 @@ class _LineProducts(torch.autograd.Function):
         conj(grad_dq) = sum_{m,r} cG U dlp      (b, W, S)
         conj(grad_X) = conj(grad_U) @ E^T       (b, W, n_ro)
         conj(grad_E) = X^T @ conj(grad_U)       (b, n_ro, M R S)
-        conj(grad_H) += F^T @ conj(grad_E)      (n_ro, n_pe, M R), conj(grad_E) rearranged as the forward's E
+        conj(grad_H)^T += conj(grad_E)^T @ F    (n_ro, M R, n_pe), conj(grad_E) rearranged as the forward's E
 
-    written into (accumulated in, for H) whole-size buffers conjugated once at the end.  dlp and dq hold real
+    written into (accumulated in, for H) whole-size buffers conjugated (and transposed) once at the end.  dlp and dq hold real
     values (conj(dlp) = dlp, conj(dq) = dq).  Only the tensors the wanted gradients read are saved.  No host
     synchronisation, no branch on a tensor's value; elementwise complex ops are mul and conj only (compiled into
     torch's CUDA build).
@@ -693,7 +693,9 @@ class _LineProducts(torch.autograd.Function):
         M, R, S = ctx.mrs
         H, X, dq, dlp, *saved = ctx.saved_tensors
         cg = g.conj_physical()  # (nW, W, M)
-        gH = None if H is None else torch.zeros_like(H, memory_format=torch.contiguous_format)
+        # conj(grad_H) accumulated transposed, (n_ro, M R, n_pe): the products' row-major output is the long
+        # axis n_pe (1.8x faster on the CPU than the (n_pe, M R) one at EPI 128)
+        gHT = None if H is None else torch.zeros((H.shape[0], H.shape[2], H.shape[1]), dtype=g.dtype, device=g.device)
         gX = None if saved[1] is None else torch.empty(ctx.x_shape, dtype=g.dtype, device=g.device)
         gq = None if saved[2] is None else torch.empty(dq.shape, dtype=g.dtype, device=g.device)
         for i, (b0, b1) in enumerate(ctx.bounds):
@@ -706,12 +708,16 @@ class _LineProducts(torch.autograd.Function):
             cgU = cgU.reshape(b, W, M * R * S)
             if gX is not None:
                 torch.bmm(cgU, E.transpose(1, 2), out=gX[b0:b1])
-            if gH is not None:
+            if gHT is not None:
                 n_ro = ctx.x_shape[2]
                 cgE = torch.bmm(X[b0:b1].transpose(1, 2), cgU)  # (b, n_ro, M R S)
-                cgE = cgE.reshape(b, n_ro, M, R, S).permute(1, 0, 4, 2, 3).reshape(n_ro, b * S, M * R)
-                gH.baddbmm_(F.transpose(1, 2), cgE)
-        for t in (gH, gX, gq):
+                cgE = cgE.reshape(b, n_ro, M, R, S).permute(1, 2, 3, 0, 4).reshape(n_ro, M * R, b * S)
+                gHT.baddbmm_(cgE, F)
+        gH = None
+        if gHT is not None:
+            gH = torch.empty(H.shape, dtype=g.dtype, device=g.device)
+            torch.conj_physical(gHT.transpose(1, 2), out=gH)
+        for t in (gX, gq):
             if t is not None:
                 t.conj_physical_()
         return gH, gX, gq, None, None, None
