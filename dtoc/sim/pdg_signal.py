@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from dtoc.errors import InputError
-from dtoc.util.cplx import cabs, cexp, cis, cneg, sinc
+from dtoc.util.cplx import cabs, cexp, cexp_of, cis, cneg, sinc
 
 
 @dataclass
@@ -817,13 +817,13 @@ def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: in
                 rows = []
                 for w in range(b0, b1):  # exp(-tc_w lam), advanced by the cached factor of each window spacing
                     if decay is None:
-                        decay = torch.exp(-float(tc[w]) * lam64)
+                        decay = cexp_of(-float(tc[w]) * lam64)
                     else:
                         d = float(tc[w] - tc[w - 1])
                         key = round(d * 1e15)
                         f = steps.get(key)
                         if f is None:
-                            f = steps[key] = torch.exp(-d * lam64)
+                            f = steps[key] = cexp_of(-d * lam64)
                         decay = decay * f
                     rows.append(decay)
                 B = ro_pe(torch.stack(rows, 0).to(cdt)).transpose(0, 1)  # (n_ro, b, n_pe)
@@ -893,7 +893,7 @@ def _apply_kernel_separable(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg) ->
     out = []
     for b0 in range(0, nW, bs):
         b1 = min(nW, b0 + bs)
-        base = full[None] * torch.exp(-tc_t[b0:b1, None] * lam[None])[:, None, :]  # (b, M, V)
+        base = full[None] * cexp_of(-tc_t[b0:b1, None] * lam[None])[:, None, :]  # (b, M, V)
         D = (base[:, :, None, :] * powers[None, None]).reshape(b1 - b0, M * R * ny, nx)  # (b, M R ny, nx)
         U = (X[b0:b1] @ D.transpose(1, 2)).reshape(b1 - b0, W, M, R, ny)
         V_ = (U * Y[b0:b1, :, None, None, :]).sum(-1)  # (b, W, M, R)

@@ -42,6 +42,13 @@ def cexp(re: torch.Tensor, im: torch.Tensor, compiled_only: bool | None = None) 
     return torch.complex(mag * torch.cos(im), mag * torch.sin(im))
 
 
+def cexp_of(z: torch.Tensor, compiled_only: bool | None = None) -> torch.Tensor:
+    """exp(z) of a complex tensor (differentiable)."""
+    if not _compiled_only(z, compiled_only):
+        return torch.exp(z)
+    return cexp(z.real, z.imag, compiled_only=True)
+
+
 def cis(phase: torch.Tensor, compiled_only: bool | None = None) -> torch.Tensor:
     """exp(i phase) (complex, differentiable; cos + i sin, no exponential of a zero real part)."""
     if not _compiled_only(phase, compiled_only):
