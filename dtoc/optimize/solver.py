@@ -18,7 +18,8 @@ grows with the square of the number of samples, and so did the iterations of pla
    (:meth:`~dtoc.optimize.limits.EdgeProjector.project`); the edges the projection moved are held at their
    projected values and the CG solves again for the others, from there (warm), until no further edge is
    moved, the tolerance is met, or ``max_rounds``.  Every round's iterate is within the limits; the best
-   objective is kept.  The held values are the projection's, not the constrained optimum's: the rounds are a
+   objective is kept, unless a round's iterate meets the stopping rule: that one ends the solve, whatever its
+   objective (docs/optimize.md, "An iterate within the tolerance ends the solve").  The held values are the projection's, not the constrained optimum's: the rounds are a
    fast heuristic for the few, local active limits (EPI blips and ramps), not a certificate.
 
 Stop reasons (``SolveReport.stop_reason``):
