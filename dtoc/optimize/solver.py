@@ -19,8 +19,9 @@ grows with the square of the number of samples, and so did the iterations of pla
    projected values and the CG solves again for the others, from there (warm), until no further edge is
    moved, the tolerance is met, or ``max_rounds``.  Every round's iterate is within the limits; the best
    objective is kept, unless a round's iterate meets the stopping rule: that one ends the solve, whatever its
-   objective (docs/optimize.md, "An iterate within the tolerance ends the solve").  The held values are the projection's, not the constrained optimum's: the rounds are a
-   fast heuristic for the few, local active limits (EPI blips and ramps), not a certificate.
+   objective (docs/optimize.md, "An iterate within the tolerance ends the solve").  The held values are the
+   projection's, not the constrained optimum's: the rounds are a fast heuristic for the few, local active
+   limits (EPI blips and ramps), not a certificate.
 
 Stop reasons (``SolveReport.stop_reason``):
 
@@ -489,7 +490,8 @@ def solve_to_tolerance(
             val = float(f(x)[0].detach())
             gain = best["f"] - val
             assert err_unc is not None
-            within = bool(np.all(err[counted(err_unc, unc_converged, k_tol_dk)] <= k_tol_dk))
+            reach = counted(err_unc, unc_converged, k_tol_dk)
+            within = bool(np.all(err[reach] <= k_tol_dk))
             if val < best["f"] or within:  # an iterate that meets the stopping rule ends the solve, whatever its f
                 best.update(x=x, f=val, err=err)
             moved = free & ((x - x_unc).abs() > 1e-9)
@@ -501,7 +503,7 @@ def solve_to_tolerance(
             )
             if progress is not None:
                 progress("warm", q.n, budget, val)
-            if within or bool(np.all(best["err"][counted(err_unc, unc_converged, k_tol_dk)] <= k_tol_dk)):
+            if bool(np.all(best["err"][reach] <= k_tol_dk)):  # (a round within it is the best now)
                 rep.stop_reason = "tolerance"
                 break
             if rnd == 0 and float(fixed.sum()) > held_max * float(free.sum()):

@@ -107,7 +107,7 @@ class VoxelData:
         if iz is None:
             iz = self.cache["iz"] = torch.as_tensor(self.iz, device=self.pd.device)
         kz = k[..., 2].reshape(-1)
-        zf = _cis(-self.zg[:, None] * kz[None, :]).index_select(0, iz).T  # (M, V)
+        zf = cis(-self.zg[:, None] * kz[None, :]).index_select(0, iz).T  # (M, V)
         return sp * zf.reshape(*k.shape[:-1], self.n)
 
     def phase_of(self, k: torch.Tensor) -> torch.Tensor:
@@ -207,7 +207,7 @@ class _SpatialPhase(torch.autograd.Function):
     @staticmethod
     def forward(ctx, kx, ky, xg, yg, ix, iy, x, y):
         sp = (
-            _cis(-xg[:, None] * kx[None, :]).index_select(0, ix) * _cis(-yg[:, None] * ky[None, :]).index_select(0, iy)
+            cis(-xg[:, None] * kx[None, :]).index_select(0, ix) * cis(-yg[:, None] * ky[None, :]).index_select(0, iy)
         ).T.contiguous()
         ctx.save_for_backward(sp, x, y)
         return sp  # (M, V)
@@ -219,9 +219,6 @@ class _SpatialPhase(torch.autograd.Function):
         gx = q @ x if ctx.needs_input_grad[0] else None
         gy = q @ y if ctx.needs_input_grad[1] else None
         return gx, gy, None, None, None, None, None, None
-
-
-_cis = cis
 
 
 def voxel_factor(k: torch.Tensor, vox: VoxelData) -> torch.Tensor:
@@ -795,7 +792,7 @@ def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: in
     # (contiguous: the batched product would copy each of its n_ro strided matrices out, in every batch)
     H = ro_pe(full[:, None, :] * powers[None]).permute(2, 3, 0, 1).reshape(n_ro, n_pe, M * R).contiguous()
     with torch.no_grad():
-        Pc = _cis(-m_c[:, None] * g_pe[None, :].detach())  # (nW, n_pe)
+        Pc = cis(-m_c[:, None] * g_pe[None, :].detach())  # (nW, n_pe)
         pw = (
             torch.ones((1, n_pe), dtype=cdt, device=dev)
             if exact
@@ -831,7 +828,7 @@ def _apply_kernel_lines(Cm, sgn, use_t2d, mt_r, dtt, vox: VoxelData, cfg, pe: in
                 torch.mul(B[:, :, None, :], (Pc[b0:b1, None, :] * pw[None])[None], out=F)
             yield b0, b1, F.reshape(n_ro, (b1 - b0) * S, n_pe)
 
-    X = _cis(-m_ro * g_ro)  # (nW, W, n_ro)
+    X = cis(-m_ro * g_ro)  # (nW, W, n_ro)
     dq = _chebyshev(delta / d_max, S).to(cdt)  # (nW, W, S): T_s(delta / d_max)
     Sm = _line_products(H, X, dq, dlp, batches(), (M, R, S))  # (nW, W, M)
     vt = torch.as_tensor(valid.reshape(-1), device=dev)

@@ -34,8 +34,8 @@ import torch
 
 from dtoc.sim import pdg_signal as _sig
 from dtoc.sim.pdg_rfsplit import add_rows_, take_rows
-from dtoc.sim.pdg_signal import _DIFF_TAYLOR_MAX, _cis, _decay_phase, _time_factor, _time_key, voxel_factor
-from dtoc.util.cplx import cexp
+from dtoc.sim.pdg_signal import _DIFF_TAYLOR_MAX, _decay_phase, _time_factor, _time_key, voxel_factor
+from dtoc.util.cplx import cexp, cis
 
 
 def cat_views(pieces: list[torch.Tensor], dim: int = 0) -> torch.Tensor:
@@ -680,8 +680,8 @@ class _BatchedGemm(torch.autograd.Function):
         # per-axis factors are gathered by voxel rows (no transposed copy); interval k's kernel is the
         # column block [k Co T, (k + 1) Co T), a strided (V, Co T) operand of the products
         SPT = (
-            take_rows(_cis(-vox.xg[:, None] * mtx.reshape(1, -1)), vox.ix_t())
-            * take_rows(_cis(-vox.yg[:, None] * mty.reshape(1, -1)), vox.iy_t())
+            take_rows(cis(-vox.xg[:, None] * mtx.reshape(1, -1)), vox.ix_t())
+            * take_rows(cis(-vox.yg[:, None] * mty.reshape(1, -1)), vox.iy_t())
         ).reshape(-1, G, T)
         Ks = {}
         signs = list(plan.tfs)
