@@ -201,6 +201,9 @@ def run_one(name: str, desc: str, seq: Path, girf: Path, d: Path) -> dict:
     row["dk_rad_per_m"] = min(dks) if dks else None
     row["dk_from_fov"] = man["sequence"]["dk_source"].startswith("grid")
     row["discarded"] = man["n_samples_discarded"]
+    u = (man.get("solver") or {}).get("unreachable") or {}
+    # the solve was bound by the limits: samples above the tolerance, every one named at an active limit
+    row["limits_bound"] = bool(u.get("n_samples")) and u.get("n_limits") == u.get("n_samples")
     code, _, _ = _cli("check", o, "--gmax", GMAX, "--smax", SMAX)
     row["check_ok"] = code == 0
     row["pypulseq_timing_ok"], row["slew_independent"] = pypulseq_checks(o)

@@ -123,7 +123,9 @@ def test_introduced_step_fails_before_writing(files, tmp_path, capsys, monkeypat
     """The clean base, its output written as the stepped file (a writer that introduced the steps): one line, exit 1,
     nothing written."""
     stepped = (files / "step.seq").read_bytes()
-    monkeypatch.setattr(run_mod, "seq_bytes_of", lambda *a, **k: stepped)
+    monkeypatch.setattr(
+        run_mod, "write_seq_text", lambda ir, path, *a, **k: (Path(path).write_bytes(stepped), (1, 5, 0))[1]
+    )
     out, man = tmp_path / "o.seq", tmp_path / "o.json"
     code, so, err = run_cli(capsys, "optimize", files / "clean.seq", "--girf", GIRF, "-o", out, "--json", man, *RUN)
     assert code == 1, err

@@ -101,7 +101,9 @@ def test_a_difference_is_refused_as_the_read_back_alone_refuses_it(tmp_path, mon
     with pytest.raises(DtocError) as alone:
         W.verify_written(out_ir, bad, (1, 5, 0))
     assert "moves the ADC of block" in str(alone.value)
-    monkeypatch.setattr(run_mod, "seq_bytes_of", lambda *a, **k: bad)
+    monkeypatch.setattr(
+        run_mod, "write_seq_text", lambda ir, path, *a, **k: (Path(path).write_bytes(bad), (1, 5, 0))[1]
+    )
     out = tmp_path / "o.seq"
     with pytest.raises(DtocError) as export:
         write_checked(out_ir, out, False, LIMITS)

@@ -5,6 +5,7 @@ violation dtoc itself introduces still fails the written file's check."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 from cli_helpers import run_cli
@@ -68,13 +69,15 @@ def test_inherited_violation_refused_before_any_work(files, tmp_path, capsys, mo
 def test_violation_dtoc_introduces_still_fails(files, tmp_path, capsys, monkeypatch):
     """A clean base passes the pre-flight; an output whose writer moved the ADC dwell off the raster fails the written
     file's check (exit 1, never "0 violations"), as before."""
-    real = run_mod.seq_bytes_of
+    real = run_mod.write_seq_text
 
-    def bad_writer(*a, **k):
-        text = real(*a, **k).decode()
-        return sign_text(text.replace(" 16 10000 ", " 16 10050 ").encode())  # [ADC]: num dwell(ns) ...
+    def bad_writer(ir, path, *a, **k):
+        v = real(ir, path, *a, **k)
+        text = Path(path).read_text()
+        Path(path).write_bytes(sign_text(text.replace(" 16 10000 ", " 16 10050 ").encode()))  # [ADC]: num dwell(ns)
+        return v
 
-    monkeypatch.setattr(run_mod, "seq_bytes_of", bad_writer)
+    monkeypatch.setattr(run_mod, "write_seq_text", bad_writer)
     out = tmp_path / "o.seq"
     code, so, err = run_cli(capsys, "optimize", files / "ok.seq", "-o", out, *OPT, "--json", tmp_path / "m.json")
     assert code == 1, err

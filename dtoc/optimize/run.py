@@ -51,10 +51,11 @@ from dtoc.seq.ir import SequenceIR
 from dtoc.seq.seqtext import shared_parse
 from dtoc.seq.system import SystemSpec
 from dtoc.seq.versions import check_writable, version_str
-from dtoc.seq.write import output_version, preflight_write, seq_bytes_of, verify_and_check
+from dtoc.seq.write import output_version, preflight_write, verify_and_check, write_seq_text
 from dtoc.sim import metrics
 from dtoc.sim.imager import Imager
 from dtoc.util.atomic import (
+    atomic_move_file,
     atomic_write_bytes,
     atomic_write_text,
     check_outputs,
@@ -1192,6 +1193,7 @@ def export_stage(plan: Plan, sol: Solution, io: RunIO, t_start: float) -> RunOut
     with commit:
         # final projection (feasible by construction) and verification
         x = plan.projector.project(sol.x, n_iter=60, exact=True)
+        sol.x = x  # the solution is the projected edges from here on (the unprojected ones released: 12 B per sample)
         fine = twin.export_fine(x)
         viol = limit_violations(fine, ir.dt_fine_s, limits)
         if viol:
@@ -1434,7 +1436,7 @@ def write_checked(
     version = ir_out.meta.get("output_format_version")
     with tempfile.TemporaryDirectory(dir=outp.parent if str(outp.parent) else ".") as d, shared_parse():
         tmp = Path(d) / outp.name
-        tmp.write_bytes(seq_bytes_of(ir_out, definitions, adc_offsets, version, verify=False))  # a private folder
+        write_seq_text(ir_out, tmp, definitions, adc_offsets, version)  # a private folder; never whole in memory
         sysspec = SystemSpec(
             max_grad_mT_per_m=limits.gmax_mT_per_m,
             max_slew_T_per_m_per_s=limits.smax_T_per_m_per_s,
@@ -1466,9 +1468,8 @@ def write_checked(
             "check_not_checked": list(res.not_checked),
             "check_inherited": inherited,  # the base's own steps the output keeps (dtoc.seq.check.settle_inherited)
         }
-        data = tmp.read_bytes()
-    atomic_write_bytes(outp, data, force=force)
-    result["sha256"] = sha256_bytes(data)
+        result["sha256"] = sha256_file(tmp)
+        atomic_move_file(tmp, outp, force=force)  # (the text is not read whole: a long sequence's is ~300 MB)
     return result
 
 

@@ -996,19 +996,34 @@ def check_file_pieces(
     def whole(rb: ReadBack | None = None) -> CheckResult:
         return check_file(path, system, safety, limits_source=limits_source, conventions=conventions, read_back=rb)
 
-    from dtoc.seq.pieces import PieceError, TextIndex, share, signature_ok
+    from dtoc.seq.pieces import mapped_text, text_facts
 
     if len(spans) <= 1:
         return whole(read_back)
-    data = Path(path).read_bytes()
+    facts = text_facts(path)  # (the text is read in chunks, then mapped: never held whole)
+    if facts.has_cr or not facts.signature_ok:
+        return whole()
+    with mapped_text(path) as (data, drop):
+        return _check_in_pieces(
+            path, spans, system, safety, limits_source, conventions, read_back, whole, data, drop, facts.signed
+        )
+
+
+def _check_in_pieces(
+    path, spans, system, safety, limits_source, conventions, read_back, whole, data, drop, signed: bool
+) -> CheckResult:
+    """:func:`check_file_pieces` on the text ``data`` (a mapped text whose pages ``drop`` releases, after the
+    index and after each piece); ``whole()``: the whole check, where the pieces cannot give its result."""
+    from dtoc.seq.pieces import PieceError, TextIndex, share
+
     try:
-        index = TextIndex(data)
+        index = TextIndex(data, drop)
         extras = share(index.unused(), len(spans))
     except PieceError:
         return whole()
-    if b"\r" in data or not signature_ok(data) or index.n_blocks != spans[-1][3]:
+    drop()
+    if index.n_blocks != spans[-1][3]:
         return whole()
-    signed = b"\n[SIGNATURE]" in data
     ids = [int(x) for x in index.rows["[BLOCKS]"].ids]
     need_played = safety is not None and (safety.pns is not None or bool(safety.acoustic_bands_hz))
     res: CheckResult | None = None
@@ -1029,6 +1044,7 @@ def check_file_pieces(
             piece = index.piece(c0, c1, extra)
         except PieceError:
             return whole()
+        drop()
         fd, tmp = tempfile.mkstemp(suffix=".seq")
         try:
             with os.fdopen(fd, "wb") as f:

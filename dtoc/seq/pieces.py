@@ -18,10 +18,17 @@ Formats 1.4.x and 1.5.x (what dtoc writes); :class:`TextIndex` raises :class:`Pi
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import mmap
+import os
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
+
+#: bytes of the text scanned between two releases of a mapped text's pages (:func:`mapped_text`)
+SCAN_WINDOW = 1 << 26
 
 
 class PieceError(Exception):
@@ -70,8 +77,11 @@ def _int(tok: bytes) -> int:
 class TextIndex:
     """The sections of ``data`` (a Pulseq 1.4/1.5 text) as row tables (module doc)."""
 
-    def __init__(self, data: bytes):
+    def __init__(self, data, drop: Callable[[], None] | None = None):
+        """``data``: the text (bytes, or a read-only buffer of it such as :func:`mapped_text`'s); ``drop``: called
+        every :data:`SCAN_WINDOW` bytes of scanning (a mapped text's pages released: a long text is not held)."""
         self.data = data
+        self._drop = drop or (lambda: None)
         self.heads: list[tuple[str, int, int, int]] = []  # (name, header line start, body start, body end)
         self._scan_headers()
         names = [h[0] for h in self.heads]
@@ -117,11 +127,14 @@ class TextIndex:
         d = self.data
         starts = []
         for pat in (b"\n[", b"\nextension "):
-            i = d.find(pat)
-            while i >= 0:
-                starts.append(i + 1)
-                i = d.find(pat, i + 1)
-        if d.startswith((b"[", b"extension ")):
+            for a in range(0, len(d), SCAN_WINDOW):  # (matches starting in the window: none found twice)
+                b = min(a + SCAN_WINDOW + len(pat) - 1, len(d))
+                i = d.find(pat, a, b)
+                while i >= 0:
+                    starts.append(i + 1)
+                    i = d.find(pat, i + 1, b)
+                self._drop()
+        if bytes(d[:16]).startswith((b"[", b"extension ")):
             starts.append(0)
         starts.sort()
         for k, s in enumerate(starts):
@@ -167,11 +180,14 @@ class TextIndex:
     def _shape_rows(self, s: int, e: int) -> _Rows:
         d = self.data
         st = []
-        i = d.find(b"shape_id", s, e)
+        i, dropped = d.find(b"shape_id", s, e), s
         while i >= 0:
             st.append(i)
             i = d.find(b"\nshape_id", i, e)
             i = i + 1 if i >= 0 else -1
+            if i - dropped > SCAN_WINDOW:
+                self._drop()
+                dropped = i
         ids = []
         for a in st:
             eol = d.find(b"\n", a, e)
@@ -295,6 +311,79 @@ def share(unused: dict, n: int) -> list[dict]:
             if chunk.size:
                 out[i][k] = chunk
     return out
+
+
+@dataclass(frozen=True)
+class TextFacts:
+    """What a whole text's own checks read of it (:func:`text_facts`), without holding it."""
+
+    has_cr: bool  # holds a carriage return
+    signed: bool  # holds a [SIGNATURE] section
+    signature_ok: bool  # :func:`signature_ok`
+    signature_types: tuple[bytes, ...]  # the [SIGNATURE] section's stated types (``Type x`` lines)
+    markers: frozenset[bytes]  # those of the markers asked for that occur in it
+
+
+def text_facts(path: str | os.PathLike, markers: tuple[bytes, ...] = ()) -> TextFacts:
+    """:class:`TextFacts` of the text at ``path``, read once in chunks (the md5 over the bytes before the newline
+    that precedes [SIGNATURE], as :func:`signature_ok`; the first [SIGNATURE] counts)."""
+    sig = b"\n[SIGNATURE]"
+    keep = max([len(sig), *(len(m) for m in markers)]) - 1
+    h, carry, tail = hashlib.md5(), b"", None
+    found: set[bytes] = set()
+    has_cr = False
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 22), b""):
+            has_cr = has_cr or b"\r" in chunk
+            if tail is not None:
+                tail += chunk
+                continue
+            buf = carry + chunk
+            found.update(m for m in markers if m in buf)
+            i = buf.find(sig)
+            if i >= 0:
+                h.update(buf[:i])
+                tail = buf[i:]
+                continue
+            cut = max(len(buf) - keep, 0)
+            h.update(buf[:cut])
+            carry = buf[cut:]
+    if tail is None:
+        h.update(carry)
+        return TextFacts(has_cr, False, True, (), frozenset(found))
+    found.update(m for m in markers if m in tail)
+    stated, types = None, []
+    for line in tail.split(b"\n"):
+        t = line.split()
+        if len(t) == 2 and t[0] == b"Hash":
+            stated = t[1].decode("ascii", "replace").lower()
+        if len(t) == 2 and t[0] == b"Type":
+            types.append(t[1])
+    ok = stated is not None and h.hexdigest() == stated
+    return TextFacts(has_cr, True, ok, tuple(types), frozenset(found))
+
+
+@contextlib.contextmanager
+def mapped_text(path: str | os.PathLike) -> Iterator[tuple[mmap.mmap | bytes, Callable[[], None]]]:
+    """(the text at ``path`` as a read-only memory map, a function that releases its resident pages): a long
+    text read in pieces is not held in memory (its pages come back from the page cache when read again).  An
+    empty file is ``b""`` (no map)."""
+    with open(path, "rb") as f:
+        if os.fstat(f.fileno()).st_size == 0:
+            yield b"", lambda: None
+            return
+        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    advise = getattr(mm, "madvise", None)
+    dontneed = getattr(mmap, "MADV_DONTNEED", None)
+
+    def drop() -> None:
+        if advise is not None and dontneed is not None:
+            advise(dontneed)
+
+    try:
+        yield mm, drop
+    finally:
+        mm.close()
 
 
 def signature_ok(data: bytes) -> bool:

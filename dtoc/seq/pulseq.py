@@ -7,6 +7,7 @@ nothing else of dtoc's sequence layer; the reader, writer, builder and validator
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import importlib
 import io
 import sys
@@ -97,17 +98,79 @@ def seq_bytes(seq, v141: bool = False, in_place: bool = False, check_timing: boo
     writer instead.  ``in_place``: ``seq`` is the caller's to change, and its duplicate events are removed in
     place (pypulseq's write otherwise removes them on a deep copy of every library: the same text, without that
     copy).  ``check_timing`` False: without pypulseq's timing check, which only warns (silenced here) and decodes
-    every block (the same text; for a caller that checks the text it reads back)."""
+    every block (the same text; for a caller that checks the text it reads back).  The text of :func:`seq_file`."""
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "out.seq"
-        with quiet():
-            if in_place:
-                seq.remove_duplicates(in_place=True)
-            seq.write(
-                str(p),
-                create_signature=True,
-                v141_compat=v141,
-                remove_duplicates=not in_place,
-                check_timing=check_timing,
-            )
+        seq_file(seq, p, v141=v141, in_place=in_place, check_timing=check_timing)
         return p.read_bytes()
+
+
+def seq_file(
+    seq, path: str | Path, v141: bool = False, in_place: bool = False, check_timing: bool = True, signed: bool = True
+) -> None:
+    """:func:`seq_bytes`' text written to ``path`` (``signed`` False: without its [SIGNATURE], for the caller to
+    edit and sign, :func:`dtoc.seq.seqtext.sign_file`), never whole in memory: pypulseq writes it unsigned and
+    the md5 signature is computed reading the file in chunks (pypulseq's own signing reads the whole text as a
+    string and encodes it: twice the text's size, the peak of a long sequence's export).  The same bytes as
+    pypulseq's signed text.  With ``in_place``, the libraries' look-up tables (a copy of every event and shape,
+    used only to add events) are released after the de-duplication: ``seq`` is the caller's to discard."""
+    from dtoc.seq.seqtext import sign_file
+
+    with quiet():
+        if in_place:
+            lean_shape_dedup(seq.shape_library)
+            seq.remove_duplicates(in_place=True)
+            for lib in vars(seq).values():
+                if hasattr(lib, "keymap") and hasattr(lib, "find_or_insert"):
+                    lib.keymap = {}
+        seq.write(
+            str(path),
+            create_signature=False,
+            v141_compat=v141,
+            remove_duplicates=not in_place,
+            check_timing=check_timing,
+        )
+    if signed:
+        sign_file(path)
+
+
+def _round_significant(data: np.ndarray, digits: int) -> np.ndarray:
+    """``data`` rounded to ``digits`` significant digits, as pypulseq rounds a shape before writing it (the same
+    float operations, so the same bits), read-only."""
+    mags = 10 ** (digits - np.ceil(np.log10(np.abs(data) + 1e-12)))
+    out = np.round(data * mags) / mags
+    out.flags.writeable = False
+    return out
+
+
+def lean_shape_dedup(lib) -> None:
+    """Make the shape library ``lib``'s ``remove_duplicates`` (pypulseq's write calls it: every shape rounded to 9
+    significant digits, each distinct rounded shape kept once, ids in the old ids' order) give the same library
+    and mapping without holding the old and new libraries and both look-up tables at once (four copies of every
+    shape: ~0.5 GB on a 1-minute 3D FLASH): the look-up tables are dropped (only adding an event uses them), each
+    old shape is released as it is rounded, and a distinct shape is found by a 16-byte digest of its bytes (the
+    bytes compared on a hit).  A library of other data is left as it is.  ``lib`` is the caller's to discard."""
+    if not getattr(lib, "numpy_data", False):
+        return
+
+    def remove_duplicates(digits):
+        new = type(lib)(numpy_data=True)
+        mapping = {0: 0}
+        seen: dict[bytes, list[int]] = {}
+        lib.keymap = {}
+        for k in sorted(lib.data):
+            r = _round_significant(np.asarray(lib.data.pop(k)), digits)
+            key = r.tobytes()
+            h = hashlib.blake2b(key, digest_size=16).digest()
+            hit = next((i for i in seen.get(h, ()) if new.data[i].tobytes() == key), None)
+            if hit is None:
+                hit = new.next_free_ID
+                new.data[hit] = r
+                if lib.type.get(k, ""):
+                    new.type[hit] = lib.type[k]
+                new.next_free_ID = hit + 1
+                seen.setdefault(h, []).append(hit)
+            mapping[k] = hit
+        return new, mapping
+
+    lib.remove_duplicates = remove_duplicates

@@ -196,32 +196,14 @@ def _parse(p: Path, raw: bytes) -> SeqText:
     st = SeqText(path=str(p), raw=raw, binary=binary)
     if binary_md5 is not None:
         st.signature_hash, st.signature_type = binary_md5, "md5"
-    current = None
-    for i, line in enumerate(text.split("\n"), start=1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
-        if s.startswith("["):
-            if not s.endswith("]"):
-                raise _err(p, f"line {i}: malformed section header {s[:40]!r}")
-            current = s
-            if current in st.sections:
-                raise _err(p, f"line {i}: section {current} appears twice")
-            st.sections[current] = []
-            st.section_order.append(current)
-            continue
-        if s.startswith("extension "):
-            current = s
-            st.sections.setdefault(current, [])
-            st.section_order.append(current)
-            continue
-        if current is None:
-            if p.suffix.lower() in (".yaml", ".yml") or re.match(r"^[A-Za-z_]\w*:(\s|$)", s):
-                raise _err(
-                    p, "a spec YAML, not a Pulseq .seq file: build it first with 'dtoc build SPEC.yaml -o base.seq'"
-                )
-            raise _err(p, f"line {i}: content before the first section: {s[:40]!r}")
-        st.sections[current].append(SeqLine(i, s))
+    body = _shapes_body(text)
+    shapes = None if body is None else _read_shapes(text[body[0] : body[1]], body[2])
+    if body is not None and shapes is not None:  # [SHAPES] read at once, its header lines kept as lines
+        _scan_lines(st, p, text[: body[0]], 1, None)
+        st.sections["[SHAPES]"], st.shapes = shapes
+        _scan_lines(st, p, text[body[1] :], body[3], "[SHAPES]")
+    else:
+        _scan_lines(st, p, text, 1, None)
     if "[VERSION]" not in st.sections:
         raise _err(p, "not a Pulseq file (no [VERSION] section)")
     ver = {}
@@ -248,6 +230,100 @@ def _parse(p: Path, raw: bytes) -> SeqText:
     _check_extensions(st, p)
     _check_structure(st, p)
     return st
+
+
+def _scan_lines(st: SeqText, p: Path, text: str, first: int, current: str | None) -> None:
+    """The lines of ``text`` (the file's from line ``first`` on, inside section ``current``) into ``st.sections``."""
+    for i, line in enumerate(text.split("\n"), start=first):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        if s.startswith("["):
+            if not s.endswith("]"):
+                raise _err(p, f"line {i}: malformed section header {s[:40]!r}")
+            current = s
+            if current in st.sections:
+                raise _err(p, f"line {i}: section {current} appears twice")
+            st.sections[current] = []
+            st.section_order.append(current)
+            continue
+        if s.startswith("extension "):
+            current = s
+            st.sections.setdefault(current, [])
+            st.section_order.append(current)
+            continue
+        if current is None:
+            if p.suffix.lower() in (".yaml", ".yml") or re.match(r"^[A-Za-z_]\w*:(\s|$)", s):
+                raise _err(
+                    p, "a spec YAML, not a Pulseq .seq file: build it first with 'dtoc build SPEC.yaml -o base.seq'"
+                )
+            raise _err(p, f"line {i}: content before the first section: {s[:40]!r}")
+        st.sections[current].append(SeqLine(i, s))
+
+
+#: a shape's two header lines (:func:`_read_shapes`)
+_SHAPE_HEAD = re.compile(r"^[ \t]*shape_id[ \t]+(\S+)[ \t]*\n[ \t]*num_samples[ \t]+(\S+)[ \t]*$", re.M)
+_TWO_TOKENS = re.compile(r"\S[ \t]+\S")
+_SECTION_START = re.compile(r"^[ \t]*(\[|extension )", re.M)
+
+
+def _shapes_body(text: str) -> tuple[int, int, int, int] | None:
+    """(start, end, first line number, line number at end) of the [SHAPES] section's lines in ``text``, or None
+    (no such section, or one named twice: the line by line reading names what is wrong)."""
+    heads = [m for m in re.finditer(r"^[ \t]*\[SHAPES\][ \t]*$", text, re.M)]
+    if len(heads) != 1:
+        return None
+    a = text.find("\n", heads[0].end())
+    if a < 0:
+        return None
+    a += 1
+    m = _SECTION_START.search(text, a)
+    b = len(text) if m is None else m.start()
+    first = text.count("\n", 0, a) + 1
+    return a, b, first, first + text.count("\n", a, b)
+
+
+def _read_shapes(body: str, first: int) -> tuple[list[SeqLine], dict[int, tuple[int, list[float], int]]] | None:
+    """The [SHAPES] lines ``body`` (from line ``first``) read at once: (their header lines, id -> (num_samples,
+    samples, line)).  A long text's shapes are most of its lines, and a Python object per sample line was most
+    of its parse.  The same result as the line by line reading (:func:`_scan_lines`, then
+    :func:`_check_structure`'s reading of the shapes); None wherever the text is anything but plain shapes (a
+    comment, a line of two tokens, headers out of their order, a value that is not a finite plain number, a
+    character that is not ASCII): the line by line reading then names what is wrong."""
+    if not body.isascii() or "#" in body or "\r" in body or "[" in body:
+        return None
+    heads = list(_SHAPE_HEAD.finditer(body))
+    n = len(heads)
+    if not n or body.count("shape_id") != n or body.count("num_samples") != n or body.count("_") != 2 * n:
+        return None
+    if body[: heads[0].start()].strip():
+        return None
+    lines: list[SeqLine] = []
+    shapes: dict[int, tuple[int, list[float], int]] = {}
+    ln, pos = first, 0
+    for k, m in enumerate(heads):
+        ln += body.count("\n", pos, m.start())
+        pos = m.start()
+        sid_s, num_s = m.group(1), m.group(2)
+        if not sid_s.isdigit() or not num_s.isdigit():
+            return None
+        # (every token is one line's: no line holds two; float() takes what the line pattern takes, and "nan",
+        # "inf", "infinity", which the sum finds)
+        end = heads[k + 1].start() if k + 1 < n else len(body)
+        if _TWO_TOKENS.search(body, m.end(), end) is not None:
+            return None
+        try:
+            data = [float(t) for t in body[m.end() : end].split()]
+        except ValueError:
+            return None
+        if not data or not math.isfinite(sum(data)):
+            return None
+        if int(sid_s) in shapes:  # (a repeated id: each occurrence is checked line by line)
+            return None
+        h1, h2 = m.group(0).split("\n")
+        lines += [SeqLine(ln, h1.strip()), SeqLine(ln + 1, h2.strip())]
+        shapes[int(sid_s)] = (int(num_s), data, ln)
+    return lines, shapes
 
 
 #: Extensions dtoc reads (:mod:`dtoc.seq.versions`); any other is refused by name.
@@ -288,6 +364,19 @@ def _check_definitions(st: SeqText, p: Path) -> None:
                 )
 
 
+def _check_shape(st: SeqText, p: Path, sid: int, num: int, data: list[float], line: int, hint: str) -> None:
+    """A shape's samples against its ``num_samples`` (compressed or not, by the format's version)."""
+    if not data:
+        raise _err(p, f"shape {sid} (line {line}) has no samples{hint}")
+    if st.major_minor < (1, 4):  # always compressed before 1.4 (then possibly longer than num_samples)
+        if not _compressed_length_ok(data, num):
+            raise _err(p, f"shape {sid} (line {line}): compressed data do not expand to {num} samples")
+    elif len(data) > num:
+        raise _err(p, f"shape {sid} (line {line}): {len(data)} values for num_samples {num}")
+    elif len(data) < num and not _compressed_length_ok(data, num):
+        raise _err(p, f"shape {sid} (line {line}): compressed data do not expand to {num} samples{hint}")
+
+
 def _check_structure(st: SeqText, p: Path) -> None:
     fields = _FIELDS[st.major_minor]
     signed = "[SIGNATURE]" in st.sections
@@ -313,8 +402,10 @@ def _check_structure(st: SeqText, p: Path) -> None:
                 ids[sec].add(int(float(t[0])))
             except (ValueError, OverflowError):
                 raise _err(p, f"line {ln.lineno} in {sec}: bad id {t[0]!r}") from None
-    # shapes
-    shp = st.sections.get("[SHAPES]", [])
+    # shapes (read at once by _read_shapes, or here from their lines)
+    for sid, (num, data, line) in st.shapes.items():
+        _check_shape(st, p, sid, num, data, line, hint)
+    shp = [] if st.shapes else st.sections.get("[SHAPES]", [])
     i = 0
     while i < len(shp):
         t = shp[i].tokens
@@ -340,15 +431,7 @@ def _check_structure(st: SeqText, p: Path) -> None:
                     p, f"line {shp[j].lineno} in [SHAPES]: shape {sid} sample {shp[j].text[:20]!r} is not finite"
                 )
             j += 1
-        if not data:
-            raise _err(p, f"shape {sid} (line {shp[i].lineno}) has no samples{hint}")
-        if st.major_minor < (1, 4):  # always compressed before 1.4 (then possibly longer than num_samples)
-            if not _compressed_length_ok(data, num):
-                raise _err(p, f"shape {sid} (line {shp[i].lineno}): compressed data do not expand to {num} samples")
-        elif len(data) > num:
-            raise _err(p, f"shape {sid} (line {shp[i].lineno}): {len(data)} values for num_samples {num}")
-        elif len(data) < num and not _compressed_length_ok(data, num):
-            raise _err(p, f"shape {sid} (line {shp[i].lineno}): compressed data do not expand to {num} samples{hint}")
+        _check_shape(st, p, sid, num, data, shp[i].lineno, hint)
         st.shapes[sid] = (num, data, shp[i].lineno)
         i = j
     # every [BLOCKS] row as integers, once (validated above): sizes and references both read them
@@ -521,21 +604,33 @@ def verify_signature(st: SeqText, require: bool = True) -> None:
         )
 
 
+def _signature_section(md5: str) -> bytes:
+    """Pulseq's ``[SIGNATURE]`` section for the content md5 ``md5``, with the newline before it (pypulseq's words)."""
+    return (
+        "\n[SIGNATURE]\n"
+        "# This is the hash of the Pulseq file, calculated right before the [SIGNATURE] section was added\n"
+        "# It can be reproduced/verified with md5sum if the file trimmed to the position right above [SIGNATURE]\n"
+        "# The new line character preceding [SIGNATURE] BELONGS to the signature (and needs to be stripped away for "
+        "recalculating/verification)\n"
+        f"Type md5\nHash {md5}\n"
+    ).encode()
+
+
 def sign_text(body: str | bytes) -> bytes:
     """Append a Pulseq md5 ``[SIGNATURE]`` section to ``body`` (any old signature is removed first)."""
     b = body.encode("utf-8") if isinstance(body, str) else body
     i = b.find(b"\n[SIGNATURE]")
     if i >= 0:
         b = b[:i]
-    md5 = hashlib.md5(b).hexdigest()
-    return (
-        b
-        + (
-            "\n[SIGNATURE]\n"
-            "# This is the hash of the Pulseq file, calculated right before the [SIGNATURE] section was added\n"
-            "# It can be reproduced/verified with md5sum if the file trimmed to the position right above [SIGNATURE]\n"
-            "# The new line character preceding [SIGNATURE] BELONGS to the signature (and needs to be stripped away for "
-            "recalculating/verification)\n"
-            f"Type md5\nHash {md5}\n"
-        ).encode()
-    )
+    return b + _signature_section(hashlib.md5(b).hexdigest())
+
+
+def sign_file(path: str | os.PathLike) -> None:
+    """Append a Pulseq md5 ``[SIGNATURE]`` section to the unsigned text at ``path`` (:func:`sign_text`'s bytes),
+    reading it in chunks: never whole in memory."""
+    h = hashlib.md5()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 22), b""):
+            h.update(chunk)
+    with open(path, "ab") as f:
+        f.write(_signature_section(h.hexdigest()))

@@ -500,6 +500,29 @@ def set_revision(text: bytes, version: tuple[int, int, int]) -> bytes:
     return text[:i] + head + text[j:]
 
 
+def set_revision_file(path, version: tuple[int, int, int], newline: bool = False) -> None:
+    """:func:`set_revision` on the text at ``path`` (its [VERSION] section is at the top: only the first chunk
+    is read whole; the rest is copied in chunks), ``newline``: with a newline appended (the text
+    :func:`strip_signature` leaves of a signed one)."""
+    import os
+    import shutil
+    from pathlib import Path
+
+    p = Path(path)
+    tmp = p.with_name(p.name + ".rev")
+    try:
+        with open(p, "rb") as f, open(tmp, "wb") as g:
+            head = f.read(1 << 16)
+            g.write(set_revision(head, version))
+            shutil.copyfileobj(f, g, 1 << 22)
+            if newline:
+                g.write(b"\n")
+        os.replace(tmp, p)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
 def strip_signature(text: bytes) -> bytes:
     i = text.find(b"\n[SIGNATURE]")
     return text if i < 0 else text[: i + 1]

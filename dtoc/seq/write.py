@@ -32,9 +32,9 @@ import numpy as np
 from dtoc.constants import AXES, hz_per_m_from_mT_per_m
 from dtoc.errors import DtocError, InputError
 from dtoc.seq.ir import SequenceIR, edges_to_fine
-from dtoc.seq.pieces import signature_ok
-from dtoc.seq.pulseq import quiet, representable_amplitudes, seq_bytes
-from dtoc.seq.seqtext import sign_text
+from dtoc.seq.pieces import signature_ok, text_facts
+from dtoc.seq.pulseq import quiet, representable_amplitudes, seq_file
+from dtoc.seq.seqtext import sign_file
 from dtoc.seq.system import SystemSpec
 from dtoc.seq.versions import (
     KEPT_EXTENSIONS,
@@ -46,7 +46,7 @@ from dtoc.seq.versions import (
     parse_version,
     quaternion_matrix,
     set_revision,
-    strip_signature,
+    set_revision_file,
     version_str,
 )
 from dtoc.util.interrupt import fault_point
@@ -241,10 +241,37 @@ def seq_bytes_of(
 
     What the version cannot express is refused by name first (:func:`unwritable`); with ``verify`` the text is
     read back by dtoc's reader and by pypulseq and must play what ``ir`` plays (:func:`verify_written`).
+    The bytes of :func:`write_seq_text` (a long sequence's export writes the file without holding its text).
 
     Raises:
         InputError: the version is not one dtoc writes, or cannot state something ``ir`` holds.
         DtocError: the written text does not read back to ``ir``."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "out.seq"
+        v = write_seq_text(ir, p, definitions, adc_offsets, version)
+        data = p.read_bytes()
+    if verify:
+        verify_written(ir, data, v, adc_offsets)
+    return data
+
+
+def write_seq_text(
+    ir: SequenceIR,
+    path: str | Path,
+    definitions: dict | None = None,
+    adc_offsets=None,
+    version: tuple[int, int, int] | str | None = None,
+) -> tuple[int, int, int]:
+    """Write :func:`seq_bytes_of`'s text (unverified) to ``path``; returns the format version written.
+
+    The text is never whole in memory (pypulseq writes it unsigned, the [VERSION] section is set on its first
+    chunk, the md5 signature is computed in chunks: :func:`dtoc.seq.pulseq.seq_file`), except where 1.5.1's
+    ROTATIONS / RF_SHIMS are chained into the block table (a whole-text edit).
+
+    Raises:
+        InputError, DtocError: as :func:`seq_bytes_of`."""
     v = writable_version(ir, version)
     seq = to_pypulseq(ir, adc_offsets)
     for k, val in (definitions or {}).items():
@@ -256,17 +283,18 @@ def seq_bytes_of(
         seq.set_definition(str(k), vals)
     rotations, shims = ir.meta.get("rotations") or {}, ir.meta.get("rf_shims") or {}
     seq.use_block_cache = False  # pypulseq's write decodes every block (its timing check): none kept (to_pypulseq)
-    if v >= (1, 5, 0):
-        # (this function's copy; without pypulseq's timing check, which only warns, silenced: the same text)
-        data = seq_bytes(seq, in_place=True, check_timing=False)
-        if v != (1, 5, 0) or rotations or shims:
-            text = set_revision(strip_signature(data), v)
-            data = sign_text(add_kept_extensions(text, rotations, shims))
-    else:
-        data = sign_text(set_revision(strip_signature(seq_bytes(seq, v141=True, in_place=True, check_timing=False)), v))
-    if verify:
-        verify_written(ir, data, v, adc_offsets)
-    return data
+    p = Path(path)
+    # 1.5.x from pypulseq's 1.5.0 writer, earlier versions from its 1.4.1 writer (without pypulseq's timing check,
+    # which only warns, silenced: the same text); a version other than the writer's own has its [VERSION] set and
+    # ends, as the text of a signed one stripped of its signature, with a newline
+    seq_file(seq, p, v141=v < (1, 5, 0), in_place=True, check_timing=False, signed=False)
+    del seq
+    if rotations or shims:
+        p.write_bytes(add_kept_extensions(set_revision(p.read_bytes() + b"\n", v), rotations, shims))
+    elif v != (1, 5, 0):
+        set_revision_file(p, v, newline=True)
+    sign_file(p)
+    return v
 
 
 def output_version(ir: SequenceIR, version: tuple[int, int, int] | str | None = None) -> tuple[int, int, int]:
@@ -401,7 +429,7 @@ def verify_written(ir: SequenceIR, data: bytes, version, adc_offsets=None) -> No
     if index is None:
         _verify_text(ir, data, version, None)
         return
-    from dtoc.seq.pieces import share, signature_ok
+    from dtoc.seq.pieces import share
 
     v = version_str(tuple(version))
     if not signature_ok(data):
@@ -477,9 +505,13 @@ def _verify_text(ir: SequenceIR, data: bytes, version, span) -> None:
         os.unlink(tmp)
 
 
+#: the lines that open a 1.5.1 extension pypulseq 1.5.0 does not read (ROTATIONS, RF_SHIMS)
+_KEPT_MARKERS = tuple(f"\nextension {k} ".encode() for k in KEPT_EXTENSIONS)
+
+
 def _has_kept_extensions(data: bytes) -> bool:
     """The text holds a 1.5.1 extension pypulseq 1.5.0 does not read (ROTATIONS, RF_SHIMS)."""
-    return any(f"\nextension {k} ".encode() in data for k in KEPT_EXTENSIONS)
+    return any(m in data for m in _KEPT_MARKERS)
 
 
 def _pypulseq_reads(path, version, where: str) -> None:
@@ -506,13 +538,14 @@ class _SharedReadBack:
     the piece parsed once by dtoc and read once by dtoc's reader for both.  Anything but a clean comparison raises
     :class:`_Mismatch` (the caller then runs :func:`verify_written` itself, whose one line names the difference)."""
 
-    def __init__(self, ir: SequenceIR, data: bytes, version, spans: list):
+    def __init__(self, ir: SequenceIR, path: Path, version, spans: list):
         self.ir, self.version, self.spans = ir, tuple(version), spans
         self.v = version_str(self.version)
-        self.pypulseq_too = not _has_kept_extensions(data)
+        facts = text_facts(path, _KEPT_MARKERS)  # (read in chunks: the text is not held)
+        self.pypulseq_too = not facts.markers
         # the whole text's own checks (verify_written's, before any piece; the reader's of a text read whole): not
         # met here, verify_written decides
-        self.whole_ok = b"\r" not in data and signature_ok(data) and _md5_signature(data)
+        self.whole_ok = not facts.has_cr and facts.signature_ok and facts.signature_types in ((), (b"md5",))
         self.gmax = _grad_peak(ir) if len(spans) > 1 else None
         self.done: set = set()
 
@@ -532,15 +565,6 @@ class _SharedReadBack:
 
     def complete(self) -> bool:
         return self.done == ({None} if len(self.spans) <= 1 else set(range(len(self.spans))))
-
-
-def _md5_signature(data: bytes) -> bool:
-    """The text's [SIGNATURE], if any, states no type but md5 (what the reader accepts)."""
-    i = data.find(b"\n[SIGNATURE]")
-    types = (
-        [] if i < 0 else [t[1] for t in (ln.split() for ln in data[i:].split(b"\n")) if len(t) == 2 and t[0] == b"Type"]
-    )
-    return types in ([], [b"md5"])
 
 
 def verify_and_check(
@@ -573,7 +597,7 @@ def verify_and_check(
     spans = verify_spans(ir)
     in_order = all(a.block <= b.block for ev in (ir.rf, ir.adc) for a, b in zip(ev, ev[1:]))
     # (the text is not held while it is checked: the check reads it, and verify_written where it must)
-    rb = _SharedReadBack(ir, Path(path).read_bytes(), version, spans) if in_order or len(spans) <= 1 else None
+    rb = _SharedReadBack(ir, Path(path), version, spans) if in_order or len(spans) <= 1 else None
 
     def check(read_back):
         return check_pieces(path, spans, system, safety, conventions=None, read_back=read_back)

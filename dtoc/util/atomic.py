@@ -247,28 +247,55 @@ def _unlink(name: str | os.PathLike) -> None:
 def atomic_write_bytes(path: str | os.PathLike, data: bytes, force: bool = False) -> Path:
     """Write ``data`` to ``path`` atomically; refuse to overwrite unless ``force``.  Inside
     :func:`outputs_together` the file appears at the end of that block, together with the others."""
-    p = check_output_path(path, force)
-    staged = _STAGE.get()
-    if staged is not None and any(os.path.realpath(d) == os.path.realpath(p) for _, d, _ in staged.items):
-        raise InputError(f"{p}: written twice by one command")
+    p = _not_staged(check_output_path(path, force))
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent if str(p.parent) else ".")
     try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)  # mkstemp creates 0600; give the file ordinary permissions
         with os.fdopen(fd, "wb") as f:
             f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        if staged is not None:
-            staged.items.append((tmp, p, force))
-        else:
-            with signals_held():
-                _publish(tmp, p, force)
+        _place(tmp, p, force)
     except BaseException:
         _unlink(tmp)
         raise
     return p
+
+
+def atomic_move_file(src: str | os.PathLike, path: str | os.PathLike, force: bool = False) -> Path:
+    """Move the complete file ``src`` (on the file system of ``path``'s folder: a temporary there) to ``path``
+    as :func:`atomic_write_bytes` writes bytes: never read into memory (a long sequence's text)."""
+    p = _not_staged(check_output_path(path, force))
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent if str(p.parent) else ".")
+    os.close(fd)
+    try:
+        os.replace(src, tmp)
+        _place(tmp, p, force)
+    except BaseException:
+        _unlink(tmp)
+        raise
+    return p
+
+
+def _not_staged(p: Path) -> Path:
+    """``p``, refused if this command's :func:`outputs_together` block already stages a file there."""
+    staged = _STAGE.get()
+    if staged is not None and any(os.path.realpath(d) == os.path.realpath(p) for _, d, _ in staged.items):
+        raise InputError(f"{p}: written twice by one command")
+    return p
+
+
+def _place(tmp: str, p: Path, force: bool) -> None:
+    """The complete temporary ``tmp`` made durable with ordinary permissions, then moved to ``p`` (or staged
+    there, inside :func:`outputs_together`)."""
+    staged = _STAGE.get()
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file ordinary permissions
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    if staged is not None:
+        staged.items.append((tmp, p, force))
+    else:
+        with signals_held():
+            _publish(tmp, p, force)
 
 
 def atomic_write_text(path: str | os.PathLike, text: str, force: bool = False) -> Path:
