@@ -31,6 +31,7 @@ try:  # pytest puts tests/ on the path; ``python -m tests.test_prepass_equivalen
     from test_prepass_golden import assert_same_graphs, fingerprint
 except ImportError:  # pragma: no cover
     from tests.test_prepass_golden import assert_same_graphs, fingerprint
+from tests.numerics import golden_for, signature
 
 REPO = Path(__file__).resolve().parents[1]
 GOLDEN = Path(__file__).parent / "fixtures" / "prepass_equivalence.json"
@@ -117,7 +118,7 @@ def test_prepass_builds_the_recorded_graphs_of_more_sequences(tmp_path):
     pytest.importorskip("pypulseq")
     if not GOLDEN.exists():
         pytest.fail(f"{GOLDEN} missing: run python -m tests.test_prepass_equivalence")
-    want = json.loads(GOLDEN.read_text())
+    want = json.loads(golden_for(GOLDEN).read_text())  # (per kind of machine: tests/numerics.py)
     got = {key: fingerprint(g) for key, g in _cases(tmp_path)}
     assert sorted(got) == sorted(want)
     # graphs that exercise what the golden set lacks: refocused (conjugating) edges, many states
@@ -244,5 +245,6 @@ if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).parent))
     with tempfile.TemporaryDirectory() as d:
         fps = {key: fingerprint(g) for key, g in _cases(Path(d))}
-    GOLDEN.write_text(json.dumps(fps, indent=1, sort_keys=True) + "\n")
-    print(f"wrote {GOLDEN}: " + ", ".join(f"{k} {v['states']}" for k, v in fps.items()))
+    out = GOLDEN.with_name(f"{GOLDEN.stem}.{signature()}.json") if "--this-machine" in sys.argv else GOLDEN
+    out.write_text(json.dumps(fps, indent=1, sort_keys=True) + "\n")  # --this-machine: tests/numerics.py
+    print(f"wrote {out}: " + ", ".join(f"{k} {v['states']}" for k, v in fps.items()))

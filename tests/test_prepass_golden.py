@@ -25,6 +25,7 @@ from dtoc.sim import pdg
 from dtoc.sim.pdg_dummies import detect_rf_spoiling, dummy_train
 from dtoc.sim.pdg_graph import build_graph
 from dtoc.sim.phantom import brain_phantom
+from tests.numerics import golden_for, signature
 
 REPO = Path(__file__).resolve().parents[1]
 GOLDEN = Path(__file__).parent / "fixtures" / "prepass_golden.json"
@@ -94,13 +95,16 @@ def _cases():
 def test_prepass_builds_the_recorded_graphs():
     if not GOLDEN.exists():
         pytest.fail(f"{GOLDEN} missing: run python -m tests.test_prepass_golden")
-    want = json.loads(GOLDEN.read_text())
+    want = json.loads(golden_for(GOLDEN).read_text())  # (per kind of machine: tests/numerics.py)
     got = {key: fingerprint(g) for key, g in _cases()}
     assert sorted(got) == sorted(want)
     assert sum(w["states"] for w in want.values()) > 50_000  # graphs of real size, not trivial ones
     assert_same_graphs(got, want)
 
 
-if __name__ == "__main__":
-    GOLDEN.write_text(json.dumps({key: fingerprint(g) for key, g in _cases()}, indent=1, sort_keys=True) + "\n")
-    print(f"wrote {GOLDEN}")
+if __name__ == "__main__":  # --this-machine: the golden of this kind of machine (tests/numerics.py)
+    import sys
+
+    out = GOLDEN.with_name(f"{GOLDEN.stem}.{signature()}.json") if "--this-machine" in sys.argv else GOLDEN
+    out.write_text(json.dumps({key: fingerprint(g) for key, g in _cases()}, indent=1, sort_keys=True) + "\n")
+    print(f"wrote {out}")
