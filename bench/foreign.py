@@ -46,7 +46,7 @@ CORPUS = [  # name, description, writer call
 ]
 #: members too long for the default test job (tests/test_foreign_corpus.py marks them slow): 49-63 s each on
 #: 2 cores (radial, gre3d, ute; non-Cartesian and 3D paths keep fast tests in test_ndft.py and test_sim_3d.py)
-SLOW = {"mprage", "radial", "gre3d", "ute"}
+SLOW = {"mprage", "radial", "gre3d", "ute", "se_epi", "se_epi_ramp", "spiral_3"}  # (17-24 s each on a 2-core AMD EPYC)
 #: extra optimize/simulate options per member (an image term on a 3D phantom is asked for, never assumed)
 EXTRA = {"gre3d": ("--phantom", "brain3d")}
 

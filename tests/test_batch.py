@@ -141,6 +141,7 @@ def test_a_damaged_cached_job_runs_again(local_run):
     assert (tmp / "out" / "epi__ex7T__sag__quick" / OUT_SEQ).read_bytes() == good
 
 
+@pytest.mark.slow  # (22 s; the process pool's bytes are tested in the default job)
 def test_dask_local_cluster_gives_the_same_bytes(local_run, tmp_path):
     pytest.importorskip("distributed")
     tmp, plan, _ = local_run

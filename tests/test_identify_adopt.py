@@ -110,6 +110,7 @@ def _random_declared(rng) -> HardwareModel:
     return HardwareModel(effs)
 
 
+@pytest.mark.slow  # (22 s)
 def test_fifty_random_declared_models_without_undeclared_effect_adopt_nothing():
     """Property: when the scanner is exactly the declared model (random GIRF bandwidth, cross terms, B0 row,
     declared delays/gains/offsets/eddy currents), identify adopts nothing and writes no model."""
@@ -161,7 +162,7 @@ class _Resonance(torch.nn.Module):
         return G, b0
 
 
-@pytest.mark.parametrize("case", range(6))
+@pytest.mark.parametrize("case", [pytest.param(0, marks=pytest.mark.slow), *range(1, 6)])  # (case 0: 14 s)
 def test_a_written_model_is_never_worse_held_out_and_always_loads(case, tmp_path):
     """Property over truths the library may or may not represent (a saturating amplifier, a resonance, an
     undeclared delay or eddy current, and the search forced to add noise with threshold -inf): whatever is

@@ -11,8 +11,10 @@ import pytest
 from bench.identify_corpus import CASES, run_case
 
 # In the slow job: hysteresis (~30 s: many rounds on a non-modellable residual) and the cases that
-# tests/test_identify_search.py already runs in the default job with the same kind of truth.
-SLOW = {"hysteresis", "delay_pwl", "gain", "offset", "eddy_short", "b0_eddy"}
+# tests/test_identify_search.py already runs in the default job with the same kind of truth (its slew test: the
+# slew cases here, 38-57 s each); saturation and concomitant (15-33 s) to keep the default job near 10 minutes.
+SLOW = {"hysteresis", "delay_pwl", "gain", "offset", "eddy_short", "b0_eddy", "slew_one_axis", "slew_all_axes"}
+SLOW |= {"saturation", "concomitant"}
 
 
 @pytest.mark.parametrize(

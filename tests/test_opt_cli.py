@@ -187,6 +187,7 @@ def test_golden_gre_amplitude_limited_regression(tmp_path):
     assert r.returncode != 0
 
 
+@pytest.mark.slow  # (23 s)
 def test_phantom_option_changes_the_figures_not_the_gre_waveform(tmp_path):
     """`--phantom brain-noscalp` (the paper's kind of phantom) is recorded in the manifest and changes the
     image figures; the GRE default (k-space warm start, no image term) does not look at the phantom, so
