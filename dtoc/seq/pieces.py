@@ -352,13 +352,7 @@ def text_facts(path: str | os.PathLike, markers: tuple[bytes, ...] = ()) -> Text
         h.update(carry)
         return TextFacts(has_cr, False, True, (), frozenset(found))
     found.update(m for m in markers if m in tail)
-    stated, types = None, []
-    for line in tail.split(b"\n"):
-        t = line.split()
-        if len(t) == 2 and t[0] == b"Hash":
-            stated = t[1].decode("ascii", "replace").lower()
-        if len(t) == 2 and t[0] == b"Type":
-            types.append(t[1])
+    stated, types = _signature_fields(tail)
     ok = stated is not None and h.hexdigest() == stated
     return TextFacts(has_cr, True, ok, tuple(types), frozenset(found))
 
@@ -392,9 +386,17 @@ def signature_ok(data: bytes) -> bool:
     i = data.find(b"\n[SIGNATURE]")
     if i < 0:
         return True
-    stated = None
-    for line in data[i:].split(b"\n"):
+    stated = _signature_fields(data[i:])[0]
+    return stated is not None and hashlib.md5(data[:i]).hexdigest() == stated
+
+
+def _signature_fields(section: bytes) -> tuple[str | None, tuple[bytes, ...]]:
+    """(the last stated ``Hash``, lower case, or None; every stated ``Type``) of a [SIGNATURE] section's bytes."""
+    stated, types = None, []
+    for line in section.split(b"\n"):
         t = line.split()
         if len(t) == 2 and t[0] == b"Hash":
             stated = t[1].decode("ascii", "replace").lower()
-    return stated is not None and hashlib.md5(data[:i]).hexdigest() == stated
+        if len(t) == 2 and t[0] == b"Type":
+            types.append(t[1])
+    return stated, tuple(types)

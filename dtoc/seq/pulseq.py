@@ -108,14 +108,11 @@ def seq_bytes(seq, v141: bool = False, in_place: bool = False, check_timing: boo
 def seq_file(
     seq, path: str | Path, v141: bool = False, in_place: bool = False, check_timing: bool = True, signed: bool = True
 ) -> None:
-    """:func:`seq_bytes`' text written to ``path`` (``signed`` False: without its [SIGNATURE], for the caller to
-    edit and sign, :func:`dtoc.seq.seqtext.sign_file`), never whole in memory: pypulseq writes it unsigned and
-    the md5 signature is computed reading the file in chunks (pypulseq's own signing reads the whole text as a
-    string and encodes it: twice the text's size, the peak of a long sequence's export).  The same bytes as
-    pypulseq's signed text.  With ``in_place``, the libraries' look-up tables (a copy of every event and shape,
-    used only to add events) are released after the de-duplication: ``seq`` is the caller's to discard."""
-    from dtoc.seq.seqtext import sign_file
-
+    """:func:`seq_bytes`' text written to ``path``; ``signed`` False: without its [SIGNATURE], for the caller to
+    edit and sign in chunks (:func:`dtoc.seq.seqtext.sign_file`: pypulseq's own signing reads the whole text as
+    a string and encodes it, twice the text's size, the peak of a long sequence's export).  With ``in_place``,
+    the libraries' look-up tables (a copy of every event and shape, used only to add events) are released after
+    the de-duplication: ``seq`` is the caller's to discard."""
     with quiet():
         if in_place:
             lean_shape_dedup(seq.shape_library)
@@ -125,13 +122,11 @@ def seq_file(
                     lib.keymap = {}
         seq.write(
             str(path),
-            create_signature=False,
+            create_signature=signed,
             v141_compat=v141,
             remove_duplicates=not in_place,
             check_timing=check_timing,
         )
-    if signed:
-        sign_file(path)
 
 
 def _round_significant(data: np.ndarray, digits: int) -> np.ndarray:

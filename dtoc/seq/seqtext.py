@@ -270,7 +270,7 @@ _SECTION_START = re.compile(r"^[ \t]*(\[|extension )", re.M)
 def _shapes_body(text: str) -> tuple[int, int, int, int] | None:
     """(start, end, first line number, line number at end) of the [SHAPES] section's lines in ``text``, or None
     (no such section, or one named twice: the line by line reading names what is wrong)."""
-    heads = [m for m in re.finditer(r"^[ \t]*\[SHAPES\][ \t]*$", text, re.M)]
+    heads = list(re.finditer(r"^[ \t]*\[SHAPES\][ \t]*$", text, re.M))
     if len(heads) != 1:
         return None
     a = text.find("\n", heads[0].end())

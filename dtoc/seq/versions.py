@@ -35,8 +35,11 @@ target cannot express (RF use other than what 1.4 readers detect, ppm offsets, A
 from __future__ import annotations
 
 import math
+import os
 import re
+import shutil
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -504,10 +507,6 @@ def set_revision_file(path, version: tuple[int, int, int], newline: bool = False
     """:func:`set_revision` on the text at ``path`` (its [VERSION] section is at the top: only the first chunk
     is read whole; the rest is copied in chunks), ``newline``: with a newline appended (the text
     :func:`strip_signature` leaves of a signed one)."""
-    import os
-    import shutil
-    from pathlib import Path
-
     p = Path(path)
     tmp = p.with_name(p.name + ".rev")
     try:
